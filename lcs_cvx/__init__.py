@@ -1,0 +1,17 @@
+"""lcs_cvx: learning linear complementarity systems (Jin, Aydinoglu, Halm, Posa; L4DC 2022)."""
+
+from ._checks import LCSInputError as LCSInputError
+from ._checks import SolverError as SolverError
+from .data import Dataset as Dataset
+from .data import make_dataset as make_dataset
+from .lcp import FallbackWarning as FallbackWarning
+from .lcp import LCPSolution as LCPSolution
+from .lcp import solve_lcp as solve_lcp
+from .metrics import count_modes as count_modes
+from .metrics import relative_error as relative_error
+from .problems import convex_lcp_problem as convex_lcp_problem
+from .problems import violation_problem as violation_problem
+from .system import LCS as LCS
+from .system import random_lcs as random_lcs
+
+__version__ = "0.1.0"

@@ -1,0 +1,168 @@
+"""Transition data ``(x, u, x')`` and the paper's data generator (Sec. 5).
+
+:func:`make_dataset` samples ``x ~ U[-x_scale, x_scale]^{n_x}``, ``u ~ U[-u_scale, u_scale]^{n_u}``
+(the paper: 10 and 5), steps the system with the exact LCP, and adds ``N(0, noise^2)`` to ``x'``
+(the paper: 1e-2 on training data, none on test data).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from ._checks import LCSInputError, as_batch, check_positive
+
+__all__ = ["Dataset", "make_dataset"]
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A frozen set of ``N`` transitions.
+
+    Attributes:
+        x: ``(N, n_x)`` float64; u: ``(N, n_u)``; x_next: ``(N, n_x)``.
+        lam: ``(N, n_lam)`` true complementarity variables when known (generated data), else None.
+    """
+
+    x: torch.Tensor
+    u: torch.Tensor
+    x_next: torch.Tensor
+    lam: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        n = self.x.shape[0]
+        for name in ("x", "u", "x_next") + (("lam",) if self.lam is not None else ()):
+            t = getattr(self, name)
+            if not isinstance(t, torch.Tensor) or t.dim() != 2 or t.shape[0] != n:
+                raise LCSInputError(
+                    f"{name}: expected a 2-D tensor with {n} rows, received "
+                    f"{tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__}"
+                )
+        if self.x_next.shape[1] != self.x.shape[1]:
+            raise LCSInputError(
+                f"x_next: expected {self.x.shape[1]} columns (n_x of x), received {self.x_next.shape[1]}"
+            )
+
+    # -- constructors -------------------------------------------------------------------
+    @classmethod
+    def from_arrays(cls, x: Any, u: Any, x_next: Any, lam: Any | None = None) -> Dataset:
+        """Build a dataset from a user's arrays (validated: 2-D, matching rows, finite)."""
+        x_arr = np.asarray(x, dtype=np.float64) if not isinstance(x, torch.Tensor) else x
+        if x_arr.ndim != 2:
+            raise LCSInputError(f"x: expected shape (N, n_x), received shape {tuple(x_arr.shape)}")
+        N, n_x = x_arr.shape
+        x_t = as_batch("x", x_arr, n_x)
+        u_arr = np.asarray(u, dtype=np.float64) if not isinstance(u, torch.Tensor) else u
+        if u_arr.ndim == 1 and u_arr.shape[0] == N:
+            u_arr = u_arr.reshape(N, 1)
+        if u_arr.ndim != 2:
+            raise LCSInputError(f"u: expected shape ({N}, n_u), received shape {tuple(u_arr.shape)}")
+        u_t = as_batch("u", u_arr, u_arr.shape[1], batch=N)
+        xn_t = as_batch("x_next", x_next, n_x, batch=N)
+        lam_t = None
+        if lam is not None:
+            lam_arr = np.asarray(lam, dtype=np.float64) if not isinstance(lam, torch.Tensor) else lam
+            if lam_arr.ndim != 2:
+                raise LCSInputError(f"lam: expected shape ({N}, n_lam), received {tuple(lam_arr.shape)}")
+            lam_t = as_batch("lam", lam_arr, lam_arr.shape[1], batch=N)
+        return cls(x_t, u_t, xn_t, lam_t)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Dataset:
+        """Load an ``.npz`` written by :meth:`save` (arrays ``x``, ``u``, ``x_next``, optional ``lam``)."""
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise LCSInputError(f"path: expected an existing .npz file, received {path!r} (not found)")
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                arrays = {k: f[k] for k in f.files}
+        except (ValueError, OSError) as exc:
+            raise LCSInputError(f"path: expected an .npz file, could not read {path!r}: {exc}") from exc
+        missing = [k for k in ("x", "u", "x_next") if k not in arrays]
+        if missing:
+            raise LCSInputError(
+                f"path: expected arrays 'x', 'u', 'x_next' in {path!r}, missing {missing} "
+                f"(found {sorted(arrays)})"
+            )
+        return cls.from_arrays(arrays["x"], arrays["u"], arrays["x_next"], arrays.get("lam"))
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write an ``.npz`` (no pickle) with arrays ``x``, ``u``, ``x_next`` (and ``lam``)."""
+        arrays = {"x": self.x, "u": self.u, "x_next": self.x_next}
+        if self.lam is not None:
+            arrays["lam"] = self.lam
+        np.savez(os.fspath(path), **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+
+    # -- container protocol -------------------------------------------------------------
+    @property
+    def n_x(self) -> int:
+        return self.x.shape[1]
+
+    @property
+    def n_u(self) -> int:
+        return self.u.shape[1]
+
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    def __getitem__(self, idx: Any) -> Dataset:
+        if isinstance(idx, int):
+            idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
+        lam = self.lam[idx] if self.lam is not None else None
+        return Dataset(self.x[idx], self.u[idx], self.x_next[idx], lam)
+
+    def split(self, frac: float, seed: int = 0) -> tuple[Dataset, Dataset]:
+        """Random split into ``(first, second)`` with ``round(frac * N)`` samples in ``first``."""
+        if not (0.0 < float(frac) < 1.0):
+            raise LCSInputError(f"frac: expected a fraction in (0, 1), received {frac!r}")
+        perm = torch.randperm(len(self), generator=torch.Generator().manual_seed(int(seed)))
+        k = int(round(float(frac) * len(self)))
+        return self[perm[:k]], self[perm[k:]]
+
+    def to(self, device: torch.device | str) -> Dataset:
+        lam = self.lam.to(device) if self.lam is not None else None
+        return Dataset(self.x.to(device), self.u.to(device), self.x_next.to(device), lam)
+
+    def __repr__(self) -> str:
+        return f"Dataset(N={len(self)}, n_x={self.n_x}, n_u={self.n_u}, lam={'yes' if self.lam is not None else 'no'})"
+
+
+def make_dataset(
+    system: Any,
+    n: int,
+    noise: float = 0.0,
+    seed: int = 0,
+    x_scale: float = 10.0,
+    u_scale: float = 5.0,
+    batch_size: int = 50_000,
+) -> Dataset:
+    """Sample ``n`` transitions of ``system`` (an :class:`lcs_cvx.LCS`) as in the paper's Sec. 5.
+
+    ``x ~ U[-x_scale, x_scale]``, ``u ~ U[-u_scale, u_scale]``, ``x' = system.step(x, u)`` plus
+    ``N(0, noise^2)``; ``lam`` holds the exact (noise-free) complementarity variables.
+    Reproducible in ``seed``.
+    """
+    n = check_positive("n", n, integer=True)
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not noise >= 0 or noise == float("inf"):
+        raise LCSInputError(f"noise: expected a finite standard deviation >= 0, received {noise!r}")
+    check_positive("x_scale", x_scale)
+    check_positive("u_scale", u_scale)
+    gen = torch.Generator().manual_seed(int(seed))
+    f64 = torch.float64
+    x = (torch.rand(n, system.n_x, generator=gen, dtype=f64) * 2 - 1) * x_scale
+    u = (torch.rand(n, system.n_u, generator=gen, dtype=f64) * 2 - 1) * u_scale
+    noise_draw = torch.randn(n, system.n_x, generator=gen, dtype=f64) * float(noise)
+    xs, lams = [], []
+    with torch.no_grad():
+        for i in range(0, n, batch_size):
+            xb = x[i : i + batch_size].to(system.dtype)
+            ub = u[i : i + batch_size].to(system.dtype)
+            lam = system.solve_lcp(xb, ub)
+            xs.append(xb @ system.A.mT + ub @ system.B.mT + lam @ system.C.mT + system.d)
+            lams.append(lam)
+    x_next = torch.cat(xs).to(f64) + noise_draw
+    return Dataset(x, u, x_next, torch.cat(lams).to(f64))

@@ -1,0 +1,195 @@
+r"""Exact batched solution of the LCP of eq. (equ.lcp): ``0 <= lam _|_ F lam + q >= 0``.
+
+Three solvers, one answer (Assumption 1, ``F + F^T > 0``, makes it unique):
+
+- ``"fast"``: batched block principal pivoting (:mod:`lcs_cvx.pivoting`) on the free set
+  ``I = {i : lam_i > 0}``; each sweep solves ``F_II lam_I = -q_I`` for the whole batch with
+  one batched LU. The converged free set gives the exact active-set solution. A sample that
+  does not converge is re-solved with the reference and reported (warning + counter).
+- ``"cvxpy"``: the declared problem (P) (:func:`lcs_cvx.problems.convex_lcp_problem`)
+  solved with Clarabel, one sample at a time -- the reference.
+- ``"brute"``: enumeration of all ``2^n`` active sets -- for tests, ``n <= 12``.
+
+The fast solve also provides :func:`active_set_solve`: given the free set, ``lam`` as a
+differentiable function of ``(F, q)`` -- the implicit-function-theorem map of Lemma 1.
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from ._checks import LCSInputError, SolverError
+from .pivoting import block_pivoting
+from .problems import convex_lcp_problem
+
+__all__ = [
+    "LCPSolution",
+    "solve_lcp",
+    "solve_lcp_fast",
+    "solve_lcp_brute",
+    "active_set_solve",
+    "lcp_residual",
+    "FallbackWarning",
+]
+
+#: Relative tolerance for feasibility of a pivoting candidate (scaled by ``1 + |q|_inf``).
+PIVOT_TOL = 1e-11
+
+
+class FallbackWarning(RuntimeWarning):
+    """The fast solver did not converge on some samples; the reference solved them."""
+
+
+@dataclass(frozen=True)
+class LCPSolution:
+    """Solution of a batch of LCPs.
+
+    Attributes:
+        lam: ``(B, n)`` the solution.
+        w: ``(B, n)`` ``F lam + q``.
+        free: ``(B, n)`` bool, the free set (``lam_i`` determined by ``w_i = 0``).
+        iterations: pivoting sweeps (0 for the reference solvers).
+        n_fallback: samples the fast solver handed to the reference.
+        residual: ``(B,)`` relative LCP residual (:func:`lcp_residual`).
+    """
+
+    lam: torch.Tensor
+    w: torch.Tensor
+    free: torch.Tensor
+    iterations: int
+    n_fallback: int
+    residual: torch.Tensor
+
+
+def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+    """Relative violation of the LCP conditions, per sample ``(B,)``.
+
+    The natural residual ``|min(lam, w)|_inf / (1 + |q|_inf)`` with ``w = F lam + q``: zero
+    exactly at the solution, and it bounds the violation of ``lam >= 0``, ``w >= 0`` and of
+    complementarity (``min(lam_i, w_i) = 0``).
+    """
+    w = lam @ F.mT + q
+    return torch.minimum(lam, w).abs().amax(-1) / (1.0 + q.abs().amax(-1))
+
+
+def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+    """``lam`` with ``lam_J = 0`` and ``(F lam + q)_I = 0`` for the free sets ``free`` ``(B, n)``.
+
+    Differentiable in ``F`` ``(n, n)`` or ``(B, n, n)`` and ``q`` ``(B, n)``: for the correct
+    free set this is the implicit function of Lemma 1 (a non-strictly-complementary index is
+    treated as not free, i.e. ``lam_i`` held at 0 -- a one-sided derivative).
+    """
+    m = free.to(q.dtype)
+    M = F * (m[:, :, None] * m[:, None, :]) + torch.diag_embed(1.0 - m)
+    return torch.linalg.solve(M, -(m * q).unsqueeze(-1)).squeeze(-1)
+
+
+def _initial_free(q: torch.Tensor) -> torch.Tensor:
+    return q < 0
+
+
+def solve_lcp_fast(
+    F: torch.Tensor,
+    q: torch.Tensor,
+    *,
+    max_iter: int = 100,
+    tol: float = PIVOT_TOL,
+    fallback: bool = True,
+) -> LCPSolution:
+    """Solve ``0 <= lam _|_ F lam + q >= 0`` for a batch by block principal pivoting.
+
+    Args:
+        F: ``(n, n)`` with ``F + F^T > 0`` (not checked here; :class:`lcs_cvx.LCS` ensures it).
+        q: ``(B, n)``.
+        max_iter: pivoting sweeps before the remaining samples fall back.
+        tol: relative feasibility tolerance of a candidate free set.
+        fallback: re-solve unconverged samples with the Clarabel reference (and warn);
+            if False, raise :class:`SolverError` instead.
+
+    Returns:
+        :class:`LCPSolution` (no autograd graph; see :func:`active_set_solve`).
+    """
+    with torch.no_grad():
+        F = F.detach()
+        q = q.detach()
+        B, n = q.shape
+        abs_tol = tol * (1.0 + q.abs().amax(-1, keepdim=True))
+
+        def solve(free: torch.Tensor, idx: torch.Tensor | None):
+            qq = q if idx is None else q[idx]
+            at = abs_tol if idx is None else abs_tol[idx]
+            lam = active_set_solve(F, qq, free)
+            w = lam @ F.mT + qq
+            bad = torch.where(free, lam < -at, w < -at)
+            return lam, bad
+
+        res = block_pivoting(solve, _initial_free(q), max_iter=max_iter)
+        lam = res.solution.clamp(min=0.0)
+        free = res.free & (res.solution > 0)
+        n_fb = 0
+        if not bool(res.converged.all()):
+            bad_idx = (~res.converged).nonzero().squeeze(1)
+            n_fb = int(bad_idx.numel())
+            if not fallback:
+                raise SolverError(
+                    f"LCP pivoting did not converge on {n_fb} of {B} samples in {max_iter} sweeps"
+                )
+            warnings.warn(
+                f"LCP pivoting did not converge on {n_fb} of {B} samples in {max_iter} sweeps; "
+                "solved them with the Clarabel reference",
+                FallbackWarning,
+                stacklevel=2,
+            )
+            ref = convex_lcp_problem(n).solve(F.cpu(), q[bad_idx].cpu().numpy())
+            lam[bad_idx] = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
+            w_ref = lam[bad_idx] @ F.mT + q[bad_idx]
+            free[bad_idx] = lam[bad_idx] > w_ref
+        w = lam @ F.mT + q
+        return LCPSolution(lam, w, free, res.iterations, n_fb, lcp_residual(F, q, lam))
+
+
+def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
+    """Enumerate all ``2^n`` free sets and keep the feasible one (tests only; ``n <= 12``)."""
+    B, n = q.shape
+    if n > 12:
+        raise LCSInputError(f"n_lam: brute force enumerates 2^n sets, expected n <= 12, received {n}")
+    with torch.no_grad():
+        best_lam = torch.zeros_like(q)
+        best_res = torch.full((B,), float("inf"), dtype=q.dtype, device=q.device)
+        best_free = torch.zeros_like(q, dtype=torch.bool)
+        for bits in itertools.product([False, True], repeat=n):
+            free = torch.tensor(bits, device=q.device).expand(B, n)
+            lam = active_set_solve(F, q, free)
+            res = lcp_residual(F, q, lam)
+            better = res < best_res
+            best_res = torch.where(better, res, best_res)
+            best_lam = torch.where(better[:, None], lam, best_lam)
+            best_free = torch.where(better[:, None], free, best_free)
+        lam = best_lam.clamp(min=0.0)
+        return LCPSolution(lam, lam @ F.mT + q, best_free, 0, 0, lcp_residual(F, q, lam))
+
+
+def solve_lcp(F: torch.Tensor, q: torch.Tensor, method: str = "fast") -> LCPSolution:
+    """Solve the LCP ``0 <= lam _|_ F lam + q >= 0`` for a batch ``q`` ``(B, n)``.
+
+    ``method`` is ``"fast"`` (batched pivoting, default), ``"cvxpy"`` (declared problem (P),
+    Clarabel) or ``"brute"`` (enumeration).
+    """
+    if method == "fast":
+        return solve_lcp_fast(F, q)
+    if method == "brute":
+        return solve_lcp_brute(F, q)
+    if method == "cvxpy":
+        with torch.no_grad():
+            n = q.shape[-1]
+            ref = convex_lcp_problem(n).solve(F.detach().cpu(), q.detach().cpu().numpy())
+            lam = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
+            w = lam @ F.detach().mT + q.detach()
+            return LCPSolution(lam, w, lam > w, 0, 0, lcp_residual(F.detach(), q.detach(), lam))
+    raise LCSInputError(
+        f"method: expected one of 'fast', 'cvxpy', 'brute', received {method!r}"
+    )

@@ -1,0 +1,40 @@
+"""Evaluation metrics of the paper (Sec. 5): e_test and the number of hybrid modes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ._checks import LCSInputError
+
+__all__ = ["relative_error", "count_modes"]
+
+
+def relative_error(model: Any, dataset: Any) -> float:
+    """The paper's mean relative prediction error
+
+        e_test = sum_t ||x'_theta(x_t, u_t) - x'_t||^2 / sum_t ||x'_t||^2,
+
+    with ``x'_theta`` from the exact LCP solution of ``model`` (an :class:`lcs_cvx.LCS`).
+    """
+    if len(dataset) == 0:
+        raise LCSInputError("dataset: expected at least one sample, received an empty dataset")
+    with torch.no_grad():
+        x = dataset.x.to(model.dtype)
+        u = dataset.u.to(model.dtype)
+        pred = model.step(x, u)
+        target = dataset.x_next.to(model.dtype)
+        num = ((pred - target) ** 2).sum()
+        den = (target**2).sum()
+    if float(den) == 0.0:
+        raise LCSInputError("dataset: expected x_next not identically zero (e_test divides by it)")
+    return float(num / den)
+
+
+def count_modes(system: Any, x: Any, u: Any, tol: float = 1e-5) -> int:
+    """Number of distinct active sets ``{i : lam_i > tol}`` of ``system`` over the samples."""
+    active = system.active_set(x, u, tol=tol)
+    if active.shape[0] == 0:
+        return 0
+    return int(torch.unique(active, dim=0).shape[0])

@@ -1,0 +1,269 @@
+r"""The two per-sample convex problems of the paper, each declared once.
+
+(P) -- the convex reformulation of the LCP, eq. (equ.convexlcp)::
+
+    lam*(q) = argmin_lam  1/2 lam^T (F + F^T) lam + q^T lam   s.t.  lam >= 0,  F lam + q >= 0
+
+  DPP form: parameters ``R`` (with ``R^T R = F + F^T``), ``F`` and ``q``; objective
+  ``1/2 ||R lam||^2 + q^T lam``.
+
+(V) -- the violation-based per-sample problem, eq. (equ.contactnet.2)::
+
+    l_eps = min_{lam >= 0, phi >= 0}  1/2 ||C lam + r||^2
+                                     + (1/eps) (lam^T phi + ||F lam + q - phi||^2 / (2 gamma))
+
+  with ``r = A x + B u + d - x'`` and ``q = D x + E u + c``. ``lam^T phi`` is bilinear, so (V)
+  is not DCP as written. For fixed ``lam`` the minimiser over ``phi`` is
+  ``phi* = max(0, w - gamma lam)`` (``w = F lam + q``), and eliminating it gives the exact,
+  DPP, n_lam-dimensional problem (constant terms dropped)::
+
+    min_{lam >= 0}  1/2 ||L lam + b||^2 + 1/2 ||pos(K lam - h)||^2
+
+    L^T L = C^T C + (F + F^T - gamma I) / eps     (Cholesky; needs gamma < sigma_min(F + F^T))
+    L^T b = C^T r + q / eps
+    K = (gamma I - F) / sqrt(gamma eps),          h = q / sqrt(gamma eps)
+
+  A completed square rather than ``1/2 lam^T H lam + g^T lam`` (see DESIGN.md on cancellation),
+  and independent of ``n_x``.
+
+Each declaration object carries the CVXPY problem, its parameters and variables by name, and
+builds the parameter values from torch tensors (differentiably). The CVXPY problem is what the
+``cvxpylayers`` layers and the Clarabel reference solve; the same parameter values are what the
+fast batched kernels consume (:mod:`lcs_cvx.lcp`, :mod:`lcs_cvx.violation`). The value of
+(V) in the original (lam, phi) variables, from which gradients are taken, is
+:meth:`ViolationProblem.objective`; a test checks it against the CVXPY objective.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+
+import cvxpy as cp
+import numpy as np
+import torch
+
+from ._checks import LCSInputError, SolverError, check_positive
+
+__all__ = [
+    "ConvexLCPProblem",
+    "ViolationProblem",
+    "convex_lcp_problem",
+    "violation_problem",
+    "sym_min_eig",
+]
+
+#: Clarabel settings for the reference solves (tighter than the defaults: the reference
+#: is what the fast kernels are tested against).
+CLARABEL_OPTIONS: dict[str, float | int] = {
+    "tol_gap_abs": 1e-10,
+    "tol_gap_rel": 1e-10,
+    "tol_feas": 1e-10,
+}
+
+
+def sym_min_eig(F: torch.Tensor) -> torch.Tensor:
+    """sigma_min(F + F^T) -- the smallest eigenvalue of the symmetric part times two.
+
+    Assumption 1 of the paper is ``sym_min_eig(F) > 0``. ``F`` is ``(n, n)`` or ``(B, n, n)``.
+    """
+    return torch.linalg.eigvalsh(F + F.mT)[..., 0]
+
+
+def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
+    """``U`` with ``U^T U = S`` for a symmetric positive definite ``S``; a clear error otherwise."""
+    Lc, info = torch.linalg.cholesky_ex(S)
+    if bool((info != 0).any()):
+        raise LCSInputError(
+            f"{name}: expected a positive definite matrix, received one with smallest "
+            f"eigenvalue {float(torch.linalg.eigvalsh(S).min()):.3e}"
+        )
+    return Lc.mT
+
+
+@dataclass(frozen=True, eq=False)
+class ConvexLCPProblem:
+    """Declaration of (P), eq. (equ.convexlcp), for ``n_lam`` complementarity variables.
+
+    Attributes:
+        n_lam: dimension of ``lam``.
+        problem: the DPP ``cvxpy.Problem``.
+        parameters: ``{"R": (n, n), "F": (n, n), "q": (n,)}`` CVXPY parameters.
+        variables: ``{"lam": (n,)}``.
+    """
+
+    n_lam: int
+    problem: cp.Problem = field(repr=False)
+    parameters: dict[str, cp.Parameter] = field(repr=False)
+    variables: dict[str, cp.Variable] = field(repr=False)
+
+    @property
+    def parameter_order(self) -> list[str]:
+        return ["R", "F", "q"]
+
+    def parameter_values(self, F: torch.Tensor, q: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Parameter values (differentiable) from ``F`` ``(n, n)`` and ``q`` ``(B, n)``."""
+        return {"R": _upper_cholesky("F + F^T", F + F.mT), "F": F, "q": q}
+
+    def solve(self, F: torch.Tensor | np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Solve (P) for each row of ``q`` ``(B, n)`` with Clarabel; returns ``lam`` ``(B, n)``.
+
+        This is the reference path: one CVXPY solve per sample.
+        """
+        F_t = torch.as_tensor(F, dtype=torch.float64)
+        self.parameters["R"].value = _upper_cholesky("F + F^T", F_t + F_t.mT).numpy()
+        self.parameters["F"].value = F_t.numpy()
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        out = np.empty_like(q)
+        for i, qi in enumerate(q):
+            self.parameters["q"].value = qi
+            _solve_reference(self.problem, f"(P) sample {i}")
+            out[i] = self.variables["lam"].value
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class ViolationProblem:
+    """Declaration of (V), eq. (equ.contactnet.2), in the DPP form of the module docstring.
+
+    Attributes:
+        n_lam: dimension of ``lam``.
+        problem: the DPP ``cvxpy.Problem`` in ``lam`` (``phi`` eliminated exactly).
+        parameters: ``{"L": (n, n), "b": (n,), "K": (n, n), "h": (n,)}``.
+        variables: ``{"lam": (n,)}``.
+    """
+
+    n_lam: int
+    problem: cp.Problem = field(repr=False)
+    parameters: dict[str, cp.Parameter] = field(repr=False)
+    variables: dict[str, cp.Variable] = field(repr=False)
+
+    @property
+    def parameter_order(self) -> list[str]:
+        return ["L", "b", "K", "h"]
+
+    def parameter_values(
+        self,
+        C: torch.Tensor,
+        F: torch.Tensor,
+        q: torch.Tensor,
+        r: torch.Tensor,
+        gamma: float,
+        eps: float,
+    ) -> dict[str, torch.Tensor]:
+        """Parameter values of (V) (differentiable in every input).
+
+        Args:
+            C: ``(n_x, n)``; F: ``(n, n)``; q: ``(B, n)`` the LCP offset ``D x + E u + c``;
+            r: ``(B, n_x)`` the dynamics residual ``A x + B u + d - x'``;
+            gamma, eps: the paper's ``gamma`` (``0 < gamma < sigma_min(F + F^T)``) and ``eps``.
+
+        Returns:
+            ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}``.
+        """
+        n = self.n_lam
+        eye = torch.eye(n, dtype=F.dtype, device=F.device)
+        check_gamma(F, gamma)
+        H = C.mT @ C + (F + F.mT - gamma * eye) / eps
+        L = _upper_cholesky("C^T C + (F + F^T - gamma I)/eps", H)
+        g = r @ C + q / eps  # rows of C^T r + q/eps
+        b = torch.linalg.solve_triangular(L.mT, g.mT, upper=False).mT
+        scale = 1.0 / math.sqrt(gamma * eps)
+        return {"L": L, "b": b, "K": (gamma * eye - F) * scale, "h": q * scale}
+
+    @staticmethod
+    def phi(lam: torch.Tensor, F: torch.Tensor, q: torch.Tensor, gamma: float) -> torch.Tensor:
+        """The exact minimiser over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``."""
+        return torch.clamp(lam @ F.mT + q - gamma * lam, min=0.0)
+
+    @staticmethod
+    def objective(
+        lam: torch.Tensor,
+        phi: torch.Tensor,
+        C: torch.Tensor,
+        F: torch.Tensor,
+        q: torch.Tensor,
+        r: torch.Tensor,
+        gamma: float,
+        eps: float,
+    ) -> torch.Tensor:
+        """Per-sample value of eq. (equ.contactnet.2) at ``(lam, phi)``, shape ``(B,)``.
+
+        ``1/2 ||C lam + r||^2 + (1/eps) (lam^T phi + ||F lam + q - phi||^2 / (2 gamma))``.
+        At the detached optimum, autograd of this expression gives Lemma 3's envelope gradients.
+        """
+        e_dyn = lam @ C.mT + r
+        w_res = lam @ F.mT + q - phi
+        return 0.5 * (e_dyn * e_dyn).sum(-1) + (
+            (lam * phi).sum(-1) + (w_res * w_res).sum(-1) / (2.0 * gamma)
+        ) / eps
+
+    def solve(self, values: dict[str, torch.Tensor]) -> np.ndarray:
+        """Solve (V) for every row of ``values["b"]`` with Clarabel; returns ``lam`` ``(B, n)``."""
+        self.parameters["L"].value = values["L"].detach().cpu().numpy()
+        self.parameters["K"].value = values["K"].detach().cpu().numpy()
+        b = values["b"].detach().cpu().numpy()
+        h = values["h"].detach().cpu().numpy()
+        out = np.empty_like(b)
+        for i in range(b.shape[0]):
+            self.parameters["b"].value = b[i]
+            self.parameters["h"].value = h[i]
+            _solve_reference(self.problem, f"(V) sample {i}")
+            out[i] = self.variables["lam"].value
+        return np.maximum(out, 0.0)
+
+
+def check_gamma(F: torch.Tensor, gamma: float) -> float:
+    """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers."""
+    check_positive("gamma", gamma)
+    smin = float(sym_min_eig(F.detach()))
+    if not gamma < smin:
+        raise LCSInputError(
+            f"gamma: expected 0 < gamma < sigma_min(F + F^T) = {smin:.6g} (Lemma 2), "
+            f"received {gamma!r}; lower gamma or raise the model's stiffness"
+        )
+    return smin
+
+
+def _solve_reference(problem: cp.Problem, what: str) -> None:
+    """Clarabel with tight tolerances; on failure once more with its defaults, then raise."""
+    for options in (CLARABEL_OPTIONS, {}):
+        try:
+            problem.solve(solver=cp.CLARABEL, **options)
+        except cp.error.SolverError:
+            continue
+        if problem.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            return
+    raise SolverError(f"Clarabel failed on {what}: status {problem.status}")
+
+
+@functools.lru_cache(maxsize=None)
+def convex_lcp_problem(n_lam: int) -> ConvexLCPProblem:
+    """The DPP declaration of (P), eq. (equ.convexlcp), for ``n_lam`` variables (cached)."""
+    n = check_positive("n_lam", n_lam, integer=True)
+    lam = cp.Variable(n, name="lam")
+    R = cp.Parameter((n, n), name="R")
+    F = cp.Parameter((n, n), name="F")
+    q = cp.Parameter(n, name="q")
+    objective = cp.Minimize(0.5 * cp.sum_squares(R @ lam) + q @ lam)
+    problem = cp.Problem(objective, [lam >= 0, F @ lam + q >= 0])
+    assert problem.is_dpp()
+    return ConvexLCPProblem(n, problem, {"R": R, "F": F, "q": q}, {"lam": lam})
+
+
+@functools.lru_cache(maxsize=None)
+def violation_problem(n_lam: int) -> ViolationProblem:
+    """The DPP declaration of (V), eq. (equ.contactnet.2), for ``n_lam`` variables (cached)."""
+    n = check_positive("n_lam", n_lam, integer=True)
+    lam = cp.Variable(n, name="lam")
+    L = cp.Parameter((n, n), name="L")
+    b = cp.Parameter(n, name="b")
+    K = cp.Parameter((n, n), name="K")
+    h = cp.Parameter(n, name="h")
+    objective = cp.Minimize(
+        0.5 * cp.sum_squares(L @ lam + b) + 0.5 * cp.sum_squares(cp.pos(K @ lam - h))
+    )
+    problem = cp.Problem(objective, [lam >= 0])
+    assert problem.is_dpp()
+    return ViolationProblem(n, problem, {"L": L, "b": b, "K": K, "h": h}, {"lam": lam})

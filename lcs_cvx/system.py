@@ -1,0 +1,267 @@
+r"""The linear complementarity system, eq. (equ.lcs), as a ``torch.nn.Module``.
+
+    x' = A x + B u + C lam + d
+    0 <= lam  _|_  D x + E u + F lam + c >= 0,      F = G G^T + H - H^T + s I
+
+The parameterisation of F (paper Sec. 5) makes ``F + F^T >= 2 s I > 0`` for every value of the
+learnable ``G`` and ``H`` and the fixed ``stiffness`` ``s > 0`` -- Assumption 1 holds by
+construction, so the LCP has a unique solution for every ``(x, u)``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ._checks import LCSInputError, as_batch, as_matrix, check_positive
+from .lcp import active_set_solve, solve_lcp
+from .problems import sym_min_eig
+
+__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES"]
+
+#: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
+PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
+#: Matrices of the LCS as exported by :meth:`LCS.to_matrices`.
+MATRIX_NAMES = ("A", "B", "C", "d", "D", "E", "F", "c")
+
+
+def _shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
+    return {
+        "A": (n_x, n_x),
+        "B": (n_x, n_u),
+        "C": (n_x, n_lam),
+        "d": (n_x,),
+        "D": (n_lam, n_x),
+        "E": (n_lam, n_u),
+        "G": (n_lam, n_lam),
+        "H": (n_lam, n_lam),
+        "F": (n_lam, n_lam),
+        "c": (n_lam,),
+    }
+
+
+class LCS(nn.Module):
+    """A linear complementarity system with learnable ``theta = {A, B, C, d, D, E, G, H, c}``.
+
+    Args:
+        n_x, n_u, n_lam: state, input and complementarity dimensions (``n_u`` may be 0).
+        stiffness: ``s > 0`` in ``F = G G^T + H - H^T + s I``; ``sigma_min(F + F^T) >= 2 s``.
+        init_scale: parameters are drawn as ``init_scale * N(0, 1)``.
+        seed: seed of the initialisation (None: torch's global generator).
+        dtype: floating dtype of the parameters (float64 recommended: the LCPs can be stiff).
+
+    Batched methods take ``x`` ``(N, n_x)`` and ``u`` ``(N, n_u)``; a 1-D input is one sample.
+
+    Example:
+        >>> import lcs_cvx
+        >>> sys = lcs_cvx.random_lcs(4, 2, 3, seed=0)
+        >>> x, u = torch.zeros(5, 4, dtype=torch.float64), torch.ones(5, 2, dtype=torch.float64)
+        >>> sys.step(x, u).shape
+        torch.Size([5, 4])
+    """
+
+    def __init__(
+        self,
+        n_x: int,
+        n_u: int,
+        n_lam: int,
+        stiffness: float = 1.0,
+        init_scale: float = 0.1,
+        seed: int | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        self.n_x = check_positive("n_x", n_x, integer=True)
+        if isinstance(n_u, bool) or not isinstance(n_u, (int, np.integer)) or n_u < 0:
+            raise LCSInputError(f"n_u: expected an integer >= 0, received {n_u!r}")
+        self.n_u = int(n_u)
+        self.n_lam = check_positive("n_lam", n_lam, integer=True)
+        check_positive("stiffness", stiffness)
+        if isinstance(init_scale, bool) or not isinstance(init_scale, (int, float)) or init_scale < 0:
+            raise LCSInputError(f"init_scale: expected a number >= 0, received {init_scale!r}")
+        if dtype not in (torch.float32, torch.float64):
+            raise LCSInputError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
+        self.register_buffer("stiffness", torch.tensor(float(stiffness), dtype=dtype))
+        gen = torch.Generator().manual_seed(seed) if seed is not None else None
+        for name in PARAMETER_NAMES:
+            shape = _shapes(self.n_x, self.n_u, self.n_lam)[name]
+            value = torch.randn(shape, generator=gen, dtype=torch.float64) * float(init_scale)
+            setattr(self, name, nn.Parameter(value.to(dtype)))
+
+    # -- construction -------------------------------------------------------------------
+    @classmethod
+    def from_matrices(
+        cls,
+        *,
+        A: Any,
+        B: Any,
+        C: Any,
+        d: Any,
+        D: Any,
+        E: Any,
+        F: Any,
+        c: Any,
+        dtype: torch.dtype = torch.float64,
+    ) -> LCS:
+        """Build a system from explicit matrices (``F`` given directly).
+
+        ``F`` must satisfy Assumption 1 (``F + F^T`` positive definite); it is stored as
+        ``G G^T + H - H^T + s I`` with ``s = sigma_min(F + F^T) / 4``, ``H = (F - F^T) / 4`` and
+        ``G`` the Cholesky factor of the rest, so ``model.F`` reproduces ``F`` to round-off.
+        """
+        A_t = torch.as_tensor(np.asarray(A, dtype=np.float64)) if not isinstance(A, torch.Tensor) else A
+        if A_t.dim() != 2 or A_t.shape[0] != A_t.shape[1]:
+            raise LCSInputError(f"A: expected a square (n_x, n_x) matrix, received shape {tuple(A_t.shape)}")
+        n_x = A_t.shape[0]
+        C_arr = np.asarray(C.detach().cpu() if isinstance(C, torch.Tensor) else C, dtype=np.float64)
+        B_arr = np.asarray(B.detach().cpu() if isinstance(B, torch.Tensor) else B, dtype=np.float64)
+        if C_arr.ndim != 2:
+            raise LCSInputError(f"C: expected shape (n_x, n_lam), received shape {C_arr.shape}")
+        if B_arr.ndim != 2:
+            raise LCSInputError(f"B: expected shape (n_x, n_u), received shape {B_arr.shape}")
+        n_lam, n_u = C_arr.shape[1], B_arr.shape[1]
+        shapes = _shapes(n_x, n_u, n_lam)
+        given = {"A": A, "B": B, "C": C, "d": d, "D": D, "E": E, "F": F, "c": c}
+        mats = {k: as_matrix(k, v, shapes[k], dtype=torch.float64) for k, v in given.items()}
+        Fm = mats["F"]
+        smin = float(sym_min_eig(Fm))
+        if not smin > 0:
+            raise LCSInputError(
+                "F: expected F + F^T positive definite (Assumption 1), received "
+                f"sigma_min(F + F^T) = {smin:.6g}"
+            )
+        s = smin / 4.0
+        sym = 0.5 * (Fm + Fm.mT) - s * torch.eye(n_lam, dtype=torch.float64)
+        G = torch.linalg.cholesky(sym)
+        H = 0.25 * (Fm - Fm.mT)
+        model = cls(n_x, n_u, n_lam, stiffness=s, init_scale=0.0, dtype=dtype)
+        with torch.no_grad():
+            for k in ("A", "B", "C", "d", "D", "E", "c"):
+                getattr(model, k).copy_(mats[k])
+            model.G.copy_(G)
+            model.H.copy_(H)
+        return model
+
+    # -- the matrices -------------------------------------------------------------------
+    @property
+    def F(self) -> torch.Tensor:
+        """``F = G G^T + H - H^T + s I`` ``(n_lam, n_lam)``."""
+        eye = torch.eye(self.n_lam, dtype=self.G.dtype, device=self.G.device)
+        return self.G @ self.G.mT + self.H - self.H.mT + self.stiffness * eye
+
+    @property
+    def sigma_min(self) -> float:
+        """``sigma_min(F + F^T)``: the smallest eigenvalue of ``F + F^T`` (Lemma 2's bound on gamma)."""
+        with torch.no_grad():
+            return float(sym_min_eig(self.F))
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.A.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.A.device
+
+    def _xu(self, x: Any, u: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        kw = {"dtype": self.dtype, "device": self.device}
+        x = as_batch("x", x, self.n_x, **kw)
+        u = as_batch("u", u, self.n_u, batch=x.shape[0], **kw)
+        return x, u
+
+    def lcp_offset(self, x: Any, u: Any) -> torch.Tensor:
+        """``q = D x + E u + c`` ``(N, n_lam)`` (eq. equ.lcp)."""
+        x, u = self._xu(x, u)
+        return x @ self.D.mT + u @ self.E.mT + self.c
+
+    def solve_lcp(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
+        """``lam = LCP(F, D x + E u + c)`` ``(N, n_lam)``, exact.
+
+        ``method`` is ``"fast"`` (batched pivoting), ``"cvxpy"`` (declared problem (P) with
+        Clarabel) or ``"brute"``. When autograd is recording and the parameters require grad,
+        ``lam`` is re-expressed on the solution's free set, so gradients are those of the
+        implicit function theorem (Lemma 1); a degenerate index (``lam_i = w_i = 0``) is held
+        at zero (one-sided derivative).
+        """
+        F = self.F
+        q = self.lcp_offset(x, u)
+        sol = solve_lcp(F, q, method=method)
+        if torch.is_grad_enabled() and (F.requires_grad or q.requires_grad):
+            return active_set_solve(F, q, sol.free)
+        return sol.lam
+
+    def step(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
+        """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)``."""
+        x, u = self._xu(x, u)
+        lam = self.solve_lcp(x, u, method=method)
+        return x @ self.A.mT + u @ self.B.mT + lam @ self.C.mT + self.d
+
+    def forward(self, x: Any, u: Any) -> torch.Tensor:
+        """Same as :meth:`step`."""
+        return self.step(x, u)
+
+    def rollout(self, x0: Any, us: Any) -> torch.Tensor:
+        """Simulate from ``x0`` ``(N, n_x)`` under inputs ``us`` ``(N, T, n_u)``.
+
+        A single trajectory may be given as ``x0`` ``(n_x,)`` and ``us`` ``(T, n_u)``.
+        Returns ``(N, T + 1, n_x)`` (``(T + 1, n_x)`` for a single trajectory).
+        """
+        single = not (isinstance(x0, torch.Tensor) and x0.dim() == 2) and np.ndim(x0) == 1
+        x = as_batch("x0", x0, self.n_x, dtype=self.dtype, device=self.device)
+        us_t = torch.as_tensor(us, dtype=self.dtype, device=self.device) if not isinstance(us, torch.Tensor) else us
+        if us_t.dim() == 2:
+            us_t = us_t.unsqueeze(0)
+        if us_t.dim() != 3 or us_t.shape[0] != x.shape[0] or us_t.shape[2] != self.n_u:
+            raise LCSInputError(
+                f"us: expected shape ({x.shape[0]}, T, {self.n_u}) or (T, {self.n_u}), "
+                f"received shape {tuple(torch.as_tensor(us).shape)}"
+            )
+        xs = [x]
+        for t in range(us_t.shape[1]):
+            xs.append(self.step(xs[-1], us_t[:, t]))
+        out = torch.stack(xs, dim=1)
+        return out[0] if single else out
+
+    def active_set(self, x: Any, u: Any, tol: float = 1e-8) -> torch.Tensor:
+        """Bool ``(N, n_lam)``: ``lam_i > tol`` at the LCP solution (the hybrid mode)."""
+        with torch.no_grad():
+            return self.solve_lcp(x, u) > tol
+
+    def to_matrices(self) -> dict[str, np.ndarray]:
+        """The LCS as numpy arrays, keys ``"A", "B", "C", "d", "D", "E", "F", "c"``."""
+        with torch.no_grad():
+            out = {k: getattr(self, k).detach().cpu().numpy().copy() for k in MATRIX_NAMES if k != "F"}
+            out["F"] = self.F.detach().cpu().numpy().copy()
+        return {k: out[k] for k in MATRIX_NAMES}
+
+    def extra_repr(self) -> str:
+        return (
+            f"n_x={self.n_x}, n_u={self.n_u}, n_lam={self.n_lam}, "
+            f"stiffness={float(self.stiffness):.3g}, dtype={self.dtype}"
+        )
+
+
+def random_lcs(
+    n_x: int,
+    n_u: int,
+    n_lam: int,
+    stiffness: float = 0.5,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float64,
+) -> LCS:
+    """The paper's random ground truth (Sec. 5): every entry of A, B, C, d, D, E, G, H, c
+    uniform in [-1, 1], ``F = G G^T + H - H^T + s I``.
+
+    The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``).
+    """
+    model = LCS(n_x, n_u, n_lam, stiffness=stiffness, init_scale=0.0, dtype=dtype)
+    gen = torch.Generator().manual_seed(int(seed))
+    with torch.no_grad():
+        for name in PARAMETER_NAMES:
+            p = getattr(model, name)
+            p.copy_((torch.rand(p.shape, generator=gen, dtype=torch.float64) * 2.0 - 1.0).to(dtype))
+    model.requires_grad_(False)
+    return model
