@@ -7,6 +7,10 @@ from .data import make_dataset as make_dataset
 from .lcp import FallbackWarning as FallbackWarning
 from .lcp import LCPSolution as LCPSolution
 from .lcp import solve_lcp as solve_lcp
+from .losses import LossInfo as LossInfo
+from .losses import prediction_loss as prediction_loss
+from .losses import regularizer as regularizer
+from .losses import violation_loss as violation_loss
 from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
 from .problems import convex_lcp_problem as convex_lcp_problem

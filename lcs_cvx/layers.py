@@ -1,0 +1,69 @@
+"""``cvxpylayers`` layers over the two declared problems -- the reference solver paths.
+
+The layers wrap exactly the CVXPY problems of :mod:`lcs_cvx.problems` (no second copy) and
+solve them with diffcp, whose cone solver is Clarabel (default) or SCS. Gradients come from
+diffcp's implicit differentiation of the cone program; ``mode="dense"`` is forced because
+diffcp's default ``mode="lsqr"`` returns wrong gradients on (V) (DESIGN.md).
+The layers run on CPU; tensors on another device are moved there and back.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from cvxpylayers.torch import CvxpyLayer
+
+from ._checks import LCSInputError
+from .problems import convex_lcp_problem, violation_problem
+
+__all__ = ["LAYER_SOLVERS", "lcp_layer", "violation_layer", "solve_layer"]
+
+#: diffcp options per cone solver. n_jobs=1: one process, one thread (measurements, CI).
+LAYER_SOLVERS: dict[str, dict] = {
+    "clarabel": {"solve_method": "Clarabel", "mode": "dense", "n_jobs_forward": 1, "n_jobs_backward": 1},
+    "scs": {
+        "solve_method": "SCS",
+        "mode": "dense",
+        "n_jobs_forward": 1,
+        "n_jobs_backward": 1,
+        "eps_abs": 1e-10,
+        "eps_rel": 1e-10,
+        "max_iters": 100_000,
+    },
+}
+
+
+def _check_backend(backend: str) -> dict:
+    if backend not in LAYER_SOLVERS:
+        raise LCSInputError(
+            f"backend: expected one of {sorted(LAYER_SOLVERS)}, received {backend!r}"
+        )
+    return LAYER_SOLVERS[backend]
+
+
+@functools.lru_cache(maxsize=None)
+def lcp_layer(n_lam: int) -> CvxpyLayer:
+    """CvxpyLayer over (P), :func:`lcs_cvx.problems.convex_lcp_problem`; inputs ``R, F, q``."""
+    decl = convex_lcp_problem(n_lam)
+    params = [decl.parameters[k] for k in decl.parameter_order]
+    return CvxpyLayer(decl.problem, parameters=params, variables=[decl.variables["lam"]])
+
+
+@functools.lru_cache(maxsize=None)
+def violation_layer(n_lam: int) -> CvxpyLayer:
+    """CvxpyLayer over (V), :func:`lcs_cvx.problems.violation_problem`; inputs ``L, b, K, h``."""
+    decl = violation_problem(n_lam)
+    params = [decl.parameters[k] for k in decl.parameter_order]
+    return CvxpyLayer(decl.problem, parameters=params, variables=[decl.variables["lam"]])
+
+
+def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], backend: str = "clarabel") -> torch.Tensor:
+    """Run ``layer`` on parameter tensors (batched ones first dimension ``B``); returns ``lam``.
+
+    Differentiable (diffcp, dense mode). The result is on the device of ``values[0]``.
+    """
+    args = _check_backend(backend)
+    device = values[0].device
+    (lam,) = layer(*(v.cpu() for v in values), solver_args=dict(args))
+    return lam.to(device)

@@ -1,0 +1,180 @@
+r"""The two learning losses of the paper and the regulariser.
+
+- :func:`violation_loss` -- ``L_eps`` of eq. (equ.contactnet), the batch mean of the optimal
+  value of (V). The solver runs without autograd; the (lam, phi) objective is then evaluated in
+  torch at the detached optimum, so autograd returns exactly the envelope gradients of Lemma 3
+  (``grad_A = mean e_dyn x^T``, ``grad_D = mean e_lcp x^T``, ...): no solver differentiation,
+  no matrix inverse.
+- :func:`prediction_loss` -- ``L_pred`` of eq. (equ.prednet), the batch mean of
+  ``1/2 ||x'_theta - x'||^2`` with ``lam`` the exact LCP solution. Its gradient is the implicit
+  function theorem on the solution's active set (Lemma 1): ``lam_I = -F_II^{-1} q_I`` is
+  re-expressed differentiably on the free set found by the solver. An index with
+  ``lam_i = w_i = 0`` (strict complementarity fails) is held at zero -- the one-sided derivative
+  in which that constraint stays active; such samples are counted in :class:`LossInfo`.
+- :func:`regularizer` -- ``omega ||C||_F^2`` (paper Sec. 5).
+
+``solver`` selects the path: ``"fast"`` (batched kernels, default), ``"cvxpylayers"``
+(diffcp + Clarabel over the declared problem) or ``"cvxpylayers-scs"`` (diffcp + SCS).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ._checks import LCSInputError, as_batch, check_positive
+from .lcp import active_set_solve, solve_lcp_fast
+from .layers import lcp_layer, solve_layer, violation_layer
+from .problems import check_gamma, convex_lcp_problem, violation_problem
+from .violation import solve_violation_fast
+
+__all__ = ["LossInfo", "violation_loss", "prediction_loss", "regularizer", "SOLVERS"]
+
+SOLVERS = ("fast", "cvxpylayers", "cvxpylayers-scs")
+
+#: A complementarity pair counts as degenerate when both ``lam_i`` and ``w_i`` are below this,
+#: relative to ``1 + |q|_inf``.
+DEGENERATE_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class LossInfo:
+    """Diagnostics of one loss evaluation.
+
+    Attributes:
+        lam: ``(B, n_lam)`` the per-sample ``lam`` (detached).
+        phi: ``(B, n_lam)`` (violation loss) or ``w = F lam + q`` (prediction loss), detached.
+        iterations: pivoting sweeps of the fast solver (0 on the layer paths).
+        n_fallback: samples the fast solver handed to the Clarabel reference.
+        n_degenerate: samples with some ``lam_i = w_i = 0`` (prediction loss; 0 otherwise).
+        max_residual: largest relative KKT residual over the batch (fast path; 0 otherwise).
+    """
+
+    lam: torch.Tensor
+    phi: torch.Tensor
+    iterations: int = 0
+    n_fallback: int = 0
+    n_degenerate: int = 0
+    max_residual: float = 0.0
+
+
+def _inputs(model: Any, x: Any, u: Any, x_next: Any):
+    kw = {"dtype": model.dtype, "device": model.device}
+    x = as_batch("x", x, model.n_x, **kw)
+    u = as_batch("u", u, model.n_u, batch=x.shape[0], **kw)
+    x_next = as_batch("x_next", x_next, model.n_x, batch=x.shape[0], **kw)
+    return x, u, x_next
+
+
+def _check_solver(solver: str) -> str:
+    if solver not in SOLVERS:
+        raise LCSInputError(f"solver: expected one of {SOLVERS}, received {solver!r}")
+    return "scs" if solver == "cvxpylayers-scs" else "clarabel"
+
+
+def violation_loss(
+    model: Any,
+    x: Any,
+    u: Any,
+    x_next: Any,
+    gamma: float = 1e-2,
+    eps: float = 1e-4,
+    solver: str = "fast",
+    return_info: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, LossInfo]:
+    r"""Violation-based loss ``L_eps`` (eq. equ.contactnet), averaged over the batch.
+
+    .. math::
+        l_\epsilon = \min_{\lambda, \phi \ge 0} \tfrac12\|A x + B u + C\lambda + d - x'\|^2
+        + \tfrac1\epsilon\big(\lambda^\top\phi + \tfrac{1}{2\gamma}\|D x + E u + F\lambda + c - \phi\|^2\big)
+
+    Args:
+        model: an :class:`lcs_cvx.LCS`.
+        x: ``(N, n_x)``; u: ``(N, n_u)``; x_next: ``(N, n_x)`` observed next states.
+        gamma: ``0 < gamma < sigma_min(F + F^T)`` (Lemma 2; checked).
+        eps: ``eps > 0`` weight of the complementarity violation.
+        solver: ``"fast"``, ``"cvxpylayers"`` or ``"cvxpylayers-scs"``.
+        return_info: also return a :class:`LossInfo`.
+
+    Returns:
+        Scalar tensor (and the info). Gradients w.r.t. the model's parameters are Lemma 3's.
+    """
+    backend = _check_solver(solver)
+    check_positive("eps", eps)
+    x, u, x_next = _inputs(model, x, u, x_next)
+    F, C = model.F, model.C
+    check_gamma(F, gamma)
+    q = x @ model.D.mT + u @ model.E.mT + model.c
+    r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
+    decl = violation_problem(model.n_lam)
+    iterations = n_fb = 0
+    resid = 0.0
+    if solver == "fast":
+        with torch.no_grad():
+            values = decl.parameter_values(C.detach(), F.detach(), q.detach(), r.detach(), gamma, eps)
+            sol = solve_violation_fast(values)
+        lam = sol.lam
+        phi = decl.phi(lam, F.detach(), q.detach(), gamma)
+        iterations, n_fb, resid = sol.iterations, sol.n_fallback, float(sol.residual.max())
+    else:
+        values = decl.parameter_values(C, F, q, r, gamma, eps)
+        lam = solve_layer(violation_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
+        lam = lam.clamp(min=0.0)
+        phi = decl.phi(lam, F, q, gamma)
+    loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
+    if not return_info:
+        return loss
+    return loss, LossInfo(lam.detach(), phi.detach(), iterations, n_fb, 0, resid)
+
+
+def prediction_loss(
+    model: Any,
+    x: Any,
+    u: Any,
+    x_next: Any,
+    solver: str = "fast",
+    return_info: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, LossInfo]:
+    r"""Prediction-based loss ``L_pred`` (eq. equ.prednet), averaged over the batch.
+
+    ``mean_t 1/2 ||A x_t + B u_t + C lam_t + d - x'_t||^2`` with ``lam_t = LCP(F, D x_t + E u_t + c)``.
+    The gradient differentiates through the LCP by the implicit function theorem on the active
+    set (Lemma 1); on the ``"cvxpylayers"`` paths through diffcp on the declared problem (P).
+
+    Args:
+        model, x, u, x_next, solver, return_info: as in :func:`violation_loss`.
+    """
+    backend = _check_solver(solver)
+    x, u, x_next = _inputs(model, x, u, x_next)
+    F = model.F
+    q = x @ model.D.mT + u @ model.E.mT + model.c
+    iterations = n_fb = 0
+    resid = 0.0
+    if solver == "fast":
+        sol = solve_lcp_fast(F, q)
+        free = sol.free
+        iterations, n_fb, resid = sol.iterations, sol.n_fallback, float(sol.residual.max())
+        lam = active_set_solve(F, q, free) if torch.is_grad_enabled() else sol.lam
+    else:
+        decl = convex_lcp_problem(model.n_lam)
+        values = decl.parameter_values(F, q)
+        lam = solve_layer(lcp_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
+    pred = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
+    loss = 0.5 * ((pred - x_next) ** 2).sum(-1).mean()
+    if not return_info:
+        return loss
+    with torch.no_grad():
+        lam_d = lam.detach()
+        w = lam_d @ F.detach().mT + q.detach()
+        tol = DEGENERATE_TOL * (1.0 + q.detach().abs().amax(-1, keepdim=True))
+        n_deg = int(((lam_d.abs() <= tol) & (w.abs() <= tol)).any(-1).sum())
+    return loss, LossInfo(lam_d, w, iterations, n_fb, n_deg, resid)
+
+
+def regularizer(model: Any, weight: float = 1e-5) -> torch.Tensor:
+    """``omega ||C||_F^2`` -- pins the permutation/scaling freedom of ``lam`` (paper Sec. 5)."""
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or weight < 0:
+        raise LCSInputError(f"weight: expected a number >= 0, received {weight!r}")
+    return weight * (model.C**2).sum()

@@ -1,0 +1,148 @@
+r"""Fast batched solver of the violation problem (V), eq. (equ.contactnet.2).
+
+It consumes the parameters of the declared problem (:func:`lcs_cvx.problems.violation_problem`)::
+
+    min_{lam >= 0}  f(lam) = 1/2 ||L lam + b||^2 + 1/2 ||pos(K lam - h)||^2
+
+``f`` is piecewise quadratic and strongly convex. Its pieces are indexed by the set
+``s = {i : (K lam - h)_i > 0}`` -- exactly the indices where ``phi_i = 0`` in the paper's
+(lam, phi) form -- and the KKT system of the (lam, phi) problem is a 2 n-dimensional LCP with a
+positive definite matrix. Block principal pivoting on the joint set (free ``lam`` indices, ``s``)
+is therefore finite (:mod:`lcs_cvx.pivoting`), and every sweep costs one batched ``n x n``
+Cholesky solve of
+
+    (L^T L + K^T diag(s) K)_II lam_I = -(L^T b - K^T (s * h))_I.
+
+Samples that do not converge are solved by the Clarabel reference on the same declaration.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from ._checks import SolverError
+from .lcp import FallbackWarning
+from .pivoting import block_pivoting
+from .problems import violation_problem
+
+__all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
+
+#: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
+#: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/(eps gamma) large), and
+#: ``K lam - h`` against ``1 + |h|_inf``.
+PIVOT_TOL = 1e-11
+
+
+@dataclass(frozen=True)
+class ViolationSolution:
+    """Solution of a batch of (V) problems.
+
+    Attributes:
+        lam: ``(B, n)`` minimiser.
+        free: ``(B, n)`` bool, ``lam_i`` free (not at its bound).
+        pos: ``(B, n)`` bool, ``(K lam - h)_i > 0`` (``phi_i = 0``).
+        iterations: pivoting sweeps.
+        n_fallback: samples solved by the reference instead.
+        residual: ``(B,)`` relative KKT residual (:func:`violation_kkt_residual`).
+    """
+
+    lam: torch.Tensor
+    free: torch.Tensor
+    pos: torch.Tensor
+    iterations: int
+    n_fallback: int
+    residual: torch.Tensor
+
+
+def _gradient(L: torch.Tensor, b: torch.Tensor, K: torch.Tensor, h: torch.Tensor, lam: torch.Tensor):
+    t = lam @ K.mT - h
+    return (lam @ L.mT + b) @ L + t.clamp(min=0.0) @ K, t
+
+
+def violation_kkt_residual(values: dict[str, torch.Tensor], lam: torch.Tensor) -> torch.Tensor:
+    """Natural residual ``|min(lam, grad f(lam))|_inf``, relative to ``1 + |L^T b|_inf + |K^T h|_inf``."""
+    L, b, K, h = values["L"], values["b"], values["K"], values["h"]
+    g, _ = _gradient(L, b, K, h, lam)
+    scale = 1.0 + (b @ L).abs().amax(-1) + (h @ K).abs().amax(-1)
+    return torch.minimum(lam, g).abs().amax(-1) / scale
+
+
+def solve_violation_fast(
+    values: dict[str, torch.Tensor],
+    *,
+    max_iter: int = 100,
+    tol: float = PIVOT_TOL,
+    fallback: bool = True,
+) -> ViolationSolution:
+    """Solve (V) for a batch, from the declaration's parameter values.
+
+    Args:
+        values: ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}`` as built by
+            :meth:`lcs_cvx.problems.ViolationProblem.parameter_values`.
+        max_iter: pivoting sweeps before unconverged samples fall back to Clarabel.
+        tol: relative feasibility tolerance of a candidate.
+        fallback: if False, raise :class:`lcs_cvx.SolverError` on non-convergence instead.
+
+    Returns:
+        :class:`ViolationSolution` (no autograd graph).
+    """
+    with torch.no_grad():
+        L, b, K, h = (values[k].detach() for k in ("L", "b", "K", "h"))
+        B, n = b.shape
+        LtL = L.mT @ L
+        Ltb = b @ L  # rows of L^T b
+        scale_g = tol * (1.0 + Ltb.abs().amax(-1, keepdim=True) + (h @ K).abs().amax(-1, keepdim=True))
+        scale_t = tol * (1.0 + h.abs().amax(-1, keepdim=True))
+        eye = torch.eye(n, dtype=b.dtype, device=b.device)
+
+        def solve(state: torch.Tensor, idx: torch.Tensor | None):
+            free, pos = state[:, :n], state[:, n:]
+            bb = Ltb if idx is None else Ltb[idx]
+            hh = h if idx is None else h[idx]
+            sg = scale_g if idx is None else scale_g[idx]
+            st = scale_t if idx is None else scale_t[idx]
+            sf = pos.to(b.dtype)
+            H = LtL + (K.mT * sf[:, None, :]) @ K
+            lin = bb - (sf * hh) @ K
+            m = free.to(b.dtype)
+            M = H * (m[:, :, None] * m[:, None, :]) + eye * (1.0 - m)[:, None, :]
+            chol, info = torch.linalg.cholesky_ex(M)
+            lam = torch.cholesky_solve(-(m * lin).unsqueeze(-1), chol).squeeze(-1)
+            g = (lam.unsqueeze(1) @ H).squeeze(1) + lin
+            t = lam @ K.mT - hh
+            sl = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
+            bad_lam = torch.where(free, lam < -sl, g < -sg)
+            bad_pos = torch.where(pos, t < -st, t > st)
+            bad = torch.cat([bad_lam, bad_pos], dim=1)
+            if bool((info != 0).any()):  # not expected for a PD Hessian; never trust it
+                bad[info != 0] = True
+            return lam, bad
+
+        state0 = torch.cat([h < 0, h < 0], dim=1)
+        res = block_pivoting(solve, state0, max_iter=max_iter)
+        lam = res.solution.clamp(min=0.0)
+        n_fb = 0
+        if not bool(res.converged.all()):
+            bad_idx = (~res.converged).nonzero().squeeze(1)
+            n_fb = int(bad_idx.numel())
+            if not fallback:
+                raise SolverError(
+                    f"violation QP pivoting did not converge on {n_fb} of {B} samples "
+                    f"in {max_iter} sweeps"
+                )
+            warnings.warn(
+                f"violation QP pivoting did not converge on {n_fb} of {B} samples in "
+                f"{max_iter} sweeps; solved them with the Clarabel reference",
+                FallbackWarning,
+                stacklevel=2,
+            )
+            sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
+            ref = violation_problem(n).solve(sub)
+            lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
+        free = lam > 0
+        pos = (lam @ K.mT - h) > 0
+        resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam)
+        return ViolationSolution(lam, free, pos, res.iterations, n_fb, resid)
