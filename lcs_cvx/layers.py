@@ -2,8 +2,9 @@
 
 The layers wrap exactly the CVXPY problems of :mod:`lcs_cvx.problems` (no second copy) and
 solve them with diffcp, whose cone solver is Clarabel (default) or SCS. Gradients come from
-diffcp's implicit differentiation of the cone program; ``mode="dense"`` is forced because
-diffcp's default ``mode="lsqr"`` returns wrong gradients on (V) (DESIGN.md).
+diffcp's implicit differentiation of the cone program; ``mode="dense"`` is set on every call
+that needs gradients because diffcp's default ``mode="lsqr"`` returns wrong gradients on (V)
+(DESIGN.md), and only on those: diffcp hands unknown options of a solve-only call to the solver.
 The layers run on CPU; tensors on another device are moved there and back.
 """
 
@@ -21,12 +22,17 @@ __all__ = ["LAYER_SOLVERS", "lcp_layer", "violation_layer", "solve_layer"]
 
 #: diffcp options per cone solver. n_jobs=1: one process, one thread (measurements, CI).
 LAYER_SOLVERS: dict[str, dict] = {
-    "clarabel": {"solve_method": "Clarabel", "mode": "dense", "n_jobs_forward": 1, "n_jobs_backward": 1},
+    "clarabel": {
+        "solve_method": "Clarabel",
+        "n_jobs_forward": 1,
+        # passed on to Clarabel's settings (its defaults, 1e-8, leave |dlam| ~ 1e-6 on (V))
+        "tol_gap_abs": 1e-10,
+        "tol_gap_rel": 1e-10,
+        "tol_feas": 1e-10,
+    },
     "scs": {
         "solve_method": "SCS",
-        "mode": "dense",
         "n_jobs_forward": 1,
-        "n_jobs_backward": 1,
         "eps_abs": 1e-10,
         "eps_rel": 1e-10,
         "max_iters": 100_000,
@@ -63,7 +69,10 @@ def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], backend: str = "c
 
     Differentiable (diffcp, dense mode). The result is on the device of ``values[0]``.
     """
-    args = _check_backend(backend)
+    args = dict(_check_backend(backend))
+    if torch.is_grad_enabled() and any(v.requires_grad for v in values):
+        # only with gradients: a solve-only call hands unknown options to the cone solver
+        args.update(mode="dense", n_jobs_backward=1)
     device = values[0].device
-    (lam,) = layer(*(v.cpu() for v in values), solver_args=dict(args))
+    (lam,) = layer(*(v.cpu() for v in values), solver_args=args)
     return lam.to(device)

@@ -15,16 +15,18 @@ r"""The two per-sample convex problems of the paper, each declared once.
   with ``r = A x + B u + d - x'`` and ``q = D x + E u + c``. ``lam^T phi`` is bilinear, so (V)
   is not DCP as written. For fixed ``lam`` the minimiser over ``phi`` is
   ``phi* = max(0, w - gamma lam)`` (``w = F lam + q``), and eliminating it gives the exact,
-  DPP, n_lam-dimensional problem (constant terms dropped)::
+  DPP, n_lam-dimensional problem -- (V) times ``eps``, constant terms dropped::
 
     min_{lam >= 0}  1/2 ||L lam + b||^2 + 1/2 ||pos(K lam - h)||^2
 
-    L^T L = C^T C + (F + F^T - gamma I) / eps     (Cholesky; needs gamma < sigma_min(F + F^T))
-    L^T b = C^T r + q / eps
-    K = (gamma I - F) / sqrt(gamma eps),          h = q / sqrt(gamma eps)
+    L^T L = eps C^T C + F + F^T - gamma I     (Cholesky; needs gamma < sigma_min(F + F^T))
+    L^T b = eps C^T r + q
+    K = (gamma I - F) / sqrt(gamma),          h = q / sqrt(gamma)
 
   A completed square rather than ``1/2 lam^T H lam + g^T lam`` (see DESIGN.md on cancellation),
-  and independent of ``n_x``.
+  scaled by ``eps`` so that its optimal value is ~|q|^2 rather than ~|q|^2/eps (through diffcp's
+  second-order-cone form this took the layer's |d lam| from ~1e-4 to ~1e-7 at eps = 1e-4), and
+  independent of ``n_x``.
 
 Each declaration object carries the CVXPY problem, its parameters and variables by name, and
 builds the parameter values from torch tensors (differentiably). The CVXPY problem is what the
@@ -165,11 +167,11 @@ class ViolationProblem:
         n = self.n_lam
         eye = torch.eye(n, dtype=F.dtype, device=F.device)
         check_gamma(F, gamma)
-        H = C.mT @ C + (F + F.mT - gamma * eye) / eps
-        L = _upper_cholesky("C^T C + (F + F^T - gamma I)/eps", H)
-        g = r @ C + q / eps  # rows of C^T r + q/eps
+        H = eps * (C.mT @ C) + F + F.mT - gamma * eye
+        L = _upper_cholesky("eps C^T C + F + F^T - gamma I", H)
+        g = eps * (r @ C) + q  # rows of eps C^T r + q
         b = torch.linalg.solve_triangular(L.mT, g.mT, upper=False).mT
-        scale = 1.0 / math.sqrt(gamma * eps)
+        scale = 1.0 / math.sqrt(gamma)
         return {"L": L, "b": b, "K": (gamma * eye - F) * scale, "h": q * scale}
 
     @staticmethod

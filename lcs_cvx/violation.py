@@ -31,7 +31,7 @@ from .problems import violation_problem
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
 
 #: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
-#: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/(eps gamma) large), and
+#: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/gamma large), and
 #: ``K lam - h`` against ``1 + |h|_inf``.
 PIVOT_TOL = 1e-11
 
@@ -94,9 +94,10 @@ def solve_violation_fast(
         B, n = b.shape
         LtL = L.mT @ L
         Ltb = b @ L  # rows of L^T b
+        # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
+        K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
         scale_g = tol * (1.0 + Ltb.abs().amax(-1, keepdim=True) + (h @ K).abs().amax(-1, keepdim=True))
         scale_t = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-        eye = torch.eye(n, dtype=b.dtype, device=b.device)
 
         def solve(state: torch.Tensor, idx: torch.Tensor | None):
             free, pos = state[:, :n], state[:, n:]
@@ -105,14 +106,14 @@ def solve_violation_fast(
             sg = scale_g if idx is None else scale_g[idx]
             st = scale_t if idx is None else scale_t[idx]
             sf = pos.to(b.dtype)
-            H = LtL + (K.mT * sf[:, None, :]) @ K
-            lin = bb - (sf * hh) @ K
             m = free.to(b.dtype)
-            M = H * (m[:, :, None] * m[:, None, :]) + eye * (1.0 - m)[:, None, :]
+            M = (sf @ K_outer).view(-1, n, n).add_(LtL)
+            M.mul_(m[:, :, None] * m[:, None, :]).diagonal(dim1=-2, dim2=-1).add_(1.0 - m)
+            rhs = m * ((sf * hh) @ K - bb)
             chol, info = torch.linalg.cholesky_ex(M)
-            lam = torch.cholesky_solve(-(m * lin).unsqueeze(-1), chol).squeeze(-1)
-            g = (lam.unsqueeze(1) @ H).squeeze(1) + lin
+            lam = torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1)
             t = lam @ K.mT - hh
+            g = lam @ LtL + bb + (sf * t) @ K
             sl = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
             bad_lam = torch.where(free, lam < -sl, g < -sg)
             bad_pos = torch.where(pos, t < -st, t > st)

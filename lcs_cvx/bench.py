@@ -1,0 +1,147 @@
+"""Solver-comparison benchmark: loss + gradient throughput of each solver path.
+
+For each system size, a random ground truth (:func:`lcs_cvx.random_lcs`, stiffness 0.5), a
+noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that is the truth
+with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
+neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
+``.backward()``; throughput is ``batch / median(time)`` over ``repeats`` calls after a warm-up.
+Errors are the max-abs difference of ``lam`` and the relative difference of the loss,
+``|loss - loss_fast| / (1 + |loss_fast|)``, against the fast path.
+
+Measure with one torch thread (``torch.set_num_threads(1)``) in one process, side by side.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+
+import torch
+
+from .data import make_dataset
+from .losses import prediction_loss, violation_loss
+from .system import LCS, random_lcs
+
+__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table"]
+
+#: (n_x, n_u, n_lam) of the issue's comparison.
+DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
+    (10, 4, 4),
+    (10, 4, 10),
+    (10, 4, 20),
+    (64, 4, 10),
+    (128, 4, 10),
+)
+PATHS = ("fast", "cvxpylayers", "cvxpylayers-scs")
+LOSSES = ("violation", "prediction")
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    """One measurement: a loss on one path at one size."""
+
+    n_x: int
+    n_u: int
+    n_lam: int
+    loss: str
+    path: str
+    batch: int
+    samples_per_s: float
+    median_s: float
+    lam_err: float
+    loss_err: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _perturbed(truth: LCS, scale: float, seed: int) -> LCS:
+    model = LCS(truth.n_x, truth.n_u, truth.n_lam, stiffness=float(truth.stiffness), init_scale=0.0)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            src = getattr(truth, name)
+            p.copy_(src + scale * torch.randn(src.shape, generator=gen, dtype=src.dtype))
+    return model
+
+
+def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
+    if loss == "violation":
+        return lambda m, x, u, xn, solver: violation_loss(
+            m, x, u, xn, gamma=gamma, eps=eps, solver=solver, return_info=True
+        )
+    return lambda m, x, u, xn, solver: prediction_loss(m, x, u, xn, solver=solver, return_info=True)
+
+
+def _time(fn: Callable[[], None], repeats: int) -> float:
+    fn()  # warm-up (compiles the CVXPY problem / layer on first use)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run_bench(
+    sizes: Iterable[tuple[int, int, int]] = DEFAULT_SIZES,
+    paths: Iterable[str] = PATHS,
+    losses: Iterable[str] = LOSSES,
+    batch: int = 200,
+    repeats: int = 5,
+    gamma: float = 1e-2,
+    eps: float = 1e-4,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> list[BenchRow]:
+    """Measure every (size, loss, path); returns one :class:`BenchRow` each."""
+    rows: list[BenchRow] = []
+    paths = list(paths)
+    for n_x, n_u, n_lam in sizes:
+        truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
+        data = make_dataset(truth, batch, noise=1e-2, seed=seed + 1)
+        model = _perturbed(truth, 0.05, seed + 2)
+        for loss in losses:
+            fn = _loss_fn(loss, gamma, eps)
+            ref_loss, ref_info = fn(model, data.x, data.u, data.x_next, "fast")
+            for path in paths:
+                def call(path=path):
+                    model.zero_grad()
+                    value, _ = fn(model, data.x, data.u, data.x_next, path)
+                    value.backward()
+
+                med = _time(call, repeats)
+                value, info = fn(model, data.x, data.u, data.x_next, path)
+                row = BenchRow(
+                    n_x, n_u, n_lam, loss, path, batch, batch / med, med,
+                    float((info.lam - ref_info.lam).abs().max()),
+                    float((value - ref_loss).abs().detach() / (1.0 + ref_loss.abs().detach())),
+                )
+                rows.append(row)
+                if progress is not None:
+                    progress(
+                        f"({n_x},{n_u},{n_lam}) {loss:<10s} {path:<16s} "
+                        f"{row.samples_per_s:>10.0f} samples/s"
+                    )
+    return rows
+
+
+def format_table(rows: list[BenchRow]) -> str:
+    """Markdown table with the ratio of each path to the diffcp-Clarabel reference."""
+    ref = {
+        (r.n_x, r.n_u, r.n_lam, r.loss): r.samples_per_s for r in rows if r.path == "cvxpylayers"
+    }
+    lines = [
+        "| (n_x, n_u, n_λ) | loss | path | samples/s | × reference | max abs Δλ | rel. Δloss |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        base = ref.get((r.n_x, r.n_u, r.n_lam, r.loss))
+        ratio = f"{r.samples_per_s / base:.1f}" if base else "—"
+        lines.append(
+            f"| ({r.n_x}, {r.n_u}, {r.n_lam}) | {r.loss} | {r.path} | {r.samples_per_s:,.0f} | "
+            f"{ratio} | {r.lam_err:.1e} | {r.loss_err:.1e} |"
+        )
+    return "\n".join(lines)

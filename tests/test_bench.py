@@ -1,0 +1,22 @@
+"""The solver-comparison benchmark runs end to end on a tiny size (timings are not asserted)."""
+
+import math
+
+from lcs_cvx.bench import format_table, run_bench
+
+
+def test_bench_tiny_runs_and_paths_agree():
+    rows = run_bench([(3, 1, 2)], paths=("fast", "cvxpylayers"), batch=8, repeats=1)
+    assert len(rows) == 4  # 2 losses x 2 paths
+    for r in rows:
+        assert r.samples_per_s > 0 and math.isfinite(r.samples_per_s)
+        # every path solves the same problem: lam and loss agree with the fast path (loosely:
+        # diffcp-Clarabel reaches |d lam| ~ 1e-6 here, and lam_i ~ 1e-6 on an active bound costs
+        # a first-order amount of the loss; tight agreement is tested in test_losses.py)
+        assert r.lam_err < 1e-4, r
+        assert r.loss_err < 1e-4, r
+    fast = [r for r in rows if r.path == "fast"]
+    assert all(r.lam_err == 0.0 and r.loss_err == 0.0 for r in fast)
+    table = format_table(rows)
+    assert table.splitlines()[0].startswith("| (n_x, n_u, n_λ)")
+    assert "| fast |" in table and "| cvxpylayers |" in table
