@@ -4,6 +4,8 @@ from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
 from .data import Dataset as Dataset
 from .data import make_dataset as make_dataset
+from .hessian import violation_hessian as violation_hessian
+from .hessian import violation_hvp as violation_hvp
 from .lcp import FallbackWarning as FallbackWarning
 from .lcp import LCPSolution as LCPSolution
 from .lcp import solve_lcp as solve_lcp
