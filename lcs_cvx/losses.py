@@ -19,20 +19,49 @@ r"""The two learning losses of the paper and the regulariser.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
-from .lcp import active_set_solve, solve_lcp_fast
+from .lcp import active_set_solve, lcp_residual, solve_lcp_fast
 from .layers import lcp_layer, solve_layer, violation_layer
 from .problems import check_gamma, convex_lcp_problem, violation_problem
-from .violation import solve_violation_fast
+from .violation import solve_violation_fast, violation_kkt_residual
 
-__all__ = ["LossInfo", "violation_loss", "prediction_loss", "regularizer", "SOLVERS"]
+__all__ = [
+    "LossInfo",
+    "LayerAccuracyWarning",
+    "violation_loss",
+    "prediction_loss",
+    "regularizer",
+    "SOLVERS",
+]
 
 SOLVERS = ("fast", "cvxpylayers", "cvxpylayers-scs")
+
+#: A layer solution whose relative KKT residual exceeds this is reported (LayerAccuracyWarning).
+LAYER_RESIDUAL_TOL = 1e-6
+
+
+class LayerAccuracyWarning(RuntimeWarning):
+    """A cvxpylayers solve came back inaccurate (diffcp does not check its cone solver's status)."""
+
+
+def _check_layer(residual: torch.Tensor, what: str) -> float:
+    bad = int((residual > LAYER_RESIDUAL_TOL).sum())
+    worst = float(residual.max())
+    if bad:
+        warnings.warn(
+            f"{what}: {bad} of {residual.numel()} layer solutions have a relative KKT residual "
+            f"above {LAYER_RESIDUAL_TOL:g} (worst {worst:.2e}); the 'fast' path is exact",
+            LayerAccuracyWarning,
+            stacklevel=3,
+        )
+    return worst
+
 
 #: A complementarity pair counts as degenerate when both ``lam_i`` and ``w_i`` are below this,
 #: relative to ``1 + |q|_inf``.
@@ -49,7 +78,8 @@ class LossInfo:
         iterations: pivoting sweeps of the fast solver (0 on the layer paths).
         n_fallback: samples the fast solver handed to the Clarabel reference.
         n_degenerate: samples with some ``lam_i = w_i = 0`` (prediction loss; 0 otherwise).
-        max_residual: largest relative KKT residual over the batch (fast path; 0 otherwise).
+        max_residual: largest relative KKT residual over the batch (on every path; a layer
+            solution above ``LAYER_RESIDUAL_TOL`` also raises a :class:`LayerAccuracyWarning`).
     """
 
     lam: torch.Tensor
@@ -123,6 +153,10 @@ def violation_loss(
         lam = solve_layer(violation_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
         lam = lam.clamp(min=0.0)
         phi = decl.phi(lam, F, q, gamma)
+        resid = _check_layer(
+            violation_kkt_residual({k: v.detach() for k, v in values.items()}, lam.detach()),
+            "violation_loss",
+        )
     loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
     if not return_info:
         return loss
@@ -161,6 +195,7 @@ def prediction_loss(
         decl = convex_lcp_problem(model.n_lam)
         values = decl.parameter_values(F, q)
         lam = solve_layer(lcp_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
+        resid = _check_layer(lcp_residual(F.detach(), q.detach(), lam.detach()), "prediction_loss")
     pred = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
     loss = 0.5 * ((pred - x_next) ** 2).sum(-1).mean()
     if not return_info:

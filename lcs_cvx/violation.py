@@ -63,11 +63,16 @@ def _gradient(L: torch.Tensor, b: torch.Tensor, K: torch.Tensor, h: torch.Tensor
 
 
 def violation_kkt_residual(values: dict[str, torch.Tensor], lam: torch.Tensor) -> torch.Tensor:
-    """Natural residual ``|min(lam, grad f(lam))|_inf``, relative to ``1 + |L^T b|_inf + |K^T h|_inf``."""
+    """Relative KKT residual of (V) at ``lam``, per sample ``(B,)``.
+
+    The natural residual in units of ``lam``: ``|min(lam, grad f(lam) / diag H)|_inf /
+    (1 + |lam|_inf)``, with ``H = L^T L + K^T diag(s) K`` the Hessian of the current piece (a
+    Jacobi scaling: one projected Newton-like step). Zero exactly at the minimiser.
+    """
     L, b, K, h = values["L"], values["b"], values["K"], values["h"]
-    g, _ = _gradient(L, b, K, h, lam)
-    scale = 1.0 + (b @ L).abs().amax(-1) + (h @ K).abs().amax(-1)
-    return torch.minimum(lam, g).abs().amax(-1) / scale
+    g, t = _gradient(L, b, K, h, lam)
+    hdiag = (L * L).sum(0) + (t > 0).to(lam.dtype) @ (K * K)
+    return torch.minimum(lam, g / hdiag).abs().amax(-1) / (1.0 + lam.abs().amax(-1))
 
 
 def solve_violation_fast(
