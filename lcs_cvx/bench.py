@@ -107,7 +107,7 @@ def run_bench(
             fn = _loss_fn(loss, gamma, eps)
             ref_loss, ref_info = fn(model, data.x, data.u, data.x_next, "fast")
             for path in paths:
-                def call(path=path):
+                def call(path=path, fn=fn, model=model, data=data):
                     model.zero_grad()
                     value, _ = fn(model, data.x, data.u, data.x_next, path)
                     value.backward()

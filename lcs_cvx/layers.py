@@ -48,7 +48,7 @@ def _check_backend(backend: str) -> dict:
     return LAYER_SOLVERS[backend]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def lcp_layer(n_lam: int) -> CvxpyLayer:
     """CvxpyLayer over (P), :func:`lcs_cvx.problems.convex_lcp_problem`; inputs ``R, F, q``."""
     decl = convex_lcp_problem(n_lam)
@@ -56,7 +56,7 @@ def lcp_layer(n_lam: int) -> CvxpyLayer:
     return CvxpyLayer(decl.problem, parameters=params, variables=[decl.variables["lam"]])
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def violation_layer(n_lam: int) -> CvxpyLayer:
     """CvxpyLayer over (V), :func:`lcs_cvx.problems.violation_problem`; inputs ``L, b, K, h``."""
     decl = violation_problem(n_lam)

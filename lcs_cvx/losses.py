@@ -26,9 +26,9 @@ from typing import Any
 import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
-from .lcp import active_set_solve, lcp_residual, solve_lcp_fast
 from .layers import lcp_layer, solve_layer, violation_layer
-from .problems import check_gamma, convex_lcp_problem, violation_problem
+from .lcp import active_set_solve, lcp_residual, solve_lcp_fast
+from .problems import convex_lcp_problem, violation_problem
 from .violation import solve_violation_fast, violation_kkt_residual
 
 __all__ = [
@@ -134,8 +134,7 @@ def violation_loss(
     backend = _check_solver(solver)
     check_positive("eps", eps)
     x, u, x_next = _inputs(model, x, u, x_next)
-    F, C = model.F, model.C
-    check_gamma(F, gamma)
+    F, C = model.F, model.C  # gamma < sigma_min(F + F^T) is checked by parameter_values
     q = x @ model.D.mT + u @ model.E.mT + model.c
     r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
     decl = violation_problem(model.n_lam)
@@ -144,10 +143,11 @@ def violation_loss(
     if solver == "fast":
         with torch.no_grad():
             values = decl.parameter_values(C.detach(), F.detach(), q.detach(), r.detach(), gamma, eps)
-            sol = solve_violation_fast(values)
+            sol = solve_violation_fast(values, residual=return_info)
         lam = sol.lam
         phi = decl.phi(lam, F.detach(), q.detach(), gamma)
-        iterations, n_fb, resid = sol.iterations, sol.n_fallback, float(sol.residual.max())
+        iterations, n_fb = sol.iterations, sol.n_fallback
+        resid = float(sol.residual.max()) if sol.residual is not None else 0.0
     else:
         values = decl.parameter_values(C, F, q, r, gamma, eps)
         lam = solve_layer(violation_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)

@@ -52,6 +52,7 @@ def block_pivoting(
     *,
     max_iter: int = 100,
     stall: int = 3,
+    subset_fraction: float = 0.25,
 ) -> PivotResult:
     """Run block principal pivoting with Murty's fallback on a batch.
 
@@ -64,46 +65,52 @@ def block_pivoting(
             ``converged = False``; callers fall back to a reference solver).
         stall: sweeps without a new lowest infeasibility count before a sample switches
             to single (Murty) pivots.
+        subset_fraction: once at most this fraction of the work set is unconverged, the work
+            set shrinks to those samples (a converged sample re-solved with its unchanged free
+            set gives the same answer, so shrinking is only a saving, not a correctness matter).
 
     Returns:
-        :class:`PivotResult`. Converged samples are not re-solved after they converge.
+        :class:`PivotResult`.
     """
     free = free0.clone()
     B, k = free.shape
     device = free.device
     solution, bad = solve(free, None)
-    solution = solution.clone()
+    active: torch.Tensor | None = None  # None: the whole batch is the work set
     n_bad = bad.sum(dim=1)
     best = n_bad.clone()
-    stalled = torch.zeros(B, dtype=torch.long, device=device)
+    stalled = torch.zeros_like(n_bad)
     weights = torch.arange(1, k + 1, device=device)
-    active = torch.arange(B, device=device)
     sweeps = 0
     while sweeps < max_iter:
         todo = n_bad > 0
-        if not bool(todo.any()):
+        n_todo = int(todo.sum())
+        if n_todo == 0:
             break
-        if not bool(todo.all()):  # drop converged samples from the work set
+        size = B if active is None else active.numel()
+        if n_todo <= subset_fraction * size:
             keep = todo.nonzero().squeeze(1)
-            active, bad, n_bad = active[keep], bad[keep], n_bad[keep]
-            best, stalled = best[keep], stalled[keep]
-        # Murty's rule (largest infeasible index) for stalled samples, block flips otherwise.
-        last = torch.argmax(bad.long() * weights, dim=1)
-        single = torch.nn.functional.one_hot(last, k).bool()
-        flip = torch.where((stalled >= stall)[:, None], single & bad, bad)
-        free_act = free[active] ^ flip
-        free[active] = free_act
-        full = active.numel() == B
-        sol, bad = solve(free_act, None if full else active)
-        if full:
-            solution = sol
+            active = keep if active is None else active[keep]
+            bad, n_bad, best, stalled = bad[keep], n_bad[keep], best[keep], stalled[keep]
+        flip = bad
+        if sweeps >= stall:  # Murty's rule (largest infeasible index) for stalled samples
+            last = torch.argmax(bad.long() * weights, dim=1, keepdim=True)
+            single = torch.zeros_like(bad).scatter_(1, last, True) & bad
+            flip = torch.where((stalled >= stall)[:, None], single, bad)
+        if active is None:
+            free ^= flip
+            solution, bad = solve(free, None)
         else:
+            free_act = free[active] ^ flip
+            free[active] = free_act
+            sol, bad = solve(free_act, active)
             solution[active] = sol
         sweeps += 1
         n_bad = bad.sum(dim=1)
         improved = n_bad < best
         best = torch.minimum(best, n_bad)
-        stalled = torch.where(improved, torch.zeros_like(stalled), stalled + 1)
+        stalled = torch.where(improved, 0, stalled + 1)
     converged = torch.ones(B, dtype=torch.bool, device=device)
-    converged[active[n_bad > 0]] = False
+    failed = n_bad > 0
+    converged[failed if active is None else active[failed]] = False
     return PivotResult(solution=solution, free=free, converged=converged, iterations=sweeps)

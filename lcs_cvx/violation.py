@@ -46,7 +46,8 @@ class ViolationSolution:
         pos: ``(B, n)`` bool, ``(K lam - h)_i > 0`` (``phi_i = 0``).
         iterations: pivoting sweeps.
         n_fallback: samples solved by the reference instead.
-        residual: ``(B,)`` relative KKT residual (:func:`violation_kkt_residual`).
+        residual: ``(B,)`` relative KKT residual (:func:`violation_kkt_residual`), or None when
+            not asked for (convergence of the pivoting is itself a KKT check to ``tol``).
     """
 
     lam: torch.Tensor
@@ -54,7 +55,7 @@ class ViolationSolution:
     pos: torch.Tensor
     iterations: int
     n_fallback: int
-    residual: torch.Tensor
+    residual: torch.Tensor | None
 
 
 def _gradient(L: torch.Tensor, b: torch.Tensor, K: torch.Tensor, h: torch.Tensor, lam: torch.Tensor):
@@ -81,6 +82,7 @@ def solve_violation_fast(
     max_iter: int = 100,
     tol: float = PIVOT_TOL,
     fallback: bool = True,
+    residual: bool = True,
 ) -> ViolationSolution:
     """Solve (V) for a batch, from the declaration's parameter values.
 
@@ -90,6 +92,7 @@ def solve_violation_fast(
         max_iter: pivoting sweeps before unconverged samples fall back to Clarabel.
         tol: relative feasibility tolerance of a candidate.
         fallback: if False, raise :class:`lcs_cvx.SolverError` on non-convergence instead.
+        residual: also compute the per-sample KKT residual (a few more batched products).
 
     Returns:
         :class:`ViolationSolution` (no autograd graph).
@@ -103,28 +106,30 @@ def solve_violation_fast(
         K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
         scale_g = tol * (1.0 + Ltb.abs().amax(-1, keepdim=True) + (h @ K).abs().amax(-1, keepdim=True))
         scale_t = tol * (1.0 + h.abs().amax(-1, keepdim=True))
+        scale_l: list[torch.Tensor] = []  # lam's scale, from the first candidate
 
         def solve(state: torch.Tensor, idx: torch.Tensor | None):
             free, pos = state[:, :n], state[:, n:]
-            bb = Ltb if idx is None else Ltb[idx]
-            hh = h if idx is None else h[idx]
-            sg = scale_g if idx is None else scale_g[idx]
-            st = scale_t if idx is None else scale_t[idx]
+            if idx is None:
+                bb, hh, sg, st = Ltb, h, scale_g, scale_t
+            else:
+                bb, hh, sg, st = Ltb[idx], h[idx], scale_g[idx], scale_t[idx]
             sf = pos.to(b.dtype)
             m = free.to(b.dtype)
-            M = (sf @ K_outer).view(-1, n, n).add_(LtL)
+            M = torch.addmm(LtL.reshape(1, n * n), sf, K_outer).view(-1, n, n)
             M.mul_(m[:, :, None] * m[:, None, :]).diagonal(dim1=-2, dim2=-1).add_(1.0 - m)
-            rhs = m * ((sf * hh) @ K - bb)
+            rhs = m * torch.addmm(-bb, sf * hh, K)
             chol, info = torch.linalg.cholesky_ex(M)
             lam = torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1)
-            t = lam @ K.mT - hh
-            g = lam @ LtL + bb + (sf * t) @ K
-            sl = tol * (1.0 + lam.abs().amax(-1, keepdim=True))
-            bad_lam = torch.where(free, lam < -sl, g < -sg)
-            bad_pos = torch.where(pos, t < -st, t > st)
-            bad = torch.cat([bad_lam, bad_pos], dim=1)
-            if bool((info != 0).any()):  # not expected for a PD Hessian; never trust it
-                bad[info != 0] = True
+            t = torch.addmm(-hh, lam, K.mT)
+            g = torch.addmm(torch.addmm(bb, lam, LtL), sf * t, K)
+            if not scale_l:
+                scale_l.append(tol * (1.0 + lam.abs().amax(-1, keepdim=True)))
+            sl = scale_l[0] if idx is None else scale_l[0][idx]
+            bad = torch.cat(
+                [torch.where(free, lam < -sl, g < -sg), torch.where(pos, t < -st, t > st)], dim=1
+            )
+            bad |= (info != 0).unsqueeze(1)  # a failed factorisation is never trusted
             return lam, bad
 
         state0 = torch.cat([h < 0, h < 0], dim=1)
@@ -150,5 +155,5 @@ def solve_violation_fast(
             lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
         free = lam > 0
         pos = (lam @ K.mT - h) > 0
-        resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam)
+        resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam) if residual else None
         return ViolationSolution(lam, free, pos, res.iterations, n_fb, resid)

@@ -28,7 +28,7 @@ def plot(rows, path: str) -> None:
     sizes = sorted({(r.n_x, r.n_u, r.n_lam) for r in rows}, key=lambda s: (s[2], s[0]))
     fig, axes = plt.subplots(1, len(LOSSES), figsize=(11, 4), sharey=True)
     width = 0.8 / len(PATHS)
-    for ax, loss in zip(axes, LOSSES):
+    for ax, loss in zip(axes, LOSSES, strict=True):
         for k, path in enumerate(PATHS):
             vals = [
                 next((r.samples_per_s for r in rows if (r.n_x, r.n_u, r.n_lam) == s
