@@ -75,11 +75,12 @@ def as_batch(
     ``batch`` (if given) is the required ``N``.
     """
     t = _to_tensor(name, value, dtype, device)
+    received = tuple(t.shape)
     if t.dim() == 1:
         t = t.unsqueeze(0)
     if t.dim() != 2 or t.shape[1] != n:
         raise LCSInputError(
-            f"{name}: expected shape (N, {n}) or ({n},), received shape {tuple(t.shape)}"
+            f"{name}: expected shape (N, {n}) or ({n},), received shape {received}"
         )
     if batch is not None and t.shape[0] != batch:
         raise LCSInputError(

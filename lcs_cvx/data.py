@@ -110,8 +110,11 @@ class Dataset:
         return self.x.shape[0]
 
     def __getitem__(self, idx: Any) -> Dataset:
-        if isinstance(idx, int):
-            idx = slice(idx, idx + 1) if idx != -1 else slice(-1, None)
+        if isinstance(idx, (int, np.integer)):  # one sample, kept 2-D
+            i, n = int(idx), len(self)
+            if not -n <= i < n:  # the IndexError also ends `for sample in dataset`
+                raise IndexError(f"index {i} out of range for a dataset of {n} samples")
+            idx = slice(i % n, i % n + 1)
         lam = self.lam[idx] if self.lam is not None else None
         return Dataset(self.x[idx], self.u[idx], self.x_next[idx], lam)
 

@@ -229,18 +229,26 @@ def check_gamma(F: torch.Tensor, gamma: float) -> float:
 
 
 def _solve_reference(problem: cp.Problem, what: str) -> None:
-    """Clarabel with tight tolerances; on failure once more with its defaults, then raise."""
+    """Clarabel with tight tolerances; on failure once more with its defaults, then raise.
+
+    ``warm_start=False``: with CVXPY's default warm start, Clarabel's cached solver is updated
+    in place, keeping the equilibration of the first data it saw and the settings of the
+    previous call, so the answer (and failure) depended on earlier solves of the declaration.
+    """
+    status = "no solve"
     for options in (CLARABEL_OPTIONS, {}):
         try:
-            problem.solve(solver=cp.CLARABEL, **options)
-        except cp.error.SolverError:
+            problem.solve(solver=cp.CLARABEL, warm_start=False, **options)
+        except cp.error.SolverError as exc:
+            status = f"solver error ({exc})"
             continue
+        status = f"status {problem.status}"
         if problem.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             return
-    raise SolverError(f"Clarabel failed on {what}: status {problem.status}")
+    raise SolverError(f"Clarabel failed on {what}: {status}")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def convex_lcp_problem(n_lam: int) -> ConvexLCPProblem:
     """The DPP declaration of (P), eq. (equ.convexlcp), for ``n_lam`` variables (cached)."""
     n = check_positive("n_lam", n_lam, integer=True)
@@ -254,7 +262,7 @@ def convex_lcp_problem(n_lam: int) -> ConvexLCPProblem:
     return ConvexLCPProblem(n, problem, {"R": R, "F": F, "q": q}, {"lam": lam})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def violation_problem(n_lam: int) -> ViolationProblem:
     """The DPP declaration of (V), eq. (equ.contactnet.2), for ``n_lam`` variables (cached)."""
     n = check_positive("n_lam", n_lam, integer=True)

@@ -1,0 +1,346 @@
+"""The LCP solvers of :mod:`lcs_cvx.lcp`: ``0 <= lam _|_ F lam + q >= 0`` (eq. equ.lcp).
+
+Three solvers must give the one solution Assumption 1 guarantees: batched block pivoting
+(``fast``), enumeration of the 2^n active sets (``brute``) and the declared problem (P) solved
+by Clarabel (``cvxpy``, the reference; ~10^3 samples/s, so its batches stay small).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import random_p_matrix, random_q, strictly_complementary_lcp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import lcs_cvx
+from lcs_cvx.lcp import (
+    active_set_solve,
+    lcp_residual,
+    solve_lcp,
+    solve_lcp_brute,
+    solve_lcp_fast,
+)
+
+F64 = torch.float64
+ATOL = 1e-8  # absolute agreement on lam between the three solvers
+
+
+def max_abs(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().max())
+
+
+def assert_lcp_conditions(F, q, lam, tol=1e-10):
+    """lam >= 0, w = F lam + q >= 0 and lam_i w_i = 0, to ``tol`` relative to ``1 + |q|``."""
+    w = lam @ F.mT + q
+    scale = 1.0 + q.abs().amax(-1, keepdim=True) + lam.abs().amax(-1, keepdim=True)
+    assert bool((lam >= 0).all())
+    assert bool((w >= -tol * scale).all()), float(w.min())
+    assert bool(((lam * w).abs() <= tol * scale * scale).all()), float((lam * w).abs().max())
+
+
+def check_against_reference(F, q, lam, ref_lam, smin, margin=1e-2):
+    """Compare the exact ``lam`` with Clarabel's ``ref_lam``.
+
+    An interior-point answer is accurate in its residual, not in ``lam``: its error is about
+    ``residual * |F_II^{-1}| / (complementarity margin)``. Two checks:
+
+    - every sample: the a-posteriori bound for strongly monotone LCPs (Pang 1987;
+      Facchinei & Pang 2003, Prop. 6.3.1) with modulus ``mu = smin / 2`` (``lam^T F lam =
+      lam^T (F + F^T) lam / 2``): ``|ref - lam*|_2 <= (1 + |F|_2) / mu * |min(ref, F ref + q)|_2``
+      (plus round-off of ``lam`` itself);
+    - samples whose margin ``min_i max(lam_i, w_i)`` is at least ``margin``: the full 1e-8
+      absolute agreement.
+
+    Returns the number of samples that got the 1e-8 check.
+    """
+    err2 = (lam - ref_lam).norm(dim=-1)
+    r = torch.minimum(ref_lam, ref_lam @ F.mT + q).norm(dim=-1)
+    bound = (1.0 + torch.linalg.matrix_norm(F, 2)) / (smin / 2.0) * r
+    slack = 1e-12 * (1.0 + lam.abs().amax(-1))
+    assert bool((err2 <= bound + slack).all()), float((err2 - bound - slack).max())
+    w = lam @ F.mT + q
+    sharp = torch.maximum(lam, w).amin(-1) >= margin
+    err = (lam - ref_lam).abs().amax(-1)
+    if bool(sharp.any()):
+        assert float(err[sharp].max()) <= ATOL, float(err[sharp].max())
+    return int(sharp.sum())
+
+
+# -- agreement of the three solvers ------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", range(1, 9))
+def test_fast_brute_cvxpy_agree(n):
+    F = random_p_matrix(n, smin=0.5, seed=n)
+    q = random_q(300, n, seed=10 + n, scale=3.0)
+    fast = solve_lcp_fast(F, q)
+    brute = solve_lcp_brute(F, q)
+    assert fast.n_fallback == 0
+    assert max_abs(fast.lam, brute.lam) <= ATOL
+    ref = solve_lcp(F, q[:16], method="cvxpy")
+    assert check_against_reference(F, q[:16], fast.lam[:16], ref.lam, smin=0.5) >= 8
+    assert_lcp_conditions(F, q, fast.lam)
+    # the batch really exercises the solver: several modes, some samples need pivoting
+    assert torch.unique(fast.lam > 0, dim=0).shape[0] >= min(2**n, 4)
+    if n >= 2:
+        assert fast.iterations >= 1
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(
+    n=st.integers(1, 8),
+    seed=st.integers(0, 2**20),
+    smin=st.sampled_from([2.0, 0.5, 1e-1, 1e-2]),
+    scale=st.sampled_from([0.1, 1.0, 10.0]),
+)
+def test_solvers_agree_property(n, seed, smin, scale):
+    F = random_p_matrix(n, smin=smin, seed=seed)
+    q = random_q(12, n, seed=seed + 1, scale=scale)
+    fast = solve_lcp(F, q, method="fast")
+    brute = solve_lcp(F, q, method="brute")
+    ref = solve_lcp(F, q, method="cvxpy")
+    assert max_abs(fast.lam, brute.lam) <= ATOL * max(1.0, scale)  # lam scales with q
+    # Clarabel: 1e-8 absolute on samples that are not near-degenerate (margin >= 1e-2 at
+    # |q| ~ 1), the a-posteriori bound on all (measured: 1.3e-6 at margin 1e-5, 2e-8 at
+    # smin = 1e-2, |q| ~ 0.1 and margin 0.1, where Clarabel's absolute gap tolerance dominates)
+    if scale >= 1.0 and smin >= 0.1:
+        check_against_reference(F, q, fast.lam, ref.lam, smin)
+    else:
+        check_against_reference(F, q, fast.lam, ref.lam, smin, margin=float("inf"))
+    assert_lcp_conditions(F, q, fast.lam)
+    assert float(fast.residual.max()) <= 1e-12
+
+
+def test_solution_fields_are_consistent():
+    F = random_p_matrix(5, smin=1.0, seed=3)
+    q = random_q(200, 5, seed=4)
+    sol = solve_lcp_fast(F, q)
+    assert sol.lam.shape == sol.w.shape == sol.free.shape == (200, 5)
+    assert sol.residual.shape == (200,)
+    assert sol.free.dtype == torch.bool
+    assert max_abs(sol.w, sol.lam @ F.mT + q) <= 1e-13
+    # free set = {lam_i > 0}, and the free set reproduces lam through the active-set solve
+    assert torch.equal(sol.free, sol.lam > 0)
+    assert max_abs(active_set_solve(F, q, sol.free), sol.lam) <= 1e-12
+    assert torch.allclose(sol.residual, lcp_residual(F, q, sol.lam), rtol=0, atol=1e-15)
+    # on the free set w = 0, off it lam = 0
+    assert float(sol.w[sol.free].abs().max()) <= 1e-12
+    assert float(sol.lam[~sol.free].abs().max()) == 0.0
+
+
+def test_nonnegative_q_needs_no_pivoting():
+    F = random_p_matrix(4, seed=0)
+    q = random_q(50, 4, seed=1).abs()
+    sol = solve_lcp_fast(F, q)
+    assert sol.iterations == 0
+    assert float(sol.lam.abs().max()) == 0.0
+    assert torch.equal(sol.w, q)
+
+
+# -- degenerate LCPs: lam_i = w_i = 0 ------------------------------------------------------
+
+
+def degenerate_lcp(F, batch, seed):
+    """``(q, lam*)`` where each index is, at random, free, inactive or degenerate (both 0);
+    every sample has at least one degenerate index."""
+    n = F.shape[0]
+    g = np.random.default_rng(seed)
+    kind = g.integers(0, 3, (batch, n))  # 0: lam > 0, 1: w > 0, 2: lam = w = 0
+    kind[np.arange(batch), g.integers(0, n, batch)] = 2
+    lam = np.where(kind == 0, 0.2 + g.random((batch, n)), 0.0)
+    w = np.where(kind == 1, 0.2 + g.random((batch, n)), 0.0)
+    lam_t = torch.tensor(lam, dtype=F64)
+    return torch.tensor(w, dtype=F64) - lam_t @ F.mT, lam_t
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
+def test_degenerate(n):
+    F = random_p_matrix(n, smin=0.5, seed=20 + n)
+    q, lam_star = degenerate_lcp(F, 100, seed=n)
+    fast = solve_lcp_fast(F, q)
+    brute = solve_lcp_brute(F, q)
+    assert fast.n_fallback == 0
+    assert max_abs(fast.lam, lam_star) <= 1e-12
+    assert max_abs(brute.lam, lam_star) <= 1e-12
+    # An interior-point method meets a degenerate index (lam_i = w_i = 0) at the analytic
+    # centre, lam_i ~ w_i ~ sqrt(gap tolerance) ~ 1e-5 (measured 4e-6..1.1e-5): Clarabel cannot
+    # give 1e-8 there, only its residual-based bound.
+    ref = solve_lcp(F, q[:10], method="cvxpy")
+    check_against_reference(F, q[:10], lam_star[:10], ref.lam, smin=0.5, margin=float("inf"))
+    assert max_abs(ref.lam, lam_star[:10]) <= 1e-4
+    assert_lcp_conditions(F, q, fast.lam, tol=1e-12)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(n=st.integers(1, 8), seed=st.integers(0, 2**20))
+def test_degenerate_property(n, seed):
+    F = random_p_matrix(n, smin=0.3, seed=seed)
+    q, lam_star = degenerate_lcp(F, 30, seed=seed + 7)
+    assert max_abs(solve_lcp_fast(F, q).lam, lam_star) <= 1e-11
+    assert max_abs(solve_lcp_brute(F, q).lam, lam_star) <= 1e-11
+
+
+# -- ill-conditioned F: sigma_min(F + F^T) down to 1e-5 -----------------------------------
+
+
+@pytest.mark.parametrize("smin", [1e-3, 1e-4, 1e-5])
+@pytest.mark.parametrize("skew", [1.0, 1e-3])
+@pytest.mark.parametrize("n", [2, 4, 8])
+def test_ill_conditioned_fast_vs_brute(n, skew, smin):
+    F = random_p_matrix(n, smin=smin, seed=30 + n, skew=skew)
+    sym = torch.linalg.eigvalsh(F + F.mT)[0]
+    assert float(sym) == pytest.approx(smin, rel=1e-6)
+    q = random_q(400, n, seed=n)
+    fast = solve_lcp_fast(F, q)
+    brute = solve_lcp_brute(F, q)
+    assert fast.n_fallback == 0
+    scale = 1.0 + fast.lam.abs().amax(-1)
+    assert bool(((fast.lam - brute.lam).abs().amax(-1) <= ATOL * scale).all())
+    assert float(fast.residual.max()) <= 1e-10
+    assert_lcp_conditions(F, q, fast.lam, tol=1e-10)
+
+
+@pytest.mark.parametrize("n", [2, 4, 8])
+def test_ill_conditioned_against_clarabel_well_scaled(n):
+    """sigma_min(F + F^T) = 1e-5 but F well-conditioned (skew part O(1)): |lam| = O(1) and
+    Clarabel reaches the full 1e-8 absolute agreement."""
+    F = random_p_matrix(n, smin=1e-5, seed=40 + n, skew=1.0)
+    q = random_q(15, n, seed=n)
+    fast = solve_lcp_fast(F, q)
+    ref = solve_lcp(F, q, method="cvxpy")
+    assert float(fast.lam.abs().max()) < 100
+    assert check_against_reference(F, q, fast.lam, ref.lam, smin=1e-5) >= 10
+
+
+# Clarabel itself flags some of these solves OPTIMAL_INACCURATE (cvxpy warns); the check below
+# is what decides whether its answer is acceptable.
+@pytest.mark.filterwarnings("ignore:Solution may be inaccurate:UserWarning")
+@pytest.mark.parametrize("n", [2, 4, 8])
+def test_ill_conditioned_against_clarabel_large_lam(n):
+    """sigma_min(F + F^T) = 1e-5 and F ill-conditioned (cond ~1e5, its weak direction in the
+    positive orthant): lam reaches 2e4..3e5. Clarabel's residual (~1e-11..1e-10) then moves
+    lam by up to ~1e-5 in absolute terms (measured 1.2e-8 / 1.7e-6 / 1.3e-5 at n = 8 / 4 / 2)
+    -- 1e-8 absolute is out of its reach -- so the agreement is checked relative to |lam|
+    (measured <= 1.6e-10) and by the a-posteriori bound; the pivoting answer, exact on its
+    active set, has the smaller residual."""
+    F = random_p_matrix(n, smin=1e-5, seed=30 + n, skew=1e-3, min_dir=np.ones(n))
+    q = random_q(15, n, seed=n)
+    fast = solve_lcp_fast(F, q)
+    ref = solve_lcp(F, q, method="cvxpy")
+    assert float(fast.lam.max()) > 1e3
+    check_against_reference(F, q, fast.lam, ref.lam, smin=1e-5, margin=float("inf"))
+    scale = 1.0 + fast.lam.abs().amax(-1)
+    err = (fast.lam - ref.lam).abs().amax(-1)
+    assert bool((err <= ATOL * scale).all()), float((err / scale).max())
+    # well-scaled samples still agree absolutely
+    small = fast.lam.abs().amax(-1) <= 10
+    assert bool(small.any())
+    assert float(err[small].max()) <= ATOL
+    # the round-off floor of w = F lam + q is ~eps |F| |lam|, i.e. ~1e-11 at |lam| ~ 1e5
+    assert bool((fast.residual <= 1e-15 * scale).all())
+    assert float(fast.residual.max()) <= float(ref.residual.max())
+
+
+# -- the residual ------------------------------------------------------------------------
+
+
+def test_lcp_residual_zero_at_solution_positive_elsewhere():
+    F = random_p_matrix(6, smin=1.0, seed=5)
+    q = random_q(100, 6, seed=6)
+    lam = solve_lcp_fast(F, q).lam
+    assert float(lcp_residual(F, q, lam).max()) <= 1e-14
+    for delta in (1e-2, 0.1, 1.0):
+        for sign in (1.0, -1.0):
+            bumped = lam.clone()
+            bumped[:, 2] += sign * delta
+            res = lcp_residual(F, q, bumped)
+            # lam_2 + delta leaves min(lam_2, w_2) >= delta * min(1, F_22) > 0 ...
+            # lam_2 - delta makes lam_2 < 0 or w_2 < 0 on the free ones
+            assert bool((res > 1e-3 * delta).all()), float(res.min())
+    # the natural residual also flags a wrong but feasible-looking point: lam = 0 when q has
+    # a negative entry
+    neg = q.min(-1).values < 0
+    assert bool((lcp_residual(F, q, torch.zeros_like(q))[neg] > 0).all())
+
+
+# -- fallback to the reference ------------------------------------------------------------
+
+
+def test_fallback_warns_and_is_correct():
+    F = random_p_matrix(6, smin=0.5, seed=3)
+    q = random_q(20, 6, seed=0)
+    brute = solve_lcp_brute(F, q)
+    # the initial guess of the pivoting is free = {q < 0}; samples where it is wrong must pivot
+    needs_pivot = (brute.lam > 0) != (q < 0)
+    n_need = int(needs_pivot.any(-1).sum())
+    assert n_need > 0
+    with pytest.warns(lcs_cvx.FallbackWarning, match="did not converge"):
+        sol = solve_lcp_fast(F, q, max_iter=0)
+    assert sol.n_fallback == n_need
+    assert sol.iterations == 0
+    assert max_abs(sol.lam, brute.lam) <= ATOL
+    assert torch.equal(sol.free, brute.lam > 0)
+    # the fallback samples carry Clarabel's accuracy, not the pivoting's round-off
+    assert float(sol.residual.max()) <= 1e-8
+    check_against_reference(F, q, brute.lam, sol.lam, smin=0.5)
+
+
+def test_fallback_disabled_raises():
+    F = random_p_matrix(6, smin=0.5, seed=3)
+    q = random_q(20, 6, seed=0)
+    with pytest.raises(lcs_cvx.SolverError, match=r"did not converge on \d+ of 20 samples"):
+        solve_lcp_fast(F, q, max_iter=0, fallback=False)
+    # with enough sweeps the same batch needs neither
+    sol = solve_lcp_fast(F, q, fallback=False)
+    assert sol.n_fallback == 0
+
+
+# -- the active-set map (Lemma 1) and its gradient ----------------------------------------
+
+
+@pytest.mark.parametrize("n", [1, 3, 6])
+def test_active_set_solve_gradcheck(n):
+    F = random_p_matrix(n, smin=1.0, seed=60 + n)
+    q, lam_star = strictly_complementary_lcp(F, 6, seed=n)
+    sol = solve_lcp_fast(F, q)
+    assert max_abs(sol.lam, lam_star) <= 1e-12
+    free = sol.free
+    assert torch.equal(free, lam_star > 0)
+    Fg = F.clone().requires_grad_(True)
+    qg = q.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda F_, q_: active_set_solve(F_, q_, free), (Fg, qg))
+    # batched F (B, n, n) as well
+    Fb = F.expand(q.shape[0], n, n).clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda F_, q_: active_set_solve(F_, q_, free), (Fb, qg))
+
+
+@pytest.mark.parametrize("n", [2, 5])
+def test_lcp_solution_map_gradient_matches_finite_differences(n):
+    """Differentiating the active-set map at the solver's free set gives the derivative of the
+    true solution map: the numerical Jacobian re-solves the LCP at every perturbed point."""
+    F = random_p_matrix(n, smin=1.0, seed=70 + n)
+    q, _ = strictly_complementary_lcp(F, 4, seed=n)
+
+    def lam_of(F_, q_):
+        free = solve_lcp_fast(F_, q_).free  # no grad: recomputed at each perturbed point
+        return active_set_solve(F_, q_, free)
+
+    Fg = F.clone().requires_grad_(True)
+    qg = q.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lam_of, (Fg, qg), eps=1e-6, atol=1e-6)
+
+
+def test_active_set_solve_closed_form_jacobian():
+    """d lam_I / d q_I = -F_II^{-1}, d lam_J / d q = 0."""
+    n = 4
+    F = random_p_matrix(n, smin=1.0, seed=9)
+    q, lam_star = strictly_complementary_lcp(F, 1, seed=2)
+    free = lam_star > 0
+    idx = free[0].nonzero().squeeze(1)
+    assert 0 < idx.numel() < n or n == 1
+    J = torch.autograd.functional.jacobian(lambda q_: active_set_solve(F, q_, free), q)[0, :, 0, :]
+    expected = torch.zeros(n, n, dtype=F64)
+    expected[idx[:, None], idx[None, :]] = -torch.linalg.inv(F[idx][:, idx])
+    assert torch.allclose(J, expected, atol=1e-12)
