@@ -19,10 +19,12 @@ from __future__ import annotations
 import itertools
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 
-from ._checks import LCSInputError, SolverError
+from ._checks import LCSInputError, SolverError, as_batch, as_matrix
 from .pivoting import block_pivoting
 from .problems import convex_lcp_problem
 
@@ -145,9 +147,13 @@ def solve_lcp_fast(
                 stacklevel=2,
             )
             ref = convex_lcp_problem(n).solve(F.cpu(), q[bad_idx].cpu().numpy())
-            lam[bad_idx] = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
-            w_ref = lam[bad_idx] @ F.mT + q[bad_idx]
-            free[bad_idx] = lam[bad_idx] > w_ref
+            lam_ref = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
+            # polish: re-solve exactly on the reference's active set, keep it if it is better
+            free_ref = lam_ref > lam_ref @ F.mT + q[bad_idx]
+            lam_pol = active_set_solve(F, q[bad_idx], free_ref)
+            better = lcp_residual(F, q[bad_idx], lam_pol) < lcp_residual(F, q[bad_idx], lam_ref)
+            lam[bad_idx] = torch.where(better[:, None], lam_pol.clamp(min=0.0), lam_ref)
+            free[bad_idx] = free_ref
         w = lam @ F.mT + q
         return LCPSolution(lam, w, free, res.iterations, n_fb, lcp_residual(F, q, lam))
 
@@ -156,7 +162,9 @@ def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
     """Enumerate all ``2^n`` free sets and keep the feasible one (tests only; ``n <= 12``)."""
     B, n = q.shape
     if n > 12:
-        raise LCSInputError(f"n_lam: brute force enumerates 2^n sets, expected n <= 12, received {n}")
+        raise LCSInputError(
+            f"n_lam: brute force enumerates 2^n sets, expected n <= 12, received {n}"
+        )
     with torch.no_grad():
         best_lam = torch.zeros_like(q)
         best_res = torch.full((B,), float("inf"), dtype=q.dtype, device=q.device)
@@ -173,12 +181,25 @@ def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
         return LCPSolution(lam, lam @ F.mT + q, best_free, 0, 0, lcp_residual(F, q, lam))
 
 
-def solve_lcp(F: torch.Tensor, q: torch.Tensor, method: str = "fast") -> LCPSolution:
-    """Solve the LCP ``0 <= lam _|_ F lam + q >= 0`` for a batch ``q`` ``(B, n)``.
+def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
+    """Solve the LCP ``0 <= lam _|_ F lam + q >= 0`` for a batch ``q`` ``(B, n)`` (or ``(n,)``).
 
-    ``method`` is ``"fast"`` (batched pivoting, default), ``"cvxpy"`` (declared problem (P),
-    Clarabel) or ``"brute"`` (enumeration).
+    ``F`` is ``(n, n)`` with ``F + F^T`` positive definite (Assumption 1). ``method`` is
+    ``"fast"`` (batched pivoting, default), ``"cvxpy"`` (declared problem (P), Clarabel) or
+    ``"brute"`` (enumeration).
     """
+    if not isinstance(F, torch.Tensor):
+        F = torch.as_tensor(np.asarray(F, dtype=np.float64))
+    if F.dim() != 2 or F.shape[0] != F.shape[1]:
+        raise LCSInputError(f"F: expected a square (n, n) matrix, received shape {tuple(F.shape)}")
+    F = as_matrix(
+        "F",
+        F,
+        tuple(F.shape),
+        dtype=F.dtype if F.is_floating_point() else torch.float64,
+        device=F.device,
+    )
+    q = as_batch("q", q, F.shape[0], dtype=F.dtype, device=F.device)
     if method == "fast":
         return solve_lcp_fast(F, q)
     if method == "brute":
@@ -190,6 +211,4 @@ def solve_lcp(F: torch.Tensor, q: torch.Tensor, method: str = "fast") -> LCPSolu
             lam = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
             w = lam @ F.detach().mT + q.detach()
             return LCPSolution(lam, w, lam > w, 0, 0, lcp_residual(F.detach(), q.detach(), lam))
-    raise LCSInputError(
-        f"method: expected one of 'fast', 'cvxpy', 'brute', received {method!r}"
-    )
+    raise LCSInputError(f"method: expected one of 'fast', 'cvxpy', 'brute', received {method!r}")
