@@ -4,8 +4,14 @@ from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
 from .data import Dataset as Dataset
 from .data import make_dataset as make_dataset
+from .fit import FitOptions as FitOptions
+from .fit import FitResult as FitResult
+from .fit import fit as fit
 from .hessian import violation_hessian as violation_hessian
 from .hessian import violation_hvp as violation_hvp
+from .io import load_metadata as load_metadata
+from .io import load_model as load_model
+from .io import save_model as save_model
 from .lcp import FallbackWarning as FallbackWarning
 from .lcp import LCPSolution as LCPSolution
 from .lcp import solve_lcp as solve_lcp

@@ -1,0 +1,557 @@
+r"""Training an LCS: :func:`fit` minimises ``L(theta) + omega ||C||_F^2`` (paper eq. equ.loss).
+
+Optimisers (``optimizer=``):
+
+- ``"adam"`` -- the paper's protocol (Sec. 5): minibatches of ``batch_size`` (200) drawn at
+  random (a fresh permutation every epoch), Adam with ``betas = (0.9, 0.9)``, ``eps = 1e-6``,
+  learning rate 1e-3 (the paper's text; the authors' own runs used 5e-3 for the violation loss
+  and 1e-3 for the prediction loss -- pass ``lr=5e-3`` to match them). Last iterate unless
+  ``keep_best=True``.
+- ``"gauss-newton"`` / ``"newton"`` -- Levenberg--Marquardt steps of
+  :mod:`lcs_cvx.second_order` on large minibatches (``batch_size``, default 5,000, capped at N):
+  the Gauss--Newton matrix with the solution's sensitivity, or Lemma 4's full Hessian with a line
+  search. Violation loss only.
+
+Recipes (``recipe=``) are named sets of options; options given explicitly win:
+
+- ``"paper"``: Adam as above, constant learning rate, fixed ``eps``, one run.
+- ``"best"``: what this package recommends (see :data:`RECIPES`): Adam from lr 1e-2 on a cosine
+  schedule, continuation in ``eps`` (1e-2 -> ``eps`` over the first 60 % of the iterations),
+  re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
+  boundary), then a Gauss--Newton refinement on a large batch -- in fewer Adam iterations than
+  the paper's 10,000 so that the whole fits the paper protocol's wall time.
+
+With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
+train on ``1 - holdout`` of the data, and the one with the lowest relative error on the held-out
+part is returned.
+
+Checkpoints (``checkpoint=path``) hold the model, the optimiser state, the RNG state, the epoch
+permutation and the history; they are written atomically every ``checkpoint_every`` iterations
+(and after every second-order step), and ``resume=True`` continues a killed run to exactly the
+result of an uninterrupted one (wall times aside).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from ._checks import LCSInputError
+from .data import Dataset
+from .losses import prediction_loss, regularizer, violation_loss
+from .metrics import relative_error
+from .second_order import gauss_newton_step, newton_step
+from .system import LCS, PARAMETER_NAMES
+
+__all__ = ["FitOptions", "FitResult", "RECIPES", "fit"]
+
+LOSSES = ("violation", "prediction")
+OPTIMIZERS = ("adam", "gauss-newton", "newton")
+SCHEDULES = ("constant", "cosine")
+REFINERS = (None, "gauss-newton", "newton")
+CHECKPOINT_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Every option of :func:`fit` (frozen; unknown names are rejected).
+
+    Attributes:
+        loss: ``"violation"`` (eq. equ.contactnet) or ``"prediction"`` (eq. equ.prednet).
+        optimizer: ``"adam"``, ``"gauss-newton"`` or ``"newton"``.
+        recipe: the recipe these options came from (``"paper"``, ``"best"`` or None).
+        gamma, eps: the violation loss's constants (Lemma 2: ``gamma < sigma_min(F + F^T)``).
+        reg: ``omega`` of the regulariser ``omega ||C||_F^2``.
+        iterations: optimiser iterations (Adam steps, or second-order steps).
+        batch_size: minibatch size (second-order: capped at the data size).
+        lr, betas, adam_eps: Adam's learning rate, betas and epsilon.
+        lr_schedule: ``"constant"`` or ``"cosine"`` (from ``lr`` to ``lr * lr_floor``).
+        lr_floor: the cosine schedule's final fraction of ``lr``.
+        eps_start: if set, ``eps`` decays geometrically from it to ``eps`` over the first
+            ``eps_fraction`` of the iterations (continuation).
+        eps_fraction: see ``eps_start``.
+        reinit_saturated: re-draw the hyperplane of a unit active on >= 98 % of samples, every
+            ``reinit_every`` iterations during the continuation phase.
+        reinit_every: see ``reinit_saturated``.
+        damping: initial Levenberg--Marquardt damping of the second-order steps.
+        refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
+        refine_iterations, refine_batch: its steps and batch size.
+        restarts: independent runs; the best on the held-out split is returned.
+        holdout: fraction of the data held out to score restarts (only when ``restarts > 1``).
+        seed: seed of minibatches, restarts' initialisations and re-initialisations.
+        eval_every: iterations between history records (loss, e_test on ``test``).
+        checkpoint_every: iterations between checkpoints.
+        keep_best: return the iterate with the lowest e_test (on ``test``) instead of the last.
+    """
+
+    loss: str = "violation"
+    optimizer: str = "adam"
+    recipe: str | None = None
+    gamma: float = 1e-2
+    eps: float = 1e-4
+    reg: float = 1e-5
+    iterations: int = 10_000
+    batch_size: int = 200
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.9)
+    adam_eps: float = 1e-6
+    lr_schedule: str = "constant"
+    lr_floor: float = 0.01
+    eps_start: float | None = None
+    eps_fraction: float = 0.6
+    reinit_saturated: bool = False
+    reinit_every: int = 500
+    damping: float = 1e-3
+    refine: str | None = None
+    refine_iterations: int = 20
+    refine_batch: int = 5000
+    restarts: int = 1
+    holdout: float = 0.1
+    seed: int = 0
+    eval_every: int = 100
+    checkpoint_every: int = 500
+    keep_best: bool = False
+
+    def __post_init__(self) -> None:
+        def choice(name: str, allowed: Sequence[Any]) -> None:
+            if getattr(self, name) not in allowed:
+                raise LCSInputError(
+                    f"{name}: expected one of {tuple(allowed)}, received {getattr(self, name)!r}"
+                )
+
+        choice("loss", LOSSES)
+        choice("optimizer", OPTIMIZERS)
+        choice("recipe", (None, *RECIPES))
+        choice("lr_schedule", SCHEDULES)
+        choice("refine", REFINERS)
+        for name in ("gamma", "eps", "lr", "adam_eps", "lr_floor", "eps_fraction"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
+                raise LCSInputError(f"{name}: expected a finite number > 0, received {v!r}")
+        for name in ("reg", "damping"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf:
+                raise LCSInputError(f"{name}: expected a finite number >= 0, received {v!r}")
+        for name in ("iterations", "batch_size", "reinit_every", "refine_iterations",
+                     "refine_batch", "restarts", "eval_every", "checkpoint_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations" else 1):
+                raise LCSInputError(f"{name}: expected an integer >= 1, received {v!r}")
+        if self.eps_start is not None and not (
+            isinstance(self.eps_start, (int, float)) and self.eps_start >= self.eps
+        ):
+            raise LCSInputError(
+                f"eps_start: expected None or a number >= eps = {self.eps!r}, received {self.eps_start!r}"
+            )
+        if not 0 < self.holdout < 1:
+            raise LCSInputError(f"holdout: expected a fraction in (0, 1), received {self.holdout!r}")
+        b = self.betas
+        if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(0 <= x < 1 for x in b)):
+            raise LCSInputError(f"betas: expected two numbers in [0, 1), received {b!r}")
+        if self.loss == "prediction" and (self.optimizer != "adam" or self.refine is not None):
+            raise LCSInputError(
+                "optimizer: the second-order methods are for the violation loss (Lemma 4); "
+                f"received loss='prediction' with optimizer={self.optimizer!r}, refine={self.refine!r}"
+            )
+
+
+#: Named option sets. ``"best"`` was chosen by measurement (see the README's training section).
+RECIPES: dict[str, dict[str, Any]] = {
+    "paper": {"optimizer": "adam", "lr": 1e-3, "lr_schedule": "constant", "eps_start": None,
+              "refine": None, "restarts": 1, "reinit_saturated": False},
+    "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
+             "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 6000,
+             "refine": "gauss-newton", "refine_iterations": 15, "refine_batch": 4000},
+}
+
+#: Defaults that depend on the optimiser (applied to options nobody set).
+_OPTIMIZER_DEFAULTS: dict[str, dict[str, Any]] = {
+    "adam": {},
+    "gauss-newton": {"iterations": 50, "batch_size": 5000, "eval_every": 1, "checkpoint_every": 1},
+    "newton": {"iterations": 50, "batch_size": 5000, "eval_every": 1, "checkpoint_every": 1},
+}
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """What :func:`fit` returns.
+
+    Attributes:
+        model: the trained model (the same object as the ``model`` argument, updated in place,
+            unless ``restarts > 1`` chose another initialisation).
+        history: one dict per record: ``iteration``, ``phase`` (``"adam"`` / ``"gauss-newton"`` /
+            ``"newton"``), ``loss`` (mean regularised training loss since the last record),
+            ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s), ``restart``.
+        settings: the resolved :class:`FitOptions`.
+        restart_scores: held-out relative error of each restart (empty with one run).
+        wall_time: seconds, summed over resumed pieces.
+    """
+
+    model: LCS
+    history: list[dict[str, Any]]
+    settings: FitOptions
+    restart_scores: list[float] = field(default_factory=list)
+    wall_time: float = 0.0
+
+
+def resolve_options(recipe: str | None = None, **options: Any) -> FitOptions:
+    """Defaults < optimiser defaults < recipe < explicit options; unknown names are rejected."""
+    valid = {f.name for f in dataclasses.fields(FitOptions)}
+    unknown = sorted(set(options) - valid)
+    if unknown:
+        raise LCSInputError(
+            f"options: unknown option(s) {unknown}; valid options are {sorted(valid)}"
+        )
+    if recipe is not None and recipe not in RECIPES:
+        raise LCSInputError(f"recipe: expected one of {tuple(RECIPES)}, received {recipe!r}")
+    explicit = {**(RECIPES[recipe] if recipe else {}), **{k: v for k, v in options.items()}}
+    optimizer = explicit.get("optimizer", "adam")
+    base = {k: v for k, v in _OPTIMIZER_DEFAULTS.get(optimizer, {}).items() if k not in explicit}
+    return FitOptions(**{**base, **explicit, "recipe": recipe})
+
+
+# -- checkpoints -------------------------------------------------------------------------------
+def _atomic_save(obj: dict, path: str) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: str, opts: FitOptions) -> dict | None:
+    if not os.path.exists(path):
+        return None
+    try:
+        ckpt = torch.load(path, weights_only=True)
+    except Exception as exc:  # a corrupt file must not be silently overwritten
+        raise LCSInputError(f"checkpoint: could not read {path!r}: {exc}") from exc
+    if ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise LCSInputError(f"checkpoint: {path!r} has format {ckpt.get('format')!r}, expected {CHECKPOINT_FORMAT}")
+    saved = ckpt["options"]
+    mine = _options_dict(opts)
+    if saved != mine:
+        diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+        raise LCSInputError(
+            f"checkpoint: {path!r} was written with other options (differing: {diff}); "
+            "resume with the same options or start afresh with resume=False"
+        )
+    return ckpt
+
+
+def _options_dict(opts: FitOptions) -> dict:
+    d = dataclasses.asdict(opts)
+    d["betas"] = list(d["betas"])
+    return d
+
+
+# -- one run -----------------------------------------------------------------------------------
+class _Run:
+    """One training run: the Adam phase, then the second-order phase (if any)."""
+
+    def __init__(self, model: LCS, train: Dataset, test: Dataset | None, opts: FitOptions,
+                 restart: int) -> None:
+        self.model, self.train, self.test, self.opts, self.restart = model, train, test, opts, restart
+        self.gen = torch.Generator().manual_seed(opts.seed * 1_000_003 + restart)
+        self.adam = torch.optim.Adam(
+            model.parameters(), lr=opts.lr, betas=tuple(opts.betas), eps=opts.adam_eps
+        )
+        self.iteration = 0  # Adam iterations done
+        self.second = 0  # second-order steps done
+        self.perm = torch.randperm(len(train), generator=self.gen)
+        self.pos = 0
+        self.history: list[dict[str, Any]] = []
+        self.damping = opts.damping
+        self.best: tuple[float, dict[str, torch.Tensor]] | None = None
+        self.acc_loss, self.acc_n = 0.0, 0
+
+    # state for checkpoints (tensors and plain types only: loadable with weights_only=True)
+    def state(self) -> dict:
+        return {
+            "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
+            "adam": self.adam.state_dict(),
+            "gen": self.gen.get_state(),
+            "iteration": self.iteration, "second": self.second,
+            "perm": self.perm, "pos": self.pos, "history": self.history,
+            "damping": self.damping,
+            "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
+            "acc": [self.acc_loss, self.acc_n],
+        }
+
+    def load(self, st: dict) -> None:
+        self.model.load_state_dict(st["model"])
+        self.adam.load_state_dict(st["adam"])
+        self.gen.set_state(st["gen"])
+        self.iteration, self.second = st["iteration"], st["second"]
+        self.perm, self.pos, self.history = st["perm"], st["pos"], st["history"]
+        self.damping = st["damping"]
+        self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
+        self.acc_loss, self.acc_n = st["acc"]
+
+    # schedules
+    def eps_at(self, it: int) -> float:
+        o = self.opts
+        if o.eps_start is None:
+            return o.eps
+        frac = min(1.0, it / max(1.0, o.eps_fraction * o.iterations))
+        return o.eps_start * (o.eps / o.eps_start) ** frac
+
+    def lr_at(self, it: int) -> float:
+        o = self.opts
+        if o.lr_schedule == "constant":
+            return o.lr
+        c = 0.5 * (1.0 + math.cos(math.pi * it / max(1, o.iterations)))
+        return o.lr * (o.lr_floor + (1.0 - o.lr_floor) * c)
+
+    def next_batch(self, size: int) -> torch.Tensor:
+        if self.pos + size > len(self.perm):
+            self.perm = torch.randperm(len(self.train), generator=self.gen)
+            self.pos = 0
+        idx = self.perm[self.pos : self.pos + size]
+        self.pos += size
+        return idx
+
+    def loss(self, idx: torch.Tensor, eps: float) -> torch.Tensor:
+        d, m, o = self.train, self.model, self.opts
+        x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
+        if o.loss == "violation":
+            value = violation_loss(m, x, u, xn, gamma=o.gamma, eps=eps)
+        else:
+            value = prediction_loss(m, x, u, xn)
+        return value + regularizer(m, o.reg)
+
+    def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict:
+        e_test = relative_error(self.model, self.test) if self.test is not None else None
+        rec = {
+            "iteration": self.iteration + self.second, "phase": phase,
+            "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
+            "e_test": e_test, "wall_time": elapsed, "restart": self.restart,
+        }
+        self.acc_loss, self.acc_n = 0.0, 0
+        self.history.append(rec)
+        if self.opts.keep_best and e_test is not None and (self.best is None or e_test < self.best[0]):
+            self.best = (e_test, {k: getattr(self.model, k).detach().clone() for k in PARAMETER_NAMES})
+        return rec
+
+    def reinit_saturated(self) -> None:
+        """Re-draw the hyperplane ``(D_i, E_i, c_i)`` and ``C[:, i]`` of units active on >= 98 %
+        of a sample of the data, and zero their Adam moments."""
+        m = self.model
+        idx = self.perm[: min(2000, len(self.perm))]
+        with torch.no_grad():
+            active = (m.solve_lcp(self.train.x[idx], self.train.u[idx]) > 0).to(torch.float64)
+            sat = (active.mean(0) >= 0.98).nonzero().squeeze(1)
+            if sat.numel() == 0:
+                return
+            for name, rows in (("D", True), ("E", True), ("c", True), ("C", False)):
+                p = getattr(m, name)
+                shape = (sat.numel(),) + tuple(p.shape[1:]) if rows else (p.shape[0], sat.numel())
+                new = 0.1 * torch.randn(shape, generator=self.gen, dtype=torch.float64).to(p.dtype)
+                if rows:
+                    p[sat] = new
+                else:
+                    p[:, sat] = new
+                st = self.adam.state.get(p)
+                if st:
+                    for key in ("exp_avg", "exp_avg_sq"):
+                        if rows:
+                            st[key][sat] = 0.0
+                        else:
+                            st[key][:, sat] = 0.0
+
+
+def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[], dict],
+         bar, t_offset: float) -> bool:
+    """Train ``run`` to completion (or until a callback asks to stop); returns True if stopped."""
+    o, t0 = run.opts, time.perf_counter()
+
+    def elapsed() -> float:
+        return t_offset + time.perf_counter() - t0
+
+    def save() -> None:
+        if checkpoint is not None:
+            _atomic_save({**ckpt_extra(), "run": run.state(), "elapsed": elapsed()}, checkpoint)
+
+    def after_record(rec: dict) -> bool:
+        if bar is not None:
+            bar.set_postfix(loss=f"{rec['loss']:.3e}",
+                            e_test="-" if rec["e_test"] is None else f"{rec['e_test']:.2e}")
+        return any(bool(cb(rec, run.model)) for cb in callbacks)
+
+    n_adam = o.iterations if o.optimizer == "adam" else 0
+    while run.iteration < n_adam:
+        it = run.iteration
+        eps, lr = run.eps_at(it), run.lr_at(it)
+        for group in run.adam.param_groups:
+            group["lr"] = lr
+        if o.reinit_saturated and it > 0 and it % o.reinit_every == 0 and it < o.eps_fraction * o.iterations:
+            run.reinit_saturated()
+        value = run.loss(run.next_batch(min(o.batch_size, len(run.train))), eps)
+        run.adam.zero_grad()
+        value.backward()
+        run.adam.step()
+        run.acc_loss += float(value.detach())
+        run.acc_n += 1
+        run.iteration += 1
+        if bar is not None:
+            bar.update(1)
+        if run.iteration % o.eval_every == 0 or run.iteration == n_adam:
+            if after_record(run.record("adam", eps, lr, elapsed())):
+                save()
+                return True
+        if run.iteration % o.checkpoint_every == 0:
+            save()
+    method = o.optimizer if o.optimizer != "adam" else o.refine
+    n_second = o.iterations if o.optimizer != "adam" else (o.refine_iterations if o.refine else 0)
+    size = min(o.batch_size if o.optimizer != "adam" else o.refine_batch, len(run.train))
+    step = gauss_newton_step if method == "gauss-newton" else newton_step
+    while run.second < n_second:
+        idx = run.next_batch(size)
+        d = run.train
+        res = step(run.model, d.x[idx], d.u[idx], d.x_next[idx], gamma=o.gamma, eps=o.eps,
+                   reg=o.reg, damping=run.damping)
+        run.damping = res.damping
+        run.acc_loss += res.loss
+        run.acc_n += 1
+        run.second += 1
+        if bar is not None:
+            bar.update(1)
+        if run.second % (o.eval_every if o.optimizer != "adam" else 1) == 0 or run.second == n_second:
+            if after_record(run.record(method, o.eps, None, elapsed())):
+                save()
+                return True
+        save()
+    save()
+    return False
+
+
+def _check_data(name: str, data: Any, model: LCS) -> Dataset:
+    if not isinstance(data, Dataset):
+        raise LCSInputError(f"{name}: expected an lcs_cvx.Dataset, received {type(data).__name__}")
+    if data.n_x != model.n_x or data.n_u != model.n_u:
+        raise LCSInputError(
+            f"{name}: expected n_x={model.n_x}, n_u={model.n_u} (the model's), received "
+            f"n_x={data.n_x}, n_u={data.n_u}"
+        )
+    if len(data) == 0:
+        raise LCSInputError(f"{name}: expected at least one sample, received an empty dataset")
+    return data.to(model.device) if data.x.device != model.device else data
+
+
+def fit(
+    model: LCS,
+    train: Dataset,
+    *,
+    test: Dataset | None = None,
+    recipe: str | None = None,
+    callbacks: Sequence[Callable[[dict, LCS], Any]] = (),
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    **options: Any,
+) -> FitResult:
+    """Learn the LCS ``model`` from ``train`` (in place); see the module docstring.
+
+    Args:
+        model: an :class:`lcs_cvx.LCS`, the initialisation (float64 recommended).
+        train: :class:`lcs_cvx.Dataset` of transitions.
+        test: optional dataset; its relative error (the paper's e_test) is recorded every
+            ``eval_every`` iterations and drives ``keep_best``.
+        recipe: ``"paper"``, ``"best"`` or None (options as given).
+        callbacks: ``cb(record, model)`` after every history record; a true return value stops
+            training (a checkpoint is written first).
+        checkpoint: path of the checkpoint file (written atomically; not a model file -- use
+            :func:`lcs_cvx.save_model` for that).
+        resume: continue from ``checkpoint`` if it exists (the options must be the same).
+        progress: a tqdm bar on stderr when it is a terminal.
+        **options: any field of :class:`FitOptions` (``loss``, ``optimizer``, ``gamma``, ``eps``,
+            ``reg``, ``iterations``, ``batch_size``, ``lr``, ``seed``, ...).
+
+    Returns:
+        :class:`FitResult`.
+
+    Example:
+        >>> import lcs_cvx
+        >>> truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+        >>> data = lcs_cvx.make_dataset(truth, 500, seed=1)
+        >>> model = lcs_cvx.LCS(2, 1, 2, seed=2)
+        >>> result = lcs_cvx.fit(model, data, optimizer="gauss-newton", iterations=5, progress=False)
+        >>> len(result.history)
+        5
+    """
+    if not isinstance(model, LCS):
+        raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    opts = resolve_options(recipe, **options)
+    train = _check_data("train", train, model)
+    test = _check_data("test", test, model) if test is not None else None
+    path = os.fspath(checkpoint) if checkpoint is not None else None
+    ckpt = _load_checkpoint(path, opts) if (path is not None and resume) else None
+
+    fit_data, holdout = train, None
+    if opts.restarts > 1:
+        fit_data, holdout = train.split(1.0 - opts.holdout, seed=opts.seed)
+    initial = copy.deepcopy(model.state_dict())
+    done: list[dict] = [] if ckpt is None else ckpt["done"]
+    t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
+    total = opts.restarts * (
+        (opts.iterations if opts.optimizer == "adam" else 0)
+        + (opts.iterations if opts.optimizer != "adam" else (opts.refine_iterations if opts.refine else 0))
+    )
+    use_bar = progress and sys.stderr.isatty()
+    bar = None
+    if use_bar:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total, desc="fit", unit="it", dynamic_ncols=True)
+    t_start = time.perf_counter()
+    history: list[dict] = [h for d in done for h in d["history"]]
+    stopped = False
+    try:
+        for r in range(len(done), opts.restarts):
+            if r == 0:
+                model.load_state_dict(initial)
+            else:
+                fresh = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness),
+                            seed=opts.seed * 7919 + r, dtype=model.dtype).to(model.device)
+                model.load_state_dict(fresh.state_dict())
+            run = _Run(model, fit_data, test, opts, r)
+            if ckpt is not None and ckpt.get("restart") == r and ckpt.get("run") is not None:
+                run.load(ckpt["run"])
+                if bar is not None:
+                    bar.update(run.iteration + run.second)
+
+            def extra(r=r) -> dict:
+                return {"format": CHECKPOINT_FORMAT, "options": _options_dict(opts), "restart": r,
+                        "done": done}
+
+            stopped = _run(run, callbacks=callbacks, checkpoint=path, ckpt_extra=extra, bar=bar,
+                           t_offset=t_offset + time.perf_counter() - t_start)
+            if opts.keep_best and run.best is not None:
+                with torch.no_grad():
+                    for k, v in run.best[1].items():
+                        getattr(model, k).copy_(v)
+            score = relative_error(model, holdout) if holdout is not None else math.nan
+            done.append({"score": score, "history": run.history,
+                         "params": {k: v.detach().clone() for k, v in model.state_dict().items()}})
+            history.extend(run.history)
+            if stopped:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    scores = [d["score"] for d in done] if opts.restarts > 1 else []
+    if done:  # the chosen run (also when a resumed checkpoint had finished them all)
+        best = min(range(len(done)), key=lambda i: done[i]["score"]) if opts.restarts > 1 else -1
+        model.load_state_dict(done[best]["params"])
+    if path is not None and not stopped:
+        _atomic_save({"format": CHECKPOINT_FORMAT, "options": _options_dict(opts),
+                      "restart": opts.restarts, "done": done, "run": None,
+                      "elapsed": t_offset + time.perf_counter() - t_start}, path)
+    return FitResult(model, history, opts, scores, t_offset + time.perf_counter() - t_start)
