@@ -1,0 +1,224 @@
+"""Training (lcs_cvx.fit): recovery, second order vs Adam, recipes, checkpoints and resume."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx import LCSInputError
+from lcs_cvx.fit import FitOptions, resolve_options
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A (2, 1, 2) ground truth, 2,000 noiseless training samples and 500 test samples."""
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 2000, seed=1)
+    test = lcs_cvx.make_dataset(truth, 500, seed=2)
+    return truth, train, test
+
+
+def _first_below(history, level):
+    return next((h["iteration"] for h in history if h["e_test"] is not None and h["e_test"] < level), None)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"optimizer": "adam", "iterations": 3000, "lr": 5e-3, "eval_every": 50},
+        {"optimizer": "adam", "loss": "prediction", "iterations": 3000, "lr": 5e-3, "eval_every": 50},
+        {"optimizer": "gauss-newton", "iterations": 20},
+        {"optimizer": "newton", "iterations": 60},
+        {"recipe": "best", "iterations": 1500},
+    ],
+    ids=["adam-violation", "adam-prediction", "gauss-newton", "newton", "best"],
+)
+def test_recovers_small_system(small, options):
+    truth, train, test = small
+    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    result = lcs_cvx.fit(model, train, test=test, progress=False, **options)
+    assert result.model is model
+    assert result.history[-1]["e_test"] < 1e-5
+    assert lcs_cvx.relative_error(model, test) == pytest.approx(result.history[-1]["e_test"])
+
+
+def test_second_order_needs_far_fewer_iterations_than_adam(small):
+    _, train, test = small
+    adam = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+                       iterations=3000, lr=5e-3, eval_every=10)
+    gn = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+                     optimizer="gauss-newton", iterations=20)
+    newton = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+                         optimizer="newton", iterations=60)
+    k_adam, k_gn, k_newton = (_first_below(r.history, 1e-5) for r in (adam, gn, newton))
+    assert None not in (k_adam, k_gn, k_newton)
+    assert k_adam >= 20 * k_gn  # measured: Adam ~1,000+ steps, Gauss-Newton < 10
+    assert k_adam >= 10 * k_newton
+
+
+def test_history_records_and_settings(small):
+    _, train, test = small
+    seen = []
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+                         iterations=200, eval_every=50, callbacks=[lambda rec, m: seen.append(rec)])
+    assert [h["iteration"] for h in result.history] == [50, 100, 150, 200]
+    assert seen == result.history
+    assert all(h["phase"] == "adam" and h["e_test"] > 0 and h["loss"] > 0 for h in result.history)
+    assert result.settings == resolve_options(iterations=200, eval_every=50)
+    assert result.settings.lr == 1e-3 and result.settings.betas == (0.9, 0.9)
+
+
+def test_callback_stops_training(small):
+    _, train, _ = small
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=1000,
+                         eval_every=10, callbacks=[lambda rec, m: rec["iteration"] >= 30])
+    assert result.history[-1]["iteration"] == 30
+
+
+def test_keep_best_returns_the_best_iterate(small):
+    _, train, test = small
+    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    # a learning rate too large to settle: the last iterate is not the best one
+    result = lcs_cvx.fit(model, train, test=test, progress=False, iterations=400, lr=0.3,
+                         eval_every=20, keep_best=True)
+    best = min(h["e_test"] for h in result.history)
+    assert lcs_cvx.relative_error(model, test) == pytest.approx(best, rel=1e-12)
+
+
+def test_restarts_pick_the_best_on_holdout(small):
+    _, train, _ = small
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False,
+                         optimizer="gauss-newton", iterations=3, restarts=3, holdout=0.2)
+    assert len(result.restart_scores) == 3
+    _, holdout = train.split(0.8, seed=0)
+    assert lcs_cvx.relative_error(result.model, holdout) == pytest.approx(min(result.restart_scores))
+    assert {h["restart"] for h in result.history} == {0, 1, 2}
+
+
+def test_recipes_and_option_resolution():
+    paper = resolve_options("paper")
+    assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
+    best = resolve_options("best", lr=2e-2)
+    assert best.lr == 2e-2 and best.eps_start == 1e-2 and best.refine == "gauss-newton"
+    gn = resolve_options(optimizer="gauss-newton")
+    assert gn.iterations == 50 and gn.batch_size == 5000
+    assert resolve_options(optimizer="gauss-newton", iterations=7).iterations == 7
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"learning_rate": 1e-3}, r"unknown option\(s\) \['learning_rate'\]"),
+        ({"optimizer": "sgd"}, r"optimizer: expected one of .*received 'sgd'"),
+        ({"loss": "mse"}, r"loss: expected one of .*received 'mse'"),
+        ({"lr": -1.0}, r"lr: expected a finite number > 0, received -1.0"),
+        ({"iterations": 2.5}, r"iterations: expected an integer >= 1, received 2.5"),
+        ({"eps_start": 1e-6}, r"eps_start: expected None or a number >= eps"),
+        ({"loss": "prediction", "optimizer": "newton"}, r"second-order methods are for the violation loss"),
+        ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best'\), received 'fast'"),
+    ],
+)
+def test_invalid_options(small, kwargs, match):
+    _, train, _ = small
+    with pytest.raises(LCSInputError, match=match):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, **kwargs)
+
+
+def test_invalid_data(small):
+    _, train, _ = small
+    with pytest.raises(LCSInputError, match=r"train: expected n_x=3, n_u=1 \(the model's\), received n_x=2"):
+        lcs_cvx.fit(lcs_cvx.LCS(3, 1, 2), train, progress=False)
+    with pytest.raises(LCSInputError, match="train: expected an lcs_cvx.Dataset"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), (train.x, train.u), progress=False)
+    with pytest.raises(LCSInputError, match="model: expected an lcs_cvx.LCS"):
+        lcs_cvx.fit(torch.nn.Linear(2, 2), train, progress=False)
+
+
+def test_options_are_frozen():
+    with pytest.raises(Exception):
+        FitOptions().lr = 1.0  # type: ignore[misc]
+
+
+def test_checkpoint_mismatch_is_refused(small, tmp_path):
+    _, train, _ = small
+    ckpt = tmp_path / "run.ckpt"
+    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+                checkpoint_every=10, checkpoint=ckpt)
+    with pytest.raises(LCSInputError, match=r"checkpoint: .* other options \(differing: \['lr'\]\)"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+                    checkpoint_every=10, checkpoint=ckpt, resume=True, lr=1e-2)
+
+
+_SCRIPT = textwrap.dedent(
+    """
+    import sys, torch, lcs_cvx
+    torch.set_num_threads(1)
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 2000, seed=1)
+    test = lcs_cvx.make_dataset(truth, 200, seed=2)
+    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    lcs_cvx.fit(model, train, test=test, progress=False, checkpoint=sys.argv[1], resume=True,
+                **OPTIONS)
+    """
+)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"iterations": 4000, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
+         "reinit_saturated": True, "eps_start": 1e-2, "lr_schedule": "cosine",
+         "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000},
+        {"optimizer": "newton", "iterations": 40, "batch_size": 1000},
+    ],
+    ids=["adam+refine", "newton"],
+)
+def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options):
+    """Kill a training subprocess mid-run (SIGKILL), resume in this process: the final model
+    and history (wall times aside) equal an uninterrupted run's."""
+    _, train, _ = small
+    test = lcs_cvx.make_dataset(lcs_cvx.random_lcs(2, 1, 2, seed=0), 200, seed=2)
+    ckpt = tmp_path / "run.ckpt"
+    script = tmp_path / "train.py"
+    script.write_text(_SCRIPT.replace("**OPTIONS", f"**{options!r}"))
+    proc = subprocess.Popen([sys.executable, str(script), str(ckpt)])
+    try:
+        deadline = time.time() + 120
+        while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert proc.poll() is None, "the subprocess finished before it could be killed"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    partial = torch.load(ckpt, weights_only=True)
+    assert partial["run"] is not None  # killed mid-run: there is something left to do
+    resumed_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    resumed = lcs_cvx.fit(resumed_model, train, test=test, progress=False, checkpoint=ckpt,
+                          resume=True, **options)
+    clean_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    clean = lcs_cvx.fit(clean_model, train, test=test, progress=False, **options)
+    for name, p in clean_model.named_parameters():
+        assert torch.equal(p, getattr(resumed_model, name)), name
+
+    def strip(history):
+        return [{k: v for k, v in h.items() if k != "wall_time"} for h in history]
+
+    assert strip(resumed.history) == strip(clean.history)
+    # resuming a finished run does nothing more and returns the same model
+    again_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    again = lcs_cvx.fit(again_model, train, test=test, progress=False, checkpoint=ckpt,
+                        resume=True, **options)
+    assert strip(again.history) == strip(clean.history)
+    for name, p in clean_model.named_parameters():
+        assert torch.equal(p, getattr(again_model, name)), name
