@@ -12,15 +12,27 @@ errors, and :class:`lcs_cvx.LCSInputError` raised by the library, printed as one
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
-from . import LCSInputError, SolverError, count_modes, make_dataset, random_lcs, solve_lcp
+from . import (
+    Dataset,
+    LCSInputError,
+    SolverError,
+    count_modes,
+    make_dataset,
+    random_lcs,
+    relative_error,
+    solve_lcp,
+)
 from .lcp import FallbackWarning
 
 __all__ = ["Command", "COMMANDS", "build_parser", "main"]
@@ -180,6 +192,203 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- fit and predict -------------------------------------------------------------------------
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, received {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, received {text!r}")
+    return value
+
+
+def _require(args: argparse.Namespace, *names: str) -> None:
+    """An :class:`LCSInputError` naming the first option of ``names`` that was not given."""
+    for name in names:
+        if getattr(args, name) is None:
+            raise LCSInputError(f"{name}: expected a value (the option is required), received none")
+
+
+def _reraise_for(option: str, exc: LCSInputError) -> LCSInputError:
+    """``exc`` with its message attributed to the command-line ``option`` (``"data"`` ->
+    ``"--data: ..."`` once :func:`main` prints it); a leading ``"path: "`` is dropped."""
+    message = str(exc).removeprefix("path: ")
+    return LCSInputError(f"{option}: {message}")
+
+
+def _load_data(option: str, path: str) -> Dataset:
+    """:meth:`Dataset.load` with errors naming ``--option``; an empty data set is refused."""
+    try:
+        data = Dataset.load(path)
+    except LCSInputError as exc:
+        err = _reraise_for(option, exc)
+        raise err if repr(path) in str(err) else LCSInputError(f"{err} (in {path!r})") from None
+    if len(data) == 0:
+        raise LCSInputError(f"{option}: expected at least one sample, received none in {path!r}")
+    return data
+
+
+def _check_target(option: str, path: str | None) -> None:
+    """``path`` (if given) can be a file written later: not a directory, in an existing one."""
+    if path is not None and (
+        os.path.isdir(path) or not os.path.isdir(os.path.dirname(os.path.abspath(path)))
+    ):
+        raise LCSInputError(f"{option}: expected a file in an existing directory, received {path!r}")
+
+
+def _check_dims(option: str, path: str, data: Dataset, n_x: int, n_u: int, against: str) -> None:
+    if (data.n_x, data.n_u) != (n_x, n_u):
+        raise LCSInputError(
+            f"{option}: expected n_x={n_x}, n_u={n_u} ({against}), received "
+            f"n_x={data.n_x}, n_u={data.n_u} in {path!r}"
+        )
+
+
+def _relative_error(option: str, model: Any, data: Dataset) -> float:
+    """:func:`lcs_cvx.relative_error` with errors naming ``--option``."""
+    try:
+        return relative_error(model, data)
+    except LCSInputError as exc:
+        raise _reraise_for(option, exc) from None
+
+
+def _jsonable(value: Any) -> Any:
+    """``value`` with everything JSON cannot hold (non-finite floats, dtypes, paths, ...) as text."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if value is None or isinstance(value, (bool, int, str)):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else str(value)
+    return str(value)
+
+
+def _configure_fit(p: argparse.ArgumentParser) -> None:
+    # required, but checked by run_fit: every command parses with no arguments (test_cli)
+    p.add_argument("--data", help="training set, an .npz with x, u, x_next (required)")
+    p.add_argument("--n-lam", type=_positive_int,
+                   help="number of complementarity variables of the learned LCS (required)")
+    p.add_argument("--out", help="model file to write, with lcs_cvx.save_model (required)")
+    p.add_argument("--test", default=None, help="test set (.npz); its e_test is printed")
+    p.add_argument("--stiffness", type=_positive_float, default=1.0,
+                   help="s in F = G G^T + H - H^T + s I of the learned LCS (default: 1.0)")
+    # None = not given: lcs_cvx.fit's own defaults and recipes decide
+    p.add_argument("--loss", choices=("violation", "prediction"), default=None)
+    p.add_argument("--optimizer", choices=("adam", "gauss-newton", "newton"), default=None)
+    p.add_argument("--recipe", choices=("paper", "best"), default=None)
+    p.add_argument("--iterations", type=_positive_int, default=None)
+    p.add_argument("--lr", type=_positive_float, default=None, help="learning rate")
+    p.add_argument("--batch-size", type=_positive_int, default=None)
+    p.add_argument("--gamma", type=_positive_float, default=None,
+                   help="gamma of the violation loss, 0 < gamma < sigma_min(F + F^T)")
+    p.add_argument("--eps", type=_positive_float, default=None, help="epsilon of the violation loss")
+    p.add_argument("--seed", type=_seed, default=None,
+                   help="seed of the initialisation (default: 0) and of the training")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file written during training")
+    p.add_argument("--resume", action="store_true", default=None,
+                   help="continue from --checkpoint")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    """Learn an LCS from ``--data`` with :func:`lcs_cvx.fit` and write it to ``--out``."""
+    from dataclasses import asdict
+
+    from . import LCS
+    from . import fit as fit_lcs  # looked up at run time: tests replace lcs_cvx.fit
+    from .io import save_model
+
+    _require(args, "data", "n_lam", "out")
+    train = _load_data("data", args.data)
+    test = None
+    if args.test is not None:
+        test = _load_data("test", args.test)
+        _check_dims("test", args.test, test, train.n_x, train.n_u, f"as in {args.data!r}")
+    _check_target("out", args.out)  # fail before training, not after
+    _check_target("checkpoint", args.checkpoint)
+    if args.resume and args.checkpoint is None:
+        raise LCSInputError("resume: expected --checkpoint PATH to resume from, received none")
+    seed = 0 if args.seed is None else args.seed
+    model = LCS(train.n_x, train.n_u, args.n_lam, stiffness=args.stiffness, seed=seed)
+    # passed on to lcs_cvx.fit only when given: fit's defaults and recipes decide the rest
+    passed = ("loss", "optimizer", "recipe", "iterations", "lr", "batch_size", "gamma", "eps",
+              "seed", "checkpoint", "resume")
+    options = {k: getattr(args, k) for k in passed if getattr(args, k) is not None}
+    print(
+        f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
+        + (f", test {len(test)} samples" if test is not None else "")
+    )
+    print(f"model: n_lam={args.n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
+
+    t0 = time.perf_counter()
+    try:
+        result = fit_lcs(model, train, test=test, progress=True, **options)
+    except LCSInputError as exc:  # fit names the training set "train"; here it is --data
+        if str(exc).startswith("train: "):
+            raise _reraise_for("data", LCSInputError(str(exc).removeprefix("train: "))) from None
+        raise
+    wall = time.perf_counter() - t0
+
+    metadata = {
+        "fit": _jsonable(asdict(result.settings)),
+        "init": {"n_lam": args.n_lam, "stiffness": args.stiffness, "seed": seed},
+        "data": {"train": args.data, "test": args.test, "n_train": len(train)},
+    }
+    try:
+        save_model(result.model, args.out, metadata=metadata)
+    except LCSInputError as exc:
+        raise _reraise_for("out", exc) from None
+    if test is not None:
+        print(f"e_test: {_relative_error('test', result.model, test):.6g}")
+    print(f"train relative error: {_relative_error('data', result.model, train):.6g}")
+    print(f"wall time: {wall:.2f} s")
+    print(f"saved: {args.out}")
+    return 0
+
+
+def _configure_predict(p: argparse.ArgumentParser) -> None:
+    # required, but checked by run_predict: every command parses with no arguments (test_cli)
+    p.add_argument("--model", help="model file written by lcs-cvx fit / save_model (required)")
+    p.add_argument("--data", help="data set, an .npz with x, u, x_next (required)")
+    p.add_argument("--out", default=None,
+                   help="also write the predictions (arrays x_next_pred, lam) to this .npz")
+    p.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    """e_test and the number of hybrid modes of a saved model on a data set."""
+    from .io import _atomic_savez, load_model
+
+    _require(args, "model", "data")
+    _check_target("out", args.out)
+    try:
+        model = load_model(args.model)
+    except LCSInputError as exc:
+        raise _reraise_for("model", exc) from None
+    data = _load_data("data", args.data)
+    _check_dims("data", args.data, data, model.n_x, model.n_u, f"the model's, {args.model!r}")
+    model.requires_grad_(False)
+    x, u = data.x.to(model.dtype), data.u.to(model.dtype)
+    print(f"model: n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam} ({args.model})")
+    print(f"data: {len(data)} samples ({args.data})")
+    print(f"e_test: {_relative_error('data', model, data):.6g}")
+    print(f"modes: {count_modes(model, x, u)}")
+    if args.out is not None:
+        with torch.no_grad():
+            lam = model.solve_lcp(x, u)
+            x_next = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
+        arrays = {"x_next_pred": x_next.cpu().numpy(), "lam": lam.cpu().numpy()}
+        try:
+            _atomic_savez(args.out, arrays, name="out")
+        except LCSInputError as exc:
+            raise _reraise_for("out", exc) from None
+        print(f"predictions: {args.out}")
+    return 0
+
+
 # -- registry and entry point ----------------------------------------------------------------
 COMMANDS: tuple[Command, ...] = (
     Command(
@@ -193,6 +402,18 @@ COMMANDS: tuple[Command, ...] = (
         "loss + gradient throughput of the fast path against the cvxpylayers references",
         _configure_bench,
         run_bench,
+    ),
+    Command(
+        "fit",
+        "learn an LCS from a data set (lcs_cvx.fit) and save it",
+        _configure_fit,
+        run_fit,
+    ),
+    Command(
+        "predict",
+        "e_test and hybrid modes of a saved model on a data set; optionally its predictions",
+        _configure_predict,
+        run_predict,
     ),
 )
 

@@ -243,6 +243,31 @@ class LCS(nn.Module):
             f"stiffness={float(self.stiffness):.3g}, dtype={self.dtype}"
         )
 
+    def to_c3(self) -> dict[str, np.ndarray]:
+        """The LCS in the convention of the C3 MPC code, as numpy arrays.
+
+        C3 writes ``x' = A x + B u + D lam + d``, ``0 <= lam _|_ E x + F lam + H u + c >= 0``;
+        the same system as eq. (equ.lcs) with the letters renamed::
+
+            C3 key:   A  B  D  d  E  F  H  c
+            ours:     A  B  C  d  D  F  E  c      (C -> D, D -> E, E -> H)
+
+        Keys ``"A", "B", "D", "d", "E", "F", "H", "c"``; shapes ``A (n_x, n_x)``,
+        ``B (n_x, n_u)``, ``D (n_x, n_lam)``, ``d (n_x,)``, ``E (n_lam, n_x)``,
+        ``F (n_lam, n_lam)``, ``H (n_lam, n_u)``, ``c (n_lam,)``.
+        """
+        m = self.to_matrices()
+        return {
+            "A": m["A"],
+            "B": m["B"],
+            "D": m["C"],
+            "d": m["d"],
+            "E": m["D"],
+            "F": m["F"],
+            "H": m["E"],
+            "c": m["c"],
+        }
+
 
 def random_lcs(
     n_x: int,

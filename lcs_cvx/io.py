@@ -1,0 +1,284 @@
+r"""Model files: an :class:`lcs_cvx.LCS` saved to, and rebuilt from, one ``.npz`` (no pickle).
+
+The file holds the learnable parameters exactly as they are stored in the model, so a round
+trip is bit-exact (same values, same dtype) and training continues from the same
+parameterisation ``F = G G^T + H - H^T + s I`` (paper Sec. 5):
+
+=============  ===================  =====================================================
+array          shape                meaning
+=============  ===================  =====================================================
+``A``          ``(n_x, n_x)``       ``x' = A x + B u + C lam + d``  (eq. equ.lcs)
+``B``          ``(n_x, n_u)``
+``C``          ``(n_x, n_lam)``
+``d``          ``(n_x,)``
+``D``          ``(n_lam, n_x)``     ``0 <= lam _|_ D x + E u + F lam + c >= 0``
+``E``          ``(n_lam, n_u)``
+``G``, ``H``   ``(n_lam, n_lam)``   learnable factors of ``F``
+``c``          ``(n_lam,)``
+``stiffness``  ``()``               ``s`` (the model's buffer)
+``F``          ``(n_lam, n_lam)``   derived, for readers without torch; checked on load
+``meta``       ``()`` str           JSON, see :func:`load_metadata`
+=============  ===================  =====================================================
+
+All numeric arrays have the model's dtype (float32 or float64). The path is used exactly as
+given: unlike ``np.savez``, no ``.npz`` is appended when it is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import secrets
+import zipfile
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+
+from ._checks import LCSInputError
+from .system import LCS, PARAMETER_NAMES, _shapes
+
+__all__ = ["save_model", "load_model", "load_metadata", "FORMAT", "FORMAT_VERSION"]
+
+#: Value of ``meta["format"]`` in every model file.
+FORMAT = "lcs_cvx.model"
+#: Version of the file layout written by :func:`save_model`; files of a newer version are refused.
+FORMAT_VERSION = 1
+#: Arrays every model file holds.
+ARRAY_NAMES = PARAMETER_NAMES + ("stiffness", "F", "meta")
+
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+# -- writing ---------------------------------------------------------------------------------
+def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None) -> None:
+    """Write ``model`` to ``path`` as an ``.npz`` (see the module docstring for its arrays).
+
+    Args:
+        model: an :class:`lcs_cvx.LCS` (any device; the arrays are written from the CPU).
+        path: the file to write, used exactly as given (no ``.npz`` is appended). Its
+            directory must exist. The write is atomic: the arrays go to a temporary file in the
+            same directory, which then replaces ``path`` (``os.replace``), so an interrupted
+            save leaves either the old file or the new one, never a truncated one.
+        metadata: optional JSON-serialisable dict (str keys; str, int, finite float, bool,
+            None, list and dict values), e.g. the training settings; :func:`load_metadata`
+            returns it under ``"metadata"`` as JSON reads it back (tuples become lists).
+
+    Raises:
+        LCSInputError: ``model`` is not an LCS, ``metadata`` is not a JSON-serialisable dict,
+            or ``path`` is not a writable file in an existing directory.
+    """
+    from . import __version__  # lazy: the package re-exports this module
+
+    if not isinstance(model, LCS):
+        raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    if metadata is not None and not isinstance(metadata, Mapping):
+        raise LCSInputError(
+            f"metadata: expected a dict (or None), received {type(metadata).__name__}"
+        )
+    dtype = str(model.dtype).removeprefix("torch.")
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "lcs_cvx_version": __version__,
+        "n_x": model.n_x,
+        "n_u": model.n_u,
+        "n_lam": model.n_lam,
+        "stiffness": float(model.stiffness),
+        "dtype": dtype,
+        "metadata": dict(metadata) if metadata is not None else {},
+    }
+    try:
+        meta_json = json.dumps(meta, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise LCSInputError(
+            "metadata: expected a JSON-serialisable dict (str keys; str, int, finite float, "
+            f"bool, None, list and dict values), received one that is not: {exc}"
+        ) from None
+    with torch.no_grad():
+        arrays = {k: getattr(model, k).detach().cpu().numpy() for k in PARAMETER_NAMES}
+        arrays["stiffness"] = model.stiffness.detach().cpu().numpy()
+        arrays["F"] = model.F.detach().cpu().numpy()
+    arrays["meta"] = np.array(meta_json)
+    _atomic_savez(path, arrays)
+
+
+def _atomic_savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], name: str = "path") -> None:
+    """``np.savez`` to exactly ``path`` via a temporary file in its directory and ``os.replace``.
+
+    ``name`` is the argument named in error messages.
+    """
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    if os.path.isdir(path):
+        raise LCSInputError(f"{name}: expected a file path, received {path!r} (a directory)")
+    if not os.path.isdir(directory):
+        raise LCSInputError(
+            f"{name}: expected a file in an existing directory, received {path!r} "
+            f"(directory {directory!r} not found)"
+        )
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
+    try:
+        # os.open with mode 0o666 applies the umask, as open(path, "wb") would
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except OSError as exc:
+        raise LCSInputError(f"{name}: could not write {path!r}: {exc.strerror}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)  # a file object: np.savez appends no ".npz"
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+# -- reading ---------------------------------------------------------------------------------
+def load_model(path: str | os.PathLike) -> LCS:
+    """Rebuild the :class:`lcs_cvx.LCS` written by :func:`save_model`, bit-exactly.
+
+    The parameters get the stored values and dtype (on the CPU; they require grad, as in a new
+    ``LCS``, so training can continue). The global torch random state is not touched.
+
+    Raises:
+        LCSInputError: the file is missing or not an ``.npz``, lacks an array, has an array of
+            the wrong shape or dtype for the dimensions in its metadata, holds non-finite
+            values, a stored ``F`` that does not match ``G``, ``H`` and ``stiffness``, or was
+            written in a newer format version.
+    """
+    path_s, arrays, meta = _read(path)
+    model = LCS(
+        meta["n_x"],
+        meta["n_u"],
+        meta["n_lam"],
+        stiffness=float(arrays["stiffness"]),
+        init_scale=0.0,
+        seed=0,  # a fixed seed: loading must not advance the global generator
+        dtype=_DTYPES[meta["dtype"]],
+    )
+    with torch.no_grad():
+        for name in PARAMETER_NAMES:
+            getattr(model, name).copy_(torch.from_numpy(arrays[name]))
+        model.stiffness.copy_(torch.from_numpy(arrays["stiffness"]))
+        F = model.F.numpy()
+    tol = 1e-5 if meta["dtype"] == "float32" else 1e-12
+    scale = 1.0 + float(np.abs(F).max(initial=0.0))
+    diff = float(np.abs(F - arrays["F"]).max(initial=0.0))
+    if not diff <= tol * scale:
+        raise LCSInputError(
+            f"path: array 'F' in {path_s!r}: expected G G^T + H - H^T + s I of the stored G, H "
+            f"and stiffness, received one that differs by {diff:.3g} (F is derived: change G, H "
+            "or stiffness instead)"
+        )
+    return model
+
+
+def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """The metadata of a model file (the file is fully validated, as by :func:`load_model`).
+
+    Returns a dict with keys ``"format"`` (``"lcs_cvx.model"``), ``"format_version"``,
+    ``"lcs_cvx_version"`` (the package that wrote it), ``"n_x"``, ``"n_u"``, ``"n_lam"``,
+    ``"stiffness"``, ``"dtype"`` (``"float32"`` or ``"float64"``) and ``"metadata"`` (the
+    user's dict given to :func:`save_model`; ``{}`` if none).
+    """
+    return _read(path)[2]
+
+
+def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str, Any]]:
+    """Open, parse and validate a model file; return ``(path, arrays, meta)``."""
+    path_s = os.fspath(path)
+    if not os.path.isfile(path_s):
+        what = "a directory" if os.path.isdir(path_s) else "not found"
+        raise LCSInputError(f"path: expected an existing model file (.npz), received {path_s!r} ({what})")
+    not_npz = f"path: expected an .npz model file written by lcs_cvx.save_model, received {path_s!r}"
+    try:
+        f = np.load(path_s, allow_pickle=False)
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
+        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
+    if not isinstance(f, np.lib.npyio.NpzFile):  # np.load also opens .npy files
+        raise LCSInputError(f"{not_npz} (a single .npy array)")
+    try:
+        with f:
+            arrays = {k: f[k] for k in f.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
+
+    if "meta" not in arrays:
+        hint = " -- a data set?" if {"x", "u", "x_next"} <= set(arrays) else ""
+        raise LCSInputError(
+            f"path: expected an lcs_cvx model file with a 'meta' array, received {path_s!r} "
+            f"with arrays {sorted(arrays)}{hint}"
+        )
+    meta = _parse_meta(path_s, arrays["meta"])  # the version first: a newer layout may differ
+    missing = [k for k in ARRAY_NAMES if k not in arrays]
+    if missing:
+        raise LCSInputError(
+            f"path: expected arrays {list(ARRAY_NAMES)} in {path_s!r}, missing {missing} "
+            f"(found {sorted(arrays)})"
+        )
+
+    dims = {"n_x": meta["n_x"], "n_u": meta["n_u"], "n_lam": meta["n_lam"]}
+    dims_text = ", ".join(f"{k}={v}" for k, v in dims.items())
+    expected = _shapes(meta["n_x"], meta["n_u"], meta["n_lam"])
+    expected["stiffness"] = ()
+    dtype = np.dtype(meta["dtype"])
+    for name in PARAMETER_NAMES + ("stiffness", "F"):
+        a = arrays[name]
+        where = f"path: array {name!r} in {path_s!r}"
+        if a.shape != expected[name]:
+            raise LCSInputError(
+                f"{where}: expected shape {expected[name]} ({dims_text} from its metadata), "
+                f"received {a.shape}"
+            )
+        if a.dtype != dtype:
+            raise LCSInputError(
+                f"{where}: expected dtype {dtype} (from its metadata), received {a.dtype}"
+            )
+        if not np.isfinite(a).all():
+            raise LCSInputError(
+                f"{where}: expected finite values, received {int((~np.isfinite(a)).sum())} NaN/inf entries"
+            )
+    s = float(arrays["stiffness"])
+    if not s > 0:
+        raise LCSInputError(f"path: array 'stiffness' in {path_s!r}: expected a number > 0, received {s!r}")
+    return path_s, arrays, meta
+
+
+def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
+    where = f"path: array 'meta' in {path_s!r}"
+    if raw.dtype.kind != "U" or raw.shape != ():
+        raise LCSInputError(
+            f"{where}: expected a JSON string (0-d unicode array), received shape {raw.shape} "
+            f"and dtype {raw.dtype}"
+        )
+    try:
+        meta = json.loads(str(raw))
+    except ValueError as exc:
+        raise LCSInputError(f"{where}: expected valid JSON, received text that is not ({exc})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise LCSInputError(f"{where}: expected a JSON object with format {FORMAT!r}, received {str(raw)[:80]!r}")
+    version = meta.get("format_version")
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
+        raise LCSInputError(f"{where}: expected an integer format_version >= 1, received {version!r}")
+    if version > FORMAT_VERSION:
+        raise LCSInputError(
+            f"path: expected a model file of format version <= {FORMAT_VERSION}, received version "
+            f"{version} in {path_s!r} (written by lcs_cvx {meta.get('lcs_cvx_version', '?')}); "
+            "upgrade lcs_cvx to read it"
+        )
+    for key, low in (("n_x", 1), ("n_u", 0), ("n_lam", 1)):
+        v = meta.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise LCSInputError(f"{where}: expected {key} an integer >= {low}, received {v!r}")
+    if meta.get("dtype") not in _DTYPES:
+        raise LCSInputError(
+            f"{where}: expected dtype one of {sorted(_DTYPES)}, received {meta.get('dtype')!r}"
+        )
+    if not isinstance(meta.get("metadata", {}), dict):
+        raise LCSInputError(f"{where}: expected 'metadata' a JSON object, received {meta['metadata']!r}")
+    meta.setdefault("metadata", {})
+    return meta

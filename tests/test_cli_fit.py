@@ -1,0 +1,333 @@
+"""`lcs-cvx fit` and `lcs-cvx predict`: predictions and metrics of a saved model, the plumbing
+from the command line to :func:`lcs_cvx.fit` (with a stand-in trainer), one real end-to-end fit,
+and bad input that exits 2 with a one-line message naming the option."""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx import LCS, Dataset, load_metadata, load_model, make_dataset, random_lcs, save_model
+from lcs_cvx.cli import main
+
+F64 = torch.float64
+
+
+def _facts(out: str) -> dict[str, str]:
+    return dict(line.split(": ", 1) for line in out.strip().splitlines() if ": " in line)
+
+
+def _error_line(capsys, command: str) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith(f"lcs-cvx {command}: error: ")
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def truth() -> LCS:
+    return random_lcs(2, 1, 2, seed=4)
+
+
+@pytest.fixture
+def files(tmp_path, truth) -> dict[str, Path]:
+    """A noiseless data set of ``truth``, ``truth`` saved as a model, and a second data set."""
+    paths = {"data": tmp_path / "data.npz", "model": tmp_path / "model.npz", "test": tmp_path / "test.npz"}
+    make_dataset(truth, 300, seed=1).save(paths["data"])
+    make_dataset(truth, 100, seed=2).save(paths["test"])
+    save_model(truth, paths["model"])
+    return paths
+
+
+# -- predict ---------------------------------------------------------------------------------
+
+
+def test_predict_with_the_true_model(files, truth, capsys):
+    out = files["data"].with_name("pred.npz")
+    argv = ["predict", "--model", str(files["model"]), "--data", str(files["data"]), "--out", str(out)]
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+    data = Dataset.load(files["data"])
+    assert float(facts["e_test"]) < 1e-24  # noiseless data of this very system
+    assert int(facts["modes"]) == lcs_cvx.count_modes(truth, data.x, data.u)
+    assert int(facts["modes"]) >= 2
+    assert facts["predictions"] == str(out)
+    with np.load(out, allow_pickle=False) as f:
+        assert sorted(f.files) == ["lam", "x_next_pred"]
+        np.testing.assert_allclose(f["x_next_pred"], data.x_next.numpy(), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(f["lam"], data.lam.numpy(), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_predict_reports_the_library_metrics(files, capsys, dtype):
+    model = LCS(2, 1, 3, seed=9, init_scale=1.0, dtype=dtype)  # another system: e_test is not 0
+    save_model(model, files["model"])
+    assert main(["predict", "--model", str(files["model"]), "--data", str(files["test"])]) == 0
+    facts = _facts(capsys.readouterr().out)
+    test = Dataset.load(files["test"])
+    expected = lcs_cvx.relative_error(model, test)
+    assert expected > 1e-3
+    assert float(facts["e_test"]) == pytest.approx(expected, rel=1e-5)
+    x, u = test.x.to(dtype), test.u.to(dtype)
+    assert int(facts["modes"]) == lcs_cvx.count_modes(model, x, u)
+    assert facts["model"].startswith("n_x=2, n_u=1, n_lam=3 ")
+    assert "predictions" not in facts
+
+
+def _bad_data(path: Path, **arrays: Any) -> str:
+    g = np.random.default_rng(0)
+    base = {"x": g.standard_normal((20, 2)), "u": g.standard_normal((20, 1)), "x_next": g.standard_normal((20, 2))}
+    base.update(arrays)
+    np.savez(path, **base)
+    return str(path)
+
+
+def _nan(shape: tuple[int, ...]) -> np.ndarray:
+    a = np.ones(shape)
+    a[3, 0] = np.nan
+    return a
+
+
+@pytest.mark.parametrize(
+    ("case", "named", "says"),
+    [
+        ("no-model", "--model", r"expected an existing model file .*\(not found\)"),
+        ("no-data", "--data", r"expected an existing \.npz file.*\(not found\)"),
+        ("data-as-model", "--model", r"a data set\?"),
+        ("wrong-n-x", "--data", r"expected n_x=2, n_u=1 \(the model's, .*\), received n_x=3, n_u=1 in "),
+        ("nan-x", "--data", r"x: expected finite values, received 1 NaN/inf entries \(in '.*bad\.npz'\)"),
+        ("out-dir", "--out", r"expected a file in an existing directory"),
+        ("no-model-option", "--model", r"expected a value \(the option is required\), received none"),
+    ],
+)
+def test_predict_bad_input_exits_2(files, capsys, case, named, says):
+    tmp = files["data"].parent
+    model, data, extra = str(files["model"]), str(files["data"]), []
+    if case == "no-model":
+        model = str(tmp / "missing.npz")
+    elif case == "no-data":
+        data = str(tmp / "missing.npz")
+    elif case == "data-as-model":
+        model = data
+    elif case == "wrong-n-x":
+        data = _bad_data(tmp / "bad.npz", x=np.ones((20, 3)), x_next=np.ones((20, 3)))
+    elif case == "nan-x":
+        data = _bad_data(tmp / "bad.npz", x=_nan((20, 2)))
+    elif case == "out-dir":
+        extra = ["--out", str(tmp / "no" / "pred.npz")]
+    argv = ["predict", "--model", model, "--data", data, *extra]
+    if case == "no-model-option":
+        argv = argv[:1] + argv[3:]
+    assert main(argv) == 2
+    line = _error_line(capsys, "predict")
+    assert line.startswith(f"lcs-cvx predict: error: {named}: ")
+    assert re.search(says, line), line
+
+
+# -- fit: the plumbing, with a stand-in for lcs_cvx.fit -------------------------------------
+
+
+@dataclass(frozen=True)
+class _Settings:
+    loss: str = "violation"
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.9)
+    max_time: float = math.inf
+    dtype: torch.dtype = F64
+    extra: dict = field(default_factory=lambda: {"polish": True})
+
+
+@dataclass
+class _Result:
+    model: LCS
+    history: list
+    settings: _Settings
+
+
+class _FakeFit:
+    """Records its call; "learns" by copying ``truth``'s parameters into the model."""
+
+    def __init__(self, truth: LCS) -> None:
+        self.truth = truth
+        self.calls: list[tuple[LCS, Dataset, dict]] = []
+
+    def __call__(self, model, train, **kwargs):
+        self.calls.append((model, train, kwargs))
+        init = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        model.load_state_dict({k: v.clone() for k, v in self.truth.state_dict().items()})
+        self.init = init
+        return _Result(model, [{"iteration": 1, "loss": 0.5}], _Settings())
+
+
+@pytest.fixture
+def fake_fit(monkeypatch, truth):
+    fake = _FakeFit(truth)
+    monkeypatch.setattr(lcs_cvx, "fit", fake, raising=False)  # run_fit looks up lcs_cvx.fit
+    return fake
+
+
+def test_fit_passes_only_the_given_options(files, fake_fit, capsys, truth):
+    out = files["data"].with_name("learned.npz")
+    argv = ["fit", "--data", str(files["data"]), "--n-lam", "2", "--out", str(out)]
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+
+    (model, train, kwargs), = fake_fit.calls
+    assert kwargs == {"test": None, "progress": True}  # fit's own defaults decide the rest
+    assert len(train) == 300 and torch.equal(train.x, Dataset.load(files["data"]).x)
+    assert (model.n_x, model.n_u, model.n_lam) == (2, 1, 2)
+    fresh = LCS(2, 1, 2, stiffness=1.0, seed=0)  # documented defaults of the initialisation
+    assert all(torch.equal(fake_fit.init[k], v) for k, v in fresh.state_dict().items())
+
+    loaded = load_model(out)
+    assert all(torch.equal(getattr(loaded, k), getattr(truth, k)) for k in ("A", "C", "G", "H", "c"))
+    meta = load_metadata(out)["metadata"]
+    assert meta["fit"] == {
+        "loss": "violation", "lr": 1e-3, "betas": [0.9, 0.9], "max_time": "inf",
+        "dtype": "torch.float64", "extra": {"polish": True},
+    }
+    assert meta["init"] == {"n_lam": 2, "stiffness": 1.0, "seed": 0}
+    assert "e_test" not in facts
+    assert float(facts["train relative error"]) < 1e-24  # the stand-in returned the truth
+    assert float(facts["wall time"].split()[0]) >= 0
+    assert facts["saved"] == str(out)
+
+
+def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
+    out, ckpt = tmp_path / "learned.npz", tmp_path / "ckpt.pt"
+    argv = [
+        "fit", "--data", str(files["data"]), "--test", str(files["test"]), "--n-lam", "3",
+        "--loss", "prediction", "--optimizer", "gauss-newton", "--recipe", "best",
+        "--iterations", "7", "--lr", "0.5", "--batch-size", "11", "--gamma", "0.02",
+        "--eps", "1e-3", "--seed", "5", "--stiffness", "0.25", "--checkpoint", str(ckpt),
+        "--resume", "--threads", "2", "--out", str(out),
+    ]
+    fake_fit.truth = LCS(2, 1, 3, seed=1)
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+
+    (model, _, kwargs), = fake_fit.calls
+    test = kwargs.pop("test")
+    assert kwargs == {
+        "loss": "prediction", "optimizer": "gauss-newton", "recipe": "best", "iterations": 7,
+        "lr": 0.5, "batch_size": 11, "gamma": 0.02, "eps": 1e-3, "seed": 5,
+        "checkpoint": str(ckpt), "resume": True, "progress": True,
+    }
+    assert isinstance(test, Dataset) and len(test) == 100
+    fresh = LCS(2, 1, 3, stiffness=0.25, seed=5)
+    assert all(torch.equal(fake_fit.init[k], v) for k, v in fresh.state_dict().items())
+    assert float(facts["e_test"]) == pytest.approx(lcs_cvx.relative_error(model, test), rel=1e-5)
+    assert float(facts["train relative error"]) == pytest.approx(
+        lcs_cvx.relative_error(model, Dataset.load(files["data"])), rel=1e-5
+    )
+    assert load_metadata(out)["metadata"]["init"] == {"n_lam": 3, "stiffness": 0.25, "seed": 5}
+
+
+@pytest.mark.parametrize(
+    ("case", "named", "says"),
+    [
+        ("no-data", "--data", r"expected an existing \.npz file.*\(not found\)"),
+        ("no-test", "--test", r"expected an existing \.npz file.*\(not found\)"),
+        ("test-n-u", "--test", r"expected n_x=2, n_u=1 \(as in '.*data\.npz'\), received n_x=2, n_u=2 in "),
+        ("nan-x-next", "--data", r"x_next: expected finite values, received 1 NaN/inf entries"),
+        ("model-as-data", "--data", r"expected arrays 'x', 'u', 'x_next' in .* missing"),
+        ("out-dir", "--out", r"expected a file in an existing directory"),
+        ("checkpoint-dir", "--checkpoint", r"expected a file in an existing directory"),
+        ("resume", "--resume", r"expected --checkpoint PATH to resume from, received none"),
+        ("n-lam", "--n-lam", r"expected an integer >= 1, received '0'"),
+        ("no-n-lam", "--n-lam", r"expected a value \(the option is required\), received none"),
+        ("no-out", "--out", r"expected a value \(the option is required\), received none"),
+        ("lr", "--lr", r"expected a finite number > 0, received '-1'"),
+        ("loss", "--loss", r"invalid choice: 'hinge'"),
+    ],
+)
+def test_fit_bad_input_exits_2_before_training(files, fake_fit, capsys, case, named, says):
+    tmp = files["data"].parent
+    data, opts = str(files["data"]), {"--n-lam": "2", "--out": str(tmp / "learned.npz")}
+    if case == "no-data":
+        data = str(tmp / "missing.npz")
+    elif case == "no-test":
+        opts["--test"] = str(tmp / "missing.npz")
+    elif case == "test-n-u":
+        opts["--test"] = _bad_data(tmp / "bad.npz", u=np.ones((20, 2)))
+    elif case == "nan-x-next":
+        data = _bad_data(tmp / "bad.npz", x_next=_nan((20, 2)))
+    elif case == "model-as-data":
+        data = str(files["model"])
+    elif case == "out-dir":
+        opts["--out"] = str(tmp / "no" / "learned.npz")
+    elif case == "checkpoint-dir":
+        opts["--checkpoint"] = str(tmp / "no" / "ckpt.pt")
+    elif case == "resume":
+        opts["--resume"] = None
+    elif case in ("no-n-lam", "no-out"):
+        del opts[case.replace("no", "-")]
+    elif case == "n-lam":
+        opts["--n-lam"] = "0"
+    elif case == "lr":
+        opts["--lr"] = "-1"
+    elif case == "loss":
+        opts["--loss"] = "hinge"
+    argv = ["fit", "--data", data, *[t for kv in opts.items() for t in kv if t is not None]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("lcs-cvx fit: error: ")
+    assert named in line and re.search(says, line), line
+    assert fake_fit.calls == []  # nothing was trained
+    assert not (tmp / "learned.npz").exists()
+
+
+def test_fit_library_errors_name_the_option(files, monkeypatch, capsys):
+    def rejecting_fit(model, train, **kwargs):
+        raise lcs_cvx.LCSInputError("gamma: expected 0 < gamma < sigma_min(F + F^T) = 2, received 3.0")
+
+    monkeypatch.setattr(lcs_cvx, "fit", rejecting_fit, raising=False)
+    out = files["data"].with_name("learned.npz")
+    argv = ["fit", "--data", str(files["data"]), "--n-lam", "2", "--gamma", "3", "--out", str(out)]
+    assert main(argv) == 2
+    assert _error_line(capsys, "fit") == (
+        "lcs-cvx fit: error: --gamma: expected 0 < gamma < sigma_min(F + F^T) = 2, received 3.0"
+    )
+    assert not out.exists()
+
+
+# -- fit: end to end with the real trainer ---------------------------------------------------
+
+
+@pytest.mark.skipif(not hasattr(lcs_cvx, "fit"), reason="lcs_cvx.fit is not available yet")
+def test_fit_end_to_end(tmp_path, capsys):
+    truth = random_lcs(2, 1, 2, stiffness=0.5, seed=4)
+    train, test = tmp_path / "train.npz", tmp_path / "test.npz"
+    make_dataset(truth, 400, noise=1e-2, seed=1).save(train)
+    make_dataset(truth, 200, seed=2).save(test)
+    out = tmp_path / "learned.npz"
+    argv = ["fit", "--data", str(train), "--test", str(test), "--n-lam", "2",
+            "--iterations", "300", "--seed", "3", "--out", str(out)]
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+
+    learned = load_model(out)
+    assert (learned.n_x, learned.n_u, learned.n_lam) == (2, 1, 2)
+    test_set = Dataset.load(test)
+    e_test = float(facts["e_test"])
+    assert e_test == pytest.approx(lcs_cvx.relative_error(learned, test_set), rel=1e-5)
+    initial = lcs_cvx.relative_error(LCS(2, 1, 2, stiffness=1.0, seed=3), test_set)
+    assert e_test < 0.5 * initial  # training improved on the initialisation
+    assert math.isfinite(float(facts["train relative error"]))
+    meta = load_metadata(out)["metadata"]
+    assert meta["fit"] and meta["init"] == {"n_lam": 2, "stiffness": 1.0, "seed": 3}
+    assert meta["fit"]["iterations"] == 300 and meta["fit"]["seed"] == 3
+    assert main(["predict", "--model", str(out), "--data", str(test)]) == 0
+    assert float(_facts(capsys.readouterr().out)["e_test"]) == pytest.approx(e_test, rel=1e-5)
