@@ -41,7 +41,13 @@ from .hessian import (
 from .losses import regularizer, violation_loss
 from .system import LCS, PARAMETER_NAMES
 
-__all__ = ["StepResult", "gauss_newton_matrix", "gauss_newton_step", "newton_step"]
+__all__ = [
+    "StepResult",
+    "gauss_newton_matrix",
+    "gauss_newton_operator",
+    "gauss_newton_step",
+    "newton_step",
+]
 
 
 @dataclass(frozen=True)
@@ -90,30 +96,65 @@ class _Residual(nn.Module):
         return torch.cat([e_dyn, e_w * scale], dim=1)
 
 
-def gauss_newton_matrix(
-    model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, gamma: float, eps: float
-) -> torch.Tensor:
-    """``mean_t J_t^T J_t`` ``(P, P)`` with the total residual Jacobian (module docstring)."""
+def _gn_pieces(model: LCS, x, u, x_next, gamma: float, eps: float):
+    """What the Gauss--Newton matrix and its products need: ``theta0``, the residuals
+    ``rho(theta)`` at fixed ``z``, ``grad_z J(theta)`` at fixed ``z``, the free masks, the
+    per-sample Cholesky factors of ``(J_zz)_FF`` and ``rho_z`` ``(r, 2n)``."""
     theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
     n = model.n_lam
     scale = 1.0 / math.sqrt(eps * gamma)
-    grad_z = lambda th: torch.func.grad(lambda zz: J(th, zz).sum())(z)  # noqa: E731
-    Jzt = torch.func.jacfwd(grad_z)(theta0)  # (B, 2n, P)
-    dz = -torch.cholesky_solve(m[:, :, None] * Jzt, chol) * m[:, :, None]
     wrapped = _Residual(model)
 
     def rho(theta: torch.Tensor) -> torch.Tensor:
         params = {f"model.{k}": v for k, v in unflatten(model, theta).items()}
         return torch.func.functional_call(wrapped, params, (z, x, u, x_next, scale))
 
-    J_theta = torch.func.jacfwd(rho)(theta0)  # (B, r, P), z fixed
+    def grad_z(theta: torch.Tensor) -> torch.Tensor:
+        return torch.func.grad(lambda zz: J(theta, zz).sum())(z)
+
     with torch.no_grad():
         eye = torch.eye(n, dtype=x.dtype, device=x.device)
         top = torch.cat([model.C, torch.zeros(model.n_x, n, dtype=x.dtype, device=x.device)], 1)
-        bottom = torch.cat([model.F * scale, -eye * scale], 1)
-        rho_z = torch.cat([top, bottom], 0)  # (r, 2n), the same for every sample
+        rho_z = torch.cat([top, torch.cat([model.F * scale, -eye * scale], 1)], 0)
+    return theta0, rho, grad_z, m, chol, rho_z
+
+
+def gauss_newton_matrix(
+    model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, gamma: float, eps: float
+) -> torch.Tensor:
+    """``mean_t J_t^T J_t`` ``(P, P)`` with the total residual Jacobian (module docstring).
+
+    Costs ``O(N r P^2)``: for small models; :func:`gauss_newton_operator` for large ones.
+    """
+    theta0, rho, grad_z, m, chol, rho_z = _gn_pieces(model, x, u, x_next, gamma, eps)
+    Jzt = torch.func.jacfwd(grad_z)(theta0)  # (B, 2n, P)
+    dz = -torch.cholesky_solve(m[:, :, None] * Jzt, chol) * m[:, :, None]
+    J_theta = torch.func.jacfwd(rho)(theta0)  # (B, r, P), z fixed
+    with torch.no_grad():
         Jt = J_theta + rho_z @ dz
         return torch.einsum("brp,brq->pq", Jt, Jt) / x.shape[0]
+
+
+def gauss_newton_operator(
+    model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, gamma: float, eps: float
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``v -> mean_t J_t^T J_t v`` without forming the matrix: ``J v`` by two jvps and a
+    batched Cholesky solve, ``J^T w`` by the matching vjps. ``O(N r m)`` per product."""
+    theta0, rho, grad_z, m, chol, rho_z = _gn_pieces(model, x, u, x_next, gamma, eps)
+    _, vjp_rho = torch.func.vjp(rho, theta0)
+    _, vjp_gz = torch.func.vjp(grad_z, theta0)
+    N = x.shape[0]
+
+    def solve(y: torch.Tensor) -> torch.Tensor:  # m o (J_zz)_FF^{-1} (m o y), batched
+        return torch.cholesky_solve((m * y).unsqueeze(-1), chol).squeeze(-1) * m
+
+    def matvec(v: torch.Tensor) -> torch.Tensor:
+        _, Jv_theta = torch.func.jvp(rho, (theta0,), (v,))
+        _, Jzt_v = torch.func.jvp(grad_z, (theta0,), (v,))
+        w = Jv_theta - solve(Jzt_v) @ rho_z.mT  # J v, (B, r)
+        return (vjp_rho(w)[0] - vjp_gz(solve(w @ rho_z))[0]) / N
+
+    return matvec
 
 
 def gauss_newton_step(
@@ -126,22 +167,34 @@ def gauss_newton_step(
     eps: float,
     reg: float,
     damping: float,
+    dense_max: int = 500,
+    cg_iters: int = 100,
     max_tries: int = 8,
 ) -> StepResult:
     """One Levenberg--Marquardt step ``(GN + diag(2 omega P_C) + mu I) d = -g``; see the module
-    docstring. ``x, u, x_next``: the full batch or a large one; ``damping``: ``mu >= 0``.
+    docstring. ``x, u, x_next``: the full batch or a large one; ``damping``: ``mu >= 0``;
+    ``dense_max``: the largest parameter count for which GN is formed and factored (above it:
+    conjugate gradients on :func:`gauss_newton_operator`, ``cg_iters`` of them).
 
     The model is updated in place when the step decreases the regularised loss.
     """
+    P = sum(getattr(model, k).numel() for k in PARAMETER_NAMES)
+    if P <= dense_max:
+        return _damped_step(
+            model, x, u, x_next, gamma=gamma, eps=eps, reg=reg, damping=damping,
+            matrix=lambda: gauss_newton_matrix(model, x, u, x_next, gamma, eps),
+            line_search=False, max_tries=max_tries,
+        )
+    op = gauss_newton_operator(model, x, u, x_next, gamma, eps)
     return _damped_step(
-        model, x, u, x_next, gamma=gamma, eps=eps, reg=reg, damping=damping,
-        matrix=lambda: gauss_newton_matrix(model, x, u, x_next, gamma, eps), line_search=False,
-        max_tries=max_tries,
+        model, x, u, x_next, gamma=gamma, eps=eps, reg=reg, damping=damping, matrix=None,
+        line_search=False, max_tries=max_tries, hvp=op, cg_iters=cg_iters,
     )
 
 
-def _cg(hvp, g: torch.Tensor, iters: int, tol: float = 1e-10) -> torch.Tensor:
-    """Truncated conjugate gradients for ``H d = -g``; stops at negative curvature (Steihaug)."""
+def _cg(hvp, g: torch.Tensor, iters: int, tol: float = 1e-3) -> torch.Tensor:
+    """Truncated conjugate gradients for ``H d = -g`` to relative residual ``tol`` (an inexact
+    Newton step); stops at negative curvature (Steihaug)."""
     d = torch.zeros_like(g)
     r = -g.clone()
     p = r.clone()
@@ -172,7 +225,7 @@ def newton_step(
     eps: float,
     reg: float,
     damping: float,
-    dense_max: int = 1500,
+    dense_max: int = 500,
     cg_iters: int = 50,
     max_tries: int = 8,
 ) -> StepResult:
