@@ -24,7 +24,7 @@ from .data import make_dataset
 from .losses import prediction_loss, violation_loss
 from .system import LCS, random_lcs
 
-__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table"]
+__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench"]
 
 #: (n_x, n_u, n_lam) of the issue's comparison.
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
@@ -144,4 +144,40 @@ def format_table(rows: list[BenchRow]) -> str:
             f"| ({r.n_x}, {r.n_u}, {r.n_lam}) | {r.loss} | {r.path} | {r.samples_per_s:,.0f} | "
             f"{ratio} | {r.lam_err:.1e} | {r.loss_err:.1e} |"
         )
+    return "\n".join(lines)
+
+
+def run_lcp_bench(
+    n_lams: Iterable[int] = (4, 10, 20),
+    batches: Iterable[int] = (200, 50_000),
+    repeats: int = 5,
+    n_reference: int = 50,
+    seed: int = 0,
+) -> str:
+    """Batched LCP solve rate (``lcs_cvx.solve_lcp``, fast path) against the Clarabel reference
+    (``method="cvxpy"``, one CVXPY solve per sample, on ``n_reference`` samples), n_x = 10,
+    n_u = 4, in one process. Returns a markdown table."""
+    from .lcp import solve_lcp
+
+    lines = [
+        "| n_λ | batch | fast samples/s | Clarabel samples/s | ratio | max abs Δλ |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for n_lam in n_lams:
+        truth = random_lcs(10, 4, n_lam, stiffness=0.5, seed=seed)
+        data = make_dataset(truth, max(batches), seed=seed + 1)
+        with torch.no_grad():
+            F, q_all = truth.F, truth.lcp_offset(data.x, data.u)
+        q_ref = q_all[:n_reference]
+        ref = solve_lcp(F, q_ref[:1], method="cvxpy")  # compile the DPP problem once
+        t_ref = _time(lambda: solve_lcp(F, q_ref, method="cvxpy"), max(1, repeats // 2))
+        ref = solve_lcp(F, q_ref, method="cvxpy")
+        for batch in batches:
+            q = q_all[:batch]
+            t_fast = _time(lambda q=q: solve_lcp(F, q), repeats)
+            err = float((solve_lcp(F, q_ref).lam - ref.lam).abs().max())
+            fast, clar = batch / t_fast, len(q_ref) / t_ref
+            lines.append(
+                f"| {n_lam} | {batch:,} | {fast:,.0f} | {clar:,.0f} | {fast / clar:,.0f} | {err:.1e} |"
+            )
     return "\n".join(lines)

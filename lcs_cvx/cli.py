@@ -174,17 +174,22 @@ def _configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=_positive_int, default=200, help="batch size (default: 200)")
     p.add_argument("--repeats", type=_positive_int, default=5, help="timed calls; the median is kept")
     p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    p.add_argument("--lcp", action="store_true",
+                   help="instead: batched LCP solve rate vs Clarabel (n_lam 4, 10, 20; batch 200, 50,000)")
     p.add_argument("--threads", type=_positive_int, default=1, help="torch CPU threads (default: 1)")
 
 
 def run_bench(args: argparse.Namespace) -> int:
     """Loss + gradient throughput of each solver path, side by side, with ratios to diffcp-Clarabel."""
-    from .bench import DEFAULT_SIZES, format_table
+    from .bench import DEFAULT_SIZES, format_table, run_lcp_bench
     from .bench import run_bench as _run
 
-    rows = _run(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
-                repeats=args.repeats, progress=lambda line: print(line, flush=True))
-    table = format_table(rows)
+    if args.lcp:
+        table = run_lcp_bench(repeats=args.repeats)
+    else:
+        rows = _run(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
+                    repeats=args.repeats, progress=lambda line: print(line, flush=True))
+        table = format_table(rows)
     print(table)
     if args.out:
         with open(args.out, "w") as f:
@@ -389,6 +394,67 @@ def run_predict(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- study -----------------------------------------------------------------------------------
+def _configure_study(p: argparse.ArgumentParser) -> None:
+    from .study.runner import DEFAULT_OUT
+
+    # not required here, but by run_study_command: every command parses with no arguments (test_cli)
+    sub = p.add_subparsers(dest="study_command", metavar="{run,report}")
+    run = sub.add_parser("run", help="run (or resume) the study of a config file",
+                         description="Run the grid of a study config (studies/configs/*.toml); "
+                         "finished cells are skipped, every result is written at once.")
+    run.add_argument("config", help="study config, a TOML file (studies/configs/)")
+    run.add_argument("--workers", type=_positive_int, default=None,
+                     help="local worker processes (default: the CPU count)")
+    run.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run the cells on Dask: 'local' (a LocalCluster of --workers processes) "
+                     "or a scheduler address tcp://host:8786 (default: a local process pool)")
+    run.add_argument("--out", default=DEFAULT_OUT,
+                     help=f"output directory holding the database (default: {DEFAULT_OUT})")
+    run.add_argument("--only", default=None, metavar="KEY=VALUE[,...]",
+                     help="run only matching cells; keys value, value_index, trial, method")
+    run.add_argument("--max-cells", type=_positive_int, default=None,
+                     help="run at most this many unfinished cells (the rest on a later run)")
+    rep = sub.add_parser("report", help="figures and tables of every study in a directory",
+                         description="Write <name>.png, <name>.pdf and <name>.md for every study "
+                         "in DIR/studies.sqlite, with the authors' numbers from studies/anchors.toml.")
+    rep.add_argument("dir", help="output directory of lcs-cvx study run")
+    rep.add_argument("--anchors", default="default",
+                     help="anchors file (default: studies/anchors.toml)")
+
+
+def run_study_command(args: argparse.Namespace) -> int:
+    """``lcs-cvx study run CONFIG`` / ``lcs-cvx study report DIR`` (see :mod:`lcs_cvx.study`)."""
+    from .study import StudyError, report, run_config
+    from .study.runner import parse_only
+
+    if args.study_command is None:
+        raise LCSInputError("study: expected a subcommand, 'run CONFIG' or 'report DIR'")
+    if args.study_command == "report":
+        for path in report(args.dir, anchors_path=args.anchors):
+            print(f"wrote {path}")
+        return 0
+    only = parse_only(args.only) if args.only is not None else None
+    try:
+        summary = run_config(args.config, out=args.out, workers=args.workers,
+                             scheduler=args.scheduler, only=only, max_cells=args.max_cells)
+    except StudyError as exc:
+        print(f"{PROG} study: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{PROG} study: interrupted; finished cells are in {args.out}: run the same "
+              "command again to resume", file=sys.stderr)
+        return 130
+    if summary is None:
+        print(f"module study done: {args.config} -> {args.out}")
+        return 0
+    print(f"study {summary.study} (config {summary.config_hash}): {summary.total} cells, "
+          f"{summary.skipped} already finished, {summary.executed} run now, {summary.failed} failed "
+          f"({summary.wall_time:.1f} s)")
+    print(f"database: {summary.database}")
+    return 1 if summary.failed else 0
+
+
 # -- registry and entry point ----------------------------------------------------------------
 COMMANDS: tuple[Command, ...] = (
     Command(
@@ -414,6 +480,12 @@ COMMANDS: tuple[Command, ...] = (
         "e_test and hybrid modes of a saved model on a data set; optionally its predictions",
         _configure_predict,
         run_predict,
+    ),
+    Command(
+        "study",
+        "run a config-driven study of the paper's Fig. 1 (run CONFIG) or report on it (report DIR)",
+        _configure_study,
+        run_study_command,
     ),
 )
 

@@ -20,3 +20,15 @@ def test_bench_tiny_runs_and_paths_agree():
     table = format_table(rows)
     assert table.splitlines()[0].startswith("| (n_x, n_u, n_λ)")
     assert "| fast |" in table and "| cvxpylayers |" in table
+
+
+def test_lcp_bench_tiny():
+    from lcs_cvx.bench import run_lcp_bench
+
+    table = run_lcp_bench(n_lams=(2,), batches=(50,), repeats=1, n_reference=5)
+    lines = table.splitlines()
+    assert lines[0].startswith("| n_λ | batch | fast samples/s")
+    row = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert row[0] == "2" and row[1] == "50"
+    assert float(row[2].replace(",", "")) > 0 and float(row[3].replace(",", "")) > 0
+    assert float(row[5]) < 1e-6  # fast and Clarabel agree
