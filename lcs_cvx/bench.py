@@ -170,11 +170,11 @@ def run_lcp_bench(
             F, q_all = truth.F, truth.lcp_offset(data.x, data.u)
         q_ref = q_all[:n_reference]
         ref = solve_lcp(F, q_ref[:1], method="cvxpy")  # compile the DPP problem once
-        t_ref = _time(lambda: solve_lcp(F, q_ref, method="cvxpy"), max(1, repeats // 2))
+        t_ref = _time(lambda F=F, q_ref=q_ref: solve_lcp(F, q_ref, method="cvxpy"), max(1, repeats // 2))
         ref = solve_lcp(F, q_ref, method="cvxpy")
         for batch in batches:
             q = q_all[:batch]
-            t_fast = _time(lambda q=q: solve_lcp(F, q), repeats)
+            t_fast = _time(lambda F=F, q=q: solve_lcp(F, q), repeats)
             err = float((solve_lcp(F, q_ref).lam - ref.lam).abs().max())
             fast, clar = batch / t_fast, len(q_ref) / t_ref
             lines.append(

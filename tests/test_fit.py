@@ -143,7 +143,9 @@ def test_invalid_data(small):
 
 
 def test_options_are_frozen():
-    with pytest.raises(Exception):
+    import dataclasses
+
+    with pytest.raises(dataclasses.FrozenInstanceError):
         FitOptions().lr = 1.0  # type: ignore[misc]
 
 
