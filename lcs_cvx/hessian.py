@@ -55,6 +55,7 @@ from .system import LCS, PARAMETER_NAMES
 __all__ = [
     "violation_hessian",
     "violation_hvp",
+    "hvp_operator",
     "parameter_slices",
     "flatten_parameters",
     "unflatten",
@@ -189,6 +190,24 @@ def violation_hessian(
     return H - torch.einsum("bkp,bkq->pq", Y, Y) / z.shape[0]
 
 
+def hvp_operator(
+    model: LCS, x: Any, u: Any, x_next: Any, gamma: float = 1e-2, eps: float = 1e-4
+) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``v -> hess L_eps @ v`` (Lemma 4) with the solve and factorisations done once, for
+    iterative methods that need many products at the same ``theta`` (see :func:`violation_hvp`)."""
+    theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    grad_theta, grad_z = _grads(J, z)
+    _, vjp = torch.func.vjp(grad_z, theta0)
+
+    def matvec(v: torch.Tensor) -> torch.Tensor:
+        _, Hv = torch.func.jvp(grad_theta, (theta0,), (v,))
+        _, Jzt_v = torch.func.jvp(grad_z, (theta0,), (v,))  # (B, 2n)
+        s = torch.cholesky_solve((m * Jzt_v).unsqueeze(-1), chol).squeeze(-1) * m
+        return Hv - vjp(s)[0] / z.shape[0]
+
+    return matvec
+
+
 def violation_hvp(
     model: LCS,
     x: Any,
@@ -211,11 +230,7 @@ def violation_hvp(
     Returns:
         ``(P,)`` tensor, no autograd graph.
     """
-    theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
-    v = as_matrix("v", v, tuple(theta0.shape), dtype=model.dtype, device=model.device)
-    grad_theta, grad_z = _grads(J, z)
-    _, Hv = torch.func.jvp(grad_theta, (theta0,), (v,))
-    _, Jzt_v = torch.func.jvp(grad_z, (theta0,), (v,))  # (B, 2n)
-    s = torch.cholesky_solve((m * Jzt_v).unsqueeze(-1), chol).squeeze(-1) * m
-    _, vjp = torch.func.vjp(grad_z, theta0)
-    return Hv - vjp(s)[0] / z.shape[0]
+    P = sum(getattr(model, k).numel() for k in PARAMETER_NAMES) if isinstance(model, LCS) else 0
+    op = hvp_operator(model, x, u, x_next, gamma, eps)
+    v = as_matrix("v", v, (P,), dtype=model.dtype, device=model.device)
+    return op(v)

@@ -16,8 +16,8 @@ is Lemma 3's. Why not the cheaper matrix with ``z`` held fixed (``I (x) mean zet
 steps at every eps in {1, 0.1, 0.01}; this Gauss--Newton and Newton reach ~1e-9.
 
 Newton. The full Hessian of Lemma 4 (:func:`lcs_cvx.violation_hessian`, dense for up to
-``dense_max`` parameters) or its products (:func:`lcs_cvx.violation_hvp`, truncated conjugate
-gradients) in the model's own parameters, damped by ``mu`` until positive definite, with a
+``dense_max`` parameters) or its products (:func:`lcs_cvx.hessian.hvp_operator`, truncated
+conjugate gradients) in the model's own parameters, damped by ``mu`` until positive definite, with a
 backtracking (Armijo) line search on the regularised loss.
 """
 
@@ -33,10 +33,10 @@ from torch import nn
 from .hessian import (
     _setup,
     flatten_parameters,
+    hvp_operator,
     parameter_slices,
     unflatten,
     violation_hessian,
-    violation_hvp,
 )
 from .losses import regularizer, violation_loss
 from .system import LCS, PARAMETER_NAMES
@@ -241,7 +241,8 @@ def newton_step(
     return _damped_step(
         model, x, u, x_next, gamma=gamma, eps=eps, reg=reg, damping=damping, matrix=matrix,
         line_search=True, max_tries=max_tries,
-        hvp=lambda v: violation_hvp(model, x, u, x_next, v, gamma, eps), cg_iters=cg_iters,
+        hvp=None if matrix is not None else hvp_operator(model, x, u, x_next, gamma, eps),
+        cg_iters=cg_iters,
     )
 
 
