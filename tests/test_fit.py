@@ -176,7 +176,7 @@ _SCRIPT = textwrap.dedent(
 @pytest.mark.parametrize(
     "options",
     [
-        {"iterations": 4000, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
+        {"iterations": 2500, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
          "reinit_saturated": True, "eps_start": 1e-2, "lr_schedule": "cosine",
          "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000},
         {"optimizer": "newton", "iterations": 40, "batch_size": 1000},
