@@ -405,7 +405,8 @@ def _configure_study(p: argparse.ArgumentParser) -> None:
                          "finished cells are skipped, every result is written at once.")
     run.add_argument("config", help="study config, a TOML file (studies/configs/)")
     run.add_argument("--workers", type=_positive_int, default=None,
-                     help="local worker processes (default: the CPU count)")
+                     help="local worker processes, also of --scheduler local (default: the CPU "
+                     "count; a tcp:// cluster has its own)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run the cells on Dask: 'local' (a LocalCluster of --workers processes) "
                      "or a scheduler address tcp://host:8786 (default: a local process pool)")

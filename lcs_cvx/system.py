@@ -276,17 +276,25 @@ def random_lcs(
     stiffness: float = 0.5,
     seed: int = 0,
     dtype: torch.dtype = torch.float64,
+    g_scale: float = 1.0,
 ) -> LCS:
     """The paper's random ground truth (Sec. 5): every entry of A, B, C, d, D, E, G, H, c
     uniform in [-1, 1], ``F = G G^T + H - H^T + s I``.
 
+    ``g_scale`` multiplies ``G`` after the draw (the other entries are unchanged): ``g_scale=0``
+    gives ``F + F^T = 2 s I`` exactly, the stiff systems of Fig. 1(c) (``sigma_min = 2 s``).
+
     The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``).
     """
+    if isinstance(g_scale, bool) or not isinstance(g_scale, (int, float)) \
+            or not 0 <= g_scale < float("inf"):
+        raise LCSInputError(f"g_scale: expected a finite number >= 0, received {g_scale!r}")
     model = LCS(n_x, n_u, n_lam, stiffness=stiffness, init_scale=0.0, dtype=dtype)
     gen = torch.Generator().manual_seed(int(seed))
     with torch.no_grad():
         for name in PARAMETER_NAMES:
             p = getattr(model, name)
             p.copy_((torch.rand(p.shape, generator=gen, dtype=torch.float64) * 2.0 - 1.0).to(dtype))
+        model.G.mul_(float(g_scale))
     model.requires_grad_(False)
     return model

@@ -1,0 +1,20 @@
+"""Config-driven studies of the paper's Fig. 1 (Sec. 5.1, panels (a)-(e)).
+
+- :mod:`~lcs_cvx.study.config` -- the TOML configs (``studies/configs/``), checked.
+- :mod:`~lcs_cvx.study.cells` -- the grid (swept value x trial x method), seeds, one cell's work.
+- :mod:`~lcs_cvx.study.store` -- the SQLite results store (the client writes it, per cell).
+- :mod:`~lcs_cvx.study.executors` -- local process pool or Dask distributed cluster.
+- :mod:`~lcs_cvx.study.runner` -- ``lcs-cvx study run``: resume, skip finished cells.
+- :mod:`~lcs_cvx.study.report` -- ``lcs-cvx study report``: figures and tables with anchors.
+"""
+
+from .cells import cell_seeds as cell_seeds
+from .cells import expand as expand
+from .cells import run_cell as run_cell
+from .config import config_hash as config_hash
+from .config import load_config as load_config
+from .report import report as report
+from .runner import RunSummary as RunSummary
+from .runner import StudyError as StudyError
+from .runner import run_config as run_config
+from .store import Store as Store

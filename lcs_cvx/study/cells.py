@@ -1,0 +1,136 @@
+"""The cells of a grid study and the work of one cell (paper Sec. 5, Fig. 1).
+
+A cell is one training round: draw the ground truth ``theta*`` (:func:`lcs_cvx.random_lcs`), the
+noisy training set and the noiseless test set (:func:`lcs_cvx.make_dataset`), initialise the
+learner (:class:`lcs_cvx.LCS`), train it with one loss (:func:`lcs_cvx.fit`) and measure e_test.
+
+Seeds. Every random draw of a cell has its own seed, derived from the config's ``seed``, the swept
+value's index ``i`` and the trial ``t`` only::
+
+    seed[stream] = int(SeedSequence([seed, i, t, stream]).generate_state(1, uint32)[0])
+    stream: 0 truth, 1 training data, 2 test data, 3 initialisation, 4 fit (minibatch order)
+
+The method is not an input, so both methods of a ``(value, trial)`` train on the same truth and
+data from the same initialisation. With ``sweep.shared_truth`` (a sweep of a fit option, Fig. 1(d),
+(e)) ``i`` is replaced by 0: every value of a trial -- and its reference cells -- shares them.
+
+A cell is a plain JSON-able dict (it travels to process-pool and Dask workers); its key is the
+SHA-256 of its canonical JSON without the bookkeeping fields, so identical work is never repeated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import socket
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+from .config import config_hash, fit_options
+
+__all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "run_cell", "REFERENCE"]
+
+STREAMS = ("truth", "train", "test", "init", "fit")
+#: ``value_index`` of a reference cell (trained once per trial, independent of the swept value).
+REFERENCE = -1
+#: ``lam_i > MODE_TOL`` marks unit ``i`` active (the default of :func:`lcs_cvx.count_modes`).
+MODE_TOL = 1e-5
+#: Fields of a cell that name it but do not change its result (left out of its key).
+_BOOKKEEPING = ("study", "config_hash", "value_index", "value", "trial")
+
+
+def cell_seeds(seed: int, value_index: int, trial: int) -> dict[str, int]:
+    """The five seeds of a cell (see the module docstring), each in ``[0, 2**32)`` (``fit``
+    multiplies its seed by ~10^6 before seeding a torch generator, which takes 64 bits)."""
+    return {
+        name: int(np.random.SeedSequence([seed, value_index, trial, k]).generate_state(1, np.uint32)[0])
+        for k, name in enumerate(STREAMS)
+    }
+
+
+def cell_key(cell: dict[str, Any]) -> str:
+    """SHA-256 (hex) of the cell's canonical JSON, bookkeeping fields left out."""
+    body = {k: v for k, v in cell.items() if k not in _BOOKKEEPING}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _cell(config: dict, h: str, index: int, value: Any, trial: int, method: str) -> dict[str, Any]:
+    sweep = config["sweep"]
+    sections = {s: dict(config[s]) for s in ("system", "data", "learner")}
+    if value is not None and not sweep["param"].startswith("fit."):
+        section, key = sweep["param"].split(".", 1)
+        sections[section][key] = value
+    slot = 0 if sweep["shared_truth"] else index
+    return {
+        "study": config["name"], "config_hash": h, "value_index": index, "value": value,
+        "trial": trial, "method": method, "seeds": cell_seeds(config["seed"], slot, trial),
+        **sections, "recipe": config["recipe"], "fit": fit_options(config, method, value),
+    }
+
+
+def expand(config: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every cell of a grid config: trial-major (so a partial run covers every value early),
+    then value, then method; reference cells (``value_index = REFERENCE``) first in each trial."""
+    h = config_hash(config)
+    cells = []
+    for trial in range(config["trials"]):
+        for method in config["reference_methods"]:
+            cells.append(_cell(config, h, REFERENCE, None, trial, method))
+        for i, value in enumerate(config["sweep"]["values"]):
+            for method in config["methods"]:
+                cells.append(_cell(config, h, i, value, trial, method))
+    for c in cells:
+        c["key"] = cell_key(c)
+    return cells
+
+
+def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
+    """Run one cell (in a worker; one torch thread) and return its metrics and curve.
+
+    Returns a dict: ``e_test`` (the paper's mean relative prediction error on the noiseless test
+    set), ``final_loss``, ``modes`` (distinct active sets of the truth on the training inputs),
+    ``sigma_min`` (``sigma_min(F + F^T)`` of the truth), ``fit_wall_time`` and ``wall_time`` (s;
+    the latter includes drawing the data), ``settings`` (the resolved ``FitOptions``), ``curve``
+    (``fit``'s history), ``warnings`` (distinct warning messages) and ``host``.
+    """
+    import torch
+
+    from .. import LCS, fit, make_dataset, random_lcs, relative_error
+
+    torch.set_num_threads(1)  # reproducible and no oversubscription (DESIGN.md)
+    t0 = time.perf_counter()
+    s, d, ln, seeds = cell["system"], cell["data"], cell["learner"], cell["seeds"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        truth = random_lcs(s["n_x"], s["n_u"], s["n_lam"], stiffness=s["stiffness"],
+                           seed=seeds["truth"], g_scale=s["g_scale"])
+        scales = {"x_scale": d["x_scale"], "u_scale": d["u_scale"]}
+        train = make_dataset(truth, d["n_train"], noise=d["noise"], seed=seeds["train"], **scales)
+        test = make_dataset(truth, d["n_test"], noise=0.0, seed=seeds["test"], **scales)
+        # = count_modes(truth, train.x, train.u), without solving the (possibly stiff) LCPs again
+        modes = int(torch.unique(train.lam > MODE_TOL, dim=0).shape[0])
+        learner = LCS(s["n_x"], s["n_u"], s["n_lam"], stiffness=ln["stiffness"],
+                      init_scale=ln["init_scale"], seed=seeds["init"])
+        options = {k: tuple(v) if isinstance(v, list) else v for k, v in cell["fit"].items()}
+        result = fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
+                     seed=seeds["fit"], **options)
+        e_test = relative_error(result.model, test)
+    settings = dataclasses.asdict(result.settings)
+    settings["betas"] = list(settings["betas"])
+    return {
+        "e_test": e_test,
+        "final_loss": result.history[-1]["loss"] if result.history else float("nan"),
+        "modes": modes,
+        "sigma_min": truth.sigma_min,
+        "fit_wall_time": result.wall_time,
+        "wall_time": time.perf_counter() - t0,
+        "settings": settings,
+        "curve": result.history,
+        "warnings": sorted({f"{w.category.__name__}: {w.message}" for w in caught})[:20],
+        "host": f"{socket.gethostname()}:{os.getpid()}",
+    }

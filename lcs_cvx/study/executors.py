@@ -1,0 +1,121 @@
+"""Where the cells run: a local process pool (default) or a Dask distributed cluster.
+
+Both yield ``(cell, result_or_exception)`` as cells finish; results come back to the client,
+which alone writes the database. Workers run :func:`lcs_cvx.study.cells.run_cell`, which sets one
+torch thread, so a cell's result does not depend on where it ran.
+
+- :func:`process_pool`: ``concurrent.futures.ProcessPoolExecutor`` with the ``forkserver`` start
+  method (``spawn`` where there is none), the study modules preloaded, ``torch.set_num_threads(1)``
+  in the initializer, and workers that end when the client process is gone.
+- :func:`dask_cluster`: ``address="local"`` starts a ``LocalCluster`` on this machine
+  (``n_workers=workers``, one thread each, processes); any other address (``tcp://host:8786``)
+  connects to an existing scheduler. The workers need ``lcs_cvx`` installed.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+from .cells import run_cell
+
+__all__ = ["process_pool", "dask_cluster"]
+
+Outcome = tuple[dict[str, Any], Any]
+
+
+def _init_worker(client: int) -> None:
+    import torch
+
+    torch.set_num_threads(1)
+    threading.Thread(target=_exit_with, args=(client,), daemon=True).start()
+
+
+def _exit_with(client: int, every: float = 2.0) -> None:
+    """End this worker once the client process ``client`` is gone (killed with SIGKILL, the
+    pool's own shutdown never comes, and an idle worker would wait on its queue for ever)."""
+    while True:
+        time.sleep(every)
+        try:
+            os.kill(client, 0)
+        except ProcessLookupError:
+            os._exit(1)
+        except PermissionError:  # it exists
+            pass
+
+
+def _context() -> mp.context.BaseContext:
+    if "forkserver" in mp.get_all_start_methods():
+        ctx = mp.get_context("forkserver")
+        # torch.optim's first Adam imports torch._dynamo (~2 s): once, in the server, not per worker
+        ctx.set_forkserver_preload(["lcs_cvx", "lcs_cvx.study.cells", "torch._dynamo"])
+        return ctx
+    return mp.get_context("spawn")
+
+
+@contextmanager
+def process_pool(cells: list[dict[str, Any]], workers: int) -> Iterator[Iterator[Outcome]]:
+    """Run ``cells`` on ``workers`` local processes; the iterator yields outcomes as they finish.
+
+    Leaving the ``with`` block early (an exception, Ctrl-C) cancels the cells not yet started.
+    """
+    pool = cf.ProcessPoolExecutor(max_workers=max(1, min(workers, len(cells))),
+                                  mp_context=_context(), initializer=_init_worker,
+                                  initargs=(os.getpid(),))
+    futures = {pool.submit(run_cell, c): c for c in cells}
+
+    def outcomes() -> Iterator[Outcome]:
+        for fut in cf.as_completed(futures):
+            exc = fut.exception()
+            yield futures[fut], (exc if exc is not None else fut.result())
+
+    try:
+        yield outcomes()
+    except BaseException:  # Ctrl-C or an error in the client: stop the workers now
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):
+            proc.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+@contextmanager
+def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int) -> Iterator[Iterator[Outcome]]:
+    """Run ``cells`` on a Dask cluster (``address`` ``"local"`` or ``tcp://host:port``)."""
+    from dask.distributed import Client, LocalCluster, as_completed
+
+    from .._checks import LCSInputError
+
+    cluster = None
+    if address == "local":
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None)
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(address, timeout=30)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise LCSInputError(f"scheduler: could not connect to {address!r}: {exc}") from None
+    futures: dict[str, tuple[Any, dict[str, Any]]] = {}
+    try:
+        for c in cells:
+            fut = client.submit(run_cell, c, key=f"cell-{c['key'][:32]}", pure=False)
+            futures[fut.key] = (fut, c)
+
+        def outcomes() -> Iterator[Outcome]:
+            for fut in as_completed([f for f, _ in futures.values()]):
+                cell = futures[fut.key][1]
+                yield cell, (fut.result() if fut.status == "finished" else fut.exception())
+
+        yield outcomes()
+    finally:
+        client.cancel([f for f, _ in futures.values()])
+        client.close()
+        if cluster is not None:
+            cluster.close()

@@ -1,0 +1,242 @@
+"""``lcs-cvx study report DIR``: the paper-style figure and table of every study in a database.
+
+For each study (each config hash) in ``DIR/studies.sqlite`` it writes ``DIR/<name>.png``,
+``DIR/<name>.pdf`` -- e_test per swept value as box plots (prediction vs violation, log e_test
+axis, log x axis where the values span decades; means as white markers; a reference method as a
+horizontal line at its median; the authors' published means as crosses), the layout of Fig. 1 --
+and ``DIR/<name>.md``: per swept value the hybrid modes of the data (mean), sigma_min(F + F^T) of
+the truth (mean), mean and median e_test of each method and, where ``studies/anchors.toml`` has
+them for the study's panel and swept parameter, the authors' numbers beside ours.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import statistics
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from .._checks import LCSInputError
+from .cells import REFERENCE, expand
+from .store import Store
+
+__all__ = ["report", "load_anchors", "summarize", "default_anchors_path"]
+
+#: The swept values span "decades" (log x axis) when max / min reaches this.
+LOG_X_RATIO = 30.0
+_COLORS = {"prediction": "tab:blue", "violation": "tab:orange"}
+
+
+def default_anchors_path() -> str | None:
+    """``studies/anchors.toml`` of the working directory, else of this source checkout."""
+    for base in (Path.cwd(), Path(__file__).resolve().parents[2]):
+        p = base / "studies" / "anchors.toml"
+        if p.is_file():
+            return str(p)
+    return None
+
+
+def load_anchors(path: str | None) -> dict[str, Any]:
+    """``{panel: {"param": ..., "sets": [{"label", "note", "rows": [{value, ...}]}]}}``."""
+    if path is None:
+        return {}
+    if not os.path.isfile(path):
+        raise LCSInputError(f"{path}: anchors file not found")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise LCSInputError(f"{path}: not valid TOML: {exc}") from None
+    for panel, entry in data.items():
+        if not isinstance(entry, dict) or "param" not in entry or not isinstance(entry.get("sets"), list):
+            raise LCSInputError(f"{path}: {panel}: expected a table with 'param' and [[{panel}.sets]]")
+        for s in entry["sets"]:
+            if "label" not in s or not isinstance(s.get("rows"), list):
+                raise LCSInputError(f"{path}: {panel}.sets: expected 'label' and 'rows' in each set")
+    return data
+
+
+def _anchor_sets(study: dict[str, Any], anchors: dict[str, Any]) -> list[dict[str, Any]]:
+    entry = anchors.get(study["config"].get("panel") or "", {})
+    return entry.get("sets", []) if entry.get("param") == study["config"]["sweep"]["param"] else []
+
+
+def _anchor(aset: dict[str, Any], value: float, metric: str) -> Any:
+    for row in aset["rows"]:
+        if math.isclose(float(row["value"]), float(value), rel_tol=1e-9) and metric in row:
+            return row[metric]
+    return None
+
+
+def summarize(store: Store, study: dict[str, Any]) -> dict[str, Any]:
+    """Finished cells of ``study`` grouped by swept value and method (report's input)."""
+    config = study["config"]
+    cells = expand(config)
+    found = store.cells([c["key"] for c in cells])
+    values = config["sweep"]["values"]
+    per = {(i, m): [] for i in [REFERENCE, *range(len(values))]
+           for m in config["methods"] + config["reference_methods"]}
+    for c in cells:
+        row = found.get(c["key"])
+        if row is not None:
+            per[(c["value_index"], c["method"])].append(row)
+    return {"study": study, "values": values, "per": per, "n_cells": len(cells),
+            "n_done": len(found), "failures": store.failures(study["config_hash"]),
+            "cell_time": sum(r["wall_time"] for r in found.values())}
+
+
+def _e(rows: list[dict[str, Any]]) -> list[float]:
+    return [r["e_test"] for r in rows if r["e_test"] is not None]
+
+
+def _fmt(v: Any) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+
+def _stat(xs: list[float], f) -> float | None:
+    return f(xs) if xs else None
+
+
+def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
+    study = summary["study"]
+    config = study["config"]
+    label = config["sweep"]["label"]
+    methods, refs = config["methods"], config["reference_methods"]
+    sets = _anchor_sets(study, anchors)
+    head = [label, "cells", "modes (mean)", "σ_min(F+Fᵀ) (mean)"]
+    for m in methods:
+        head += [f"{m} mean", f"{m} median"]
+    anchor_cols = [(k, s, metric) for k, s in enumerate(sets)
+                   for metric in ("prediction_mean", "violation_mean", "modes")
+                   if any(metric in r for r in s["rows"])]
+    head += [f"authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {metric.replace('_', ' ')}"
+             for k, _, metric in anchor_cols]
+    lines = [f"# {config['name']}" + (f" — Fig. 1({config['panel']})" if config.get("panel") else ""),
+             "",
+             f"config `{study['path']}` (hash `{study['config_hash']}`), recipe `{config['recipe']}`, "
+             f"convention `{config['convention']}`, trials: {config['trials']}; "
+             f"{summary['n_done']}/{summary['n_cells']} cells finished, "
+             f"{summary['cell_time']:.1f} s of cell wall time.",
+             ""]
+    if config.get("description"):
+        lines += [config["description"].strip(), ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, v in enumerate(summary["values"]):
+        rows = [r for m in methods for r in summary["per"][(i, m)]]
+        expected = config["trials"] * len(methods)
+        cells = [_fmt(v), f"{len(rows)}/{expected}",
+                 _fmt(_stat([float(r["modes"]) for r in rows], statistics.fmean)),
+                 _fmt(_stat([r["sigma_min"] for r in rows], statistics.fmean))]
+        for m in methods:
+            xs = _e(summary["per"][(i, m)])
+            cells += [_fmt(_stat(xs, statistics.fmean)), _fmt(_stat(xs, statistics.median))]
+        cells += [_fmt(_anchor(s, v, metric)) for _, s, metric in anchor_cols]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines.append("")
+    for m in refs:
+        xs = _e(summary["per"][(REFERENCE, m)])
+        lines.append(f"- Reference `{m}` (trained once per trial, independent of {label}): "
+                     f"{len(xs)}/{config['trials']} cells, mean {_fmt(_stat(xs, statistics.fmean))}, "
+                     f"median {_fmt(_stat(xs, statistics.median))}.")
+    for k, s in enumerate(sets):
+        note = " " + " ".join(s["note"].split()) if s.get("note") else ""
+        lines.append(f"- Authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {s['label']}.{note}")
+    failed = {f["key"] for f in summary["failures"]}
+    if failed:
+        lines.append(f"- Failures logged: {len(failed)} cells (see the `failures` table); "
+                     "they are retried by the next `lcs-cvx study run`.")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _positions(values: list[float]) -> tuple[list[float], bool]:
+    vs = [float(v) for v in values]
+    log = min(vs) > 0 and max(vs) / min(vs) >= LOG_X_RATIO
+    return ([math.log10(v) for v in vs] if log else vs), log
+
+
+def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    study = summary["study"]
+    config = study["config"]
+    methods = config["methods"]
+    pos, log_x = _positions(summary["values"])
+    gaps = [abs(a - b) for a, b in zip(pos, pos[1:], strict=False) if a != b]
+    width = 0.7 * (min(gaps) if gaps else 1.0) / max(1, len(methods))
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    offsets = {m: (k - (len(methods) - 1) / 2) * width for k, m in enumerate(methods)}
+    for m in methods:
+        offset = offsets[m]
+        data = [(p + offset, [max(x, 1e-300) for x in _e(summary["per"][(i, m)])])
+                for i, p in enumerate(pos)]
+        data = [(p, xs) for p, xs in data if xs]
+        if not data:
+            continue
+        bp = ax.boxplot([xs for _, xs in data], positions=[p for p, _ in data], widths=width * 0.9,
+                        showmeans=True, patch_artist=True, manage_ticks=False,
+                        meanprops={"marker": "o", "markerfacecolor": "white",
+                                   "markeredgecolor": "black", "markersize": 4},
+                        medianprops={"color": "black"}, flierprops={"markersize": 3})
+        for patch in bp["boxes"]:
+            patch.set_facecolor(_COLORS.get(m, "grey"))
+            patch.set_alpha(0.6)
+        ax.plot([], [], "s", color=_COLORS.get(m, "grey"), label=m)
+    for m in config["reference_methods"]:
+        xs = _e(summary["per"][(REFERENCE, m)])
+        if xs:
+            ax.axhline(statistics.median(xs), color=_COLORS.get(m, "grey"), ls="--",
+                       label=f"{m} (reference, median)")
+    for k, s in enumerate(_anchor_sets(study, anchors)):
+        for m in methods + config["reference_methods"]:
+            pts = [(p + offsets.get(m, 0.0), _anchor(s, v, f"{m}_mean"))
+                   for p, v in zip(pos, summary["values"], strict=True)]
+            pts = [(p, a) for p, a in pts if a is not None]
+            if pts:
+                ax.plot(*zip(*pts, strict=True), ls="none", marker="x" if k == 0 else "+",
+                        color=_COLORS.get(m, "grey"), markersize=7, mew=1.5,
+                        label=f"authors{' ' + str(k + 1) if k else ''}: {m} mean")
+    ax.set_yscale("log")
+    ax.set_xticks(pos)
+    ax.set_xticklabels([f"{float(v):g}" for v in summary["values"]])
+    label = config["sweep"]["label"]
+    ax.set_xlabel(label + (" (log scale)" if log_x else ""))
+    ax.set_ylabel("e_test")
+    title = config["name"] + (f" — Fig. 1({config['panel']})" if config.get("panel") else "")
+    ax.set_title(title, fontsize=10)
+    ax.grid(True, which="major", axis="y", alpha=0.3)
+    ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    out = [f"{stem}.png", f"{stem}.pdf"]
+    fig.savefig(out[0], dpi=150)
+    fig.savefig(out[1])
+    plt.close(fig)
+    return out
+
+
+def report(directory: str | os.PathLike, anchors_path: str | None = "default") -> list[str]:
+    """Write the figure (PNG, PDF) and the markdown table of every study in ``directory``'s
+    database; return the paths written. ``anchors_path="default"``: :func:`default_anchors_path`."""
+    directory = os.fspath(directory)
+    anchors = load_anchors(default_anchors_path() if anchors_path == "default" else anchors_path)
+    written = []
+    with Store(directory, create=False) as store:
+        studies = [s for s in store.studies() if s["config"].get("kind") == "grid"]
+        names = [s["name"] for s in studies]
+        for study in studies:
+            stem = study["name"]
+            if names.count(stem) > 1:  # the same name with other settings: keep both
+                stem += f"-{study['config_hash'][:8]}"
+            summary = summarize(store, study)
+            stem_path = os.path.join(directory, stem)
+            written += plot(summary, anchors, stem_path)
+            with open(stem_path + ".md", "w") as f:
+                f.write(markdown(summary, anchors))
+            written.append(stem_path + ".md")
+    return written

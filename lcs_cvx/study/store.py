@@ -1,0 +1,171 @@
+"""The results store: one SQLite database per output directory, written by the client alone.
+
+Tables (schema version 1)::
+
+    studies  (config_hash PK, name, panel, config_json, path, created)
+    cells    (id PK, key UNIQUE, config_hash, study, value_index, value, trial, method,
+              seed, seed_truth, seed_train, seed_test, seed_init, seed_fit,
+              e_test, final_loss, modes, sigma_min, fit_wall_time, wall_time,
+              settings_json, cell_json, warnings_json, host, finished)
+    curves   (cell_id -> cells.id, iteration, phase, loss, e_test, eps, lr, wall_time, restart)
+    failures (id PK, key, config_hash, study, value_index, trial, method, error, at)
+
+Every finished cell is one transaction (its row and its curve), committed at once; the database
+is in WAL mode with ``synchronous = FULL``, so a Ctrl-C or a killed process loses at most the cell
+in flight, and a finished cell is never lost or written twice (``key`` is unique).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import time
+from typing import Any
+
+__all__ = ["DB_NAME", "Store"]
+
+DB_NAME = "studies.sqlite"
+SCHEMA_VERSION = 1
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS studies (
+    config_hash TEXT PRIMARY KEY, name TEXT NOT NULL, panel TEXT, config_json TEXT NOT NULL,
+    path TEXT, created TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS cells (
+    id INTEGER PRIMARY KEY, key TEXT NOT NULL UNIQUE, config_hash TEXT NOT NULL, study TEXT NOT NULL,
+    value_index INTEGER NOT NULL, value REAL, trial INTEGER NOT NULL, method TEXT NOT NULL,
+    seed INTEGER NOT NULL, seed_truth INTEGER NOT NULL, seed_train INTEGER NOT NULL,
+    seed_test INTEGER NOT NULL, seed_init INTEGER NOT NULL, seed_fit INTEGER NOT NULL,
+    e_test REAL, final_loss REAL, modes INTEGER, sigma_min REAL, fit_wall_time REAL,
+    wall_time REAL, settings_json TEXT NOT NULL, cell_json TEXT NOT NULL, warnings_json TEXT,
+    host TEXT, finished TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS curves (
+    cell_id INTEGER NOT NULL REFERENCES cells(id), iteration INTEGER, phase TEXT, loss REAL,
+    e_test REAL, eps REAL, lr REAL, wall_time REAL, restart INTEGER);
+CREATE INDEX IF NOT EXISTS curves_cell ON curves(cell_id);
+CREATE TABLE IF NOT EXISTS failures (
+    id INTEGER PRIMARY KEY, key TEXT NOT NULL, config_hash TEXT NOT NULL, study TEXT NOT NULL,
+    value_index INTEGER, trial INTEGER, method TEXT, error TEXT NOT NULL, at TEXT NOT NULL);
+"""
+
+
+def _now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+def _real(v: Any) -> float | None:
+    """SQLite has no NaN (it stores NULL); infinities are kept."""
+    return None if v is None or (isinstance(v, float) and math.isnan(v)) else float(v)
+
+
+class Store:
+    """The database ``<directory>/studies.sqlite`` (created on first use)."""
+
+    def __init__(self, directory: str | os.PathLike, create: bool = True) -> None:
+        directory = os.fspath(directory)
+        self.path = os.path.join(directory, DB_NAME)
+        if not create and not os.path.isfile(self.path):
+            from .._checks import LCSInputError
+
+            raise LCSInputError(f"{directory}: no study database ({DB_NAME}) in this directory")
+        os.makedirs(directory, exist_ok=True)
+        self.conn = sqlite3.connect(self.path, timeout=60.0)
+        self.conn.execute("PRAGMA journal_mode=WAL")
+        self.conn.execute("PRAGMA synchronous=FULL")
+        self.conn.execute("PRAGMA foreign_keys=ON")
+        with self.conn:
+            self.conn.executescript(_SCHEMA)
+            self.conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)",
+                              (str(SCHEMA_VERSION),))
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- writing (the client only) ------------------------------------------------------
+    def add_study(self, h: str, config: dict[str, Any]) -> None:
+        body = {k: v for k, v in config.items() if k != "path"}
+        with self.conn:
+            self.conn.execute(
+                "INSERT OR IGNORE INTO studies VALUES (?, ?, ?, ?, ?, ?)",
+                (h, config["name"], config.get("panel"), json.dumps(body, sort_keys=True),
+                 config.get("path"), _now()),
+            )
+
+    def add_cell(self, cell: dict[str, Any], seed: int, result: dict[str, Any]) -> bool:
+        """Write one finished cell and its curve in one transaction; False if it was there."""
+        s = cell["seeds"]
+        with self.conn:
+            cur = self.conn.execute(
+                "INSERT OR IGNORE INTO cells (key, config_hash, study, value_index, value, trial, "
+                "method, seed, seed_truth, seed_train, seed_test, seed_init, seed_fit, e_test, "
+                "final_loss, modes, sigma_min, fit_wall_time, wall_time, settings_json, cell_json, "
+                "warnings_json, host, finished) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                (cell["key"], cell["config_hash"], cell["study"], cell["value_index"],
+                 _real(cell["value"]), cell["trial"], cell["method"], seed, s["truth"], s["train"],
+                 s["test"], s["init"], s["fit"], _real(result["e_test"]), _real(result["final_loss"]),
+                 result["modes"], _real(result["sigma_min"]), result["fit_wall_time"],
+                 result["wall_time"], json.dumps(result["settings"], sort_keys=True),
+                 json.dumps(cell, sort_keys=True), json.dumps(result["warnings"]),
+                 result["host"], _now()),
+            )
+            if cur.rowcount == 0:
+                return False
+            self.conn.executemany(
+                "INSERT INTO curves VALUES (?,?,?,?,?,?,?,?,?)",
+                [(cur.lastrowid, r["iteration"], r["phase"], _real(r["loss"]), _real(r["e_test"]),
+                  _real(r["eps"]), _real(r["lr"]), r["wall_time"], r["restart"])
+                 for r in result["curve"]],
+            )
+        return True
+
+    def add_failure(self, cell: dict[str, Any], error: str) -> None:
+        with self.conn:
+            self.conn.execute(
+                "INSERT INTO failures (key, config_hash, study, value_index, trial, method, error, at) "
+                "VALUES (?,?,?,?,?,?,?,?)",
+                (cell["key"], cell["config_hash"], cell["study"], cell["value_index"],
+                 cell["trial"], cell["method"], error, _now()),
+            )
+
+    # -- reading ------------------------------------------------------------------------
+    def finished_keys(self) -> set[str]:
+        return {k for (k,) in self.conn.execute("SELECT key FROM cells")}
+
+    def studies(self) -> list[dict[str, Any]]:
+        rows = self.conn.execute(
+            "SELECT config_hash, name, panel, config_json, path, created FROM studies ORDER BY created, name")
+        return [{"config_hash": h, "name": n, "panel": p, "config": json.loads(c), "path": path,
+                 "created": t} for h, n, p, c, path, t in rows]
+
+    def cells(self, keys: list[str]) -> dict[str, dict[str, Any]]:
+        """The finished cells among ``keys``, by key (metrics and seeds; no curves)."""
+        cols = ("id", "key", "e_test", "final_loss", "modes", "sigma_min", "fit_wall_time",
+                "wall_time", "seed_truth", "seed_init", "host", "warnings_json")
+        out: dict[str, dict[str, Any]] = {}
+        for i in range(0, len(keys), 500):
+            chunk = keys[i : i + 500]
+            q = f"SELECT {', '.join(cols)} FROM cells WHERE key IN ({','.join('?' * len(chunk))})"
+            for row in self.conn.execute(q, chunk):
+                out[row[1]] = dict(zip(cols, row, strict=True))
+        return out
+
+    def curve(self, cell_id: int) -> list[dict[str, Any]]:
+        cols = ("iteration", "phase", "loss", "e_test", "eps", "lr", "wall_time", "restart")
+        rows = self.conn.execute(
+            f"SELECT {', '.join(cols)} FROM curves WHERE cell_id = ? ORDER BY rowid", (cell_id,))
+        return [dict(zip(cols, r, strict=True)) for r in rows]
+
+    def failures(self, config_hash: str) -> list[dict[str, Any]]:
+        cols = ("key", "value_index", "trial", "method", "error", "at")
+        rows = self.conn.execute(
+            f"SELECT {', '.join(cols)} FROM failures WHERE config_hash = ? ORDER BY id", (config_hash,))
+        return [dict(zip(cols, r, strict=True)) for r in rows]
