@@ -108,6 +108,7 @@ def test_recipes_and_option_resolution():
     assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
     best = resolve_options("best", lr=2e-2)
     assert best.lr == 2e-2 and best.eps_start == 1e-2 and best.refine == "gauss-newton"
+    assert best.extra_units == 2
     gn = resolve_options(optimizer="gauss-newton")
     assert gn.iterations == 50 and gn.batch_size == 5000
     assert resolve_options(optimizer="gauss-newton", iterations=7).iterations == 7
@@ -124,6 +125,7 @@ def test_recipes_and_option_resolution():
         ({"eps_start": 1e-6}, r"eps_start: expected None or a number >= eps"),
         ({"loss": "prediction", "optimizer": "newton"}, r"second-order methods are for the violation loss"),
         ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best'\), received 'fast'"),
+        ({"extra_units": 2}, r"extra_units: the pruned model needs a refinement phase"),
     ],
 )
 def test_invalid_options(small, kwargs, match):
@@ -178,7 +180,8 @@ _SCRIPT = textwrap.dedent(
     [
         {"iterations": 2500, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
          "reinit_saturated": True, "eps_start": 1e-2, "lr_schedule": "cosine",
-         "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000},
+         "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000,
+         "extra_units": 1},
         {"optimizer": "newton", "iterations": 40, "batch_size": 1000},
     ],
     ids=["adam+refine", "newton"],
