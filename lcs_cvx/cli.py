@@ -96,6 +96,45 @@ def _configure_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--threads", type=_positive_int, default=1, help="torch CPU threads (default: 1)"
     )
+    p.add_argument(
+        "--learn-n-lam", type=int, default=4,
+        help="n_lam of the system learned in the second part; 0 skips learning (default: 4)",
+    )
+    p.add_argument(
+        "--learn-n", type=_positive_int, default=10_000,
+        help="training samples of the learning part (default: 10000)",
+    )
+    p.add_argument(
+        "--learn-iterations", type=_positive_int, default=1500,
+        help="Adam iterations of each learning run (default: 1500)",
+    )
+
+
+def _demo_learning(args: argparse.Namespace) -> None:
+    """Learn a paper-style system (n_x, n_u, --learn-n-lam) with both losses from one start."""
+    from . import LCS, fit, relative_error
+
+    n_lam = args.learn_n_lam
+    truth = random_lcs(args.n_x, args.n_u, n_lam, args.stiffness, args.seed + 1)
+    train = make_dataset(truth, args.learn_n, noise=TRAIN_NOISE, seed=args.seed + 2)
+    test = make_dataset(truth, 1000, seed=args.seed + 3)
+    print(
+        f"learning: a random LCS n_x={args.n_x}, n_u={args.n_u}, n_lam={n_lam} "
+        f"({count_modes(truth, train.x, train.u)} modes in {len(train)} noisy samples)"
+    )
+    runs = (
+        ("violation", {"recipe": "best", "refine_iterations": 5}),
+        ("prediction", {"lr": 5e-3}),
+    )
+    for loss, options in runs:
+        model = LCS(args.n_x, args.n_u, n_lam, stiffness=1.0, seed=args.seed + 4)
+        t0 = time.perf_counter()
+        fit(model, train, loss=loss, iterations=args.learn_iterations, progress=False,
+            seed=args.seed, **options)
+        print(
+            f"  {loss:<10s} loss: e_test {relative_error(model, test):.3e} "
+            f"({time.perf_counter() - t0:.1f} s, {'recipe best' if 'recipe' in options else 'Adam'})"
+        )
 
 
 def run_demo(args: argparse.Namespace) -> int:
@@ -147,6 +186,8 @@ def run_demo(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
+    if args.learn_n_lam > 0:
+        _demo_learning(args)
     return 0
 
 

@@ -87,6 +87,8 @@ class FitOptions:
         extra_units: Adam trains ``n_lam + extra_units`` units; the extra ones are then pruned
             greedily (:func:`lcs_cvx.units.prune`, on ``refine_batch`` samples) before the
             refinement -- the escape from the permutation trap of DESIGN.md.
+        prune_repair, prune_batch: Gauss--Newton steps on ``prune_batch`` samples applied to each
+            pruning candidate before it is scored.
         damping: initial Levenberg--Marquardt damping of the second-order steps.
         refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
         refine_iterations, refine_batch: its steps and batch size.
@@ -116,6 +118,8 @@ class FitOptions:
     reinit_saturated: bool = False
     reinit_every: int = 500
     extra_units: int = 0
+    prune_repair: int = 2
+    prune_batch: int = 1000
     damping: float = 1e-3
     refine: str | None = None
     refine_iterations: int = 20
@@ -149,7 +153,9 @@ class FitOptions:
                 raise LCSInputError(f"{name}: expected a finite number >= 0, received {v!r}")
         if isinstance(self.extra_units, bool) or not isinstance(self.extra_units, int) or self.extra_units < 0:
             raise LCSInputError(f"extra_units: expected an integer >= 0, received {self.extra_units!r}")
-        for name in ("iterations", "batch_size", "reinit_every", "refine_iterations",
+        if isinstance(self.prune_repair, bool) or not isinstance(self.prune_repair, int) or self.prune_repair < 0:
+            raise LCSInputError(f"prune_repair: expected an integer >= 0, received {self.prune_repair!r}")
+        for name in ("iterations", "batch_size", "reinit_every", "refine_iterations", "prune_batch",
                      "refine_batch", "restarts", "eval_every", "checkpoint_every"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations" else 1):
@@ -435,7 +441,16 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
     if run.work is not run.model:  # prune the grown model back to the user's size
         idx = run.next_batch(min(o.refine_batch, len(run.train)))
         d = run.train
-        pruned = prune(run.work, run.model.n_lam, d.x[idx], d.u[idx], d.x_next[idx])
+        x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
+        r_idx = slice(0, min(o.prune_batch, len(idx)))
+
+        def repair(cand: LCS) -> None:  # a few Gauss--Newton steps before a candidate is scored
+            mu = o.damping
+            for _ in range(o.prune_repair):
+                mu = gauss_newton_step(cand, x[r_idx], u[r_idx], xn[r_idx], gamma=o.gamma,
+                                       eps=o.eps, reg=o.reg, damping=mu).damping
+
+        pruned = prune(run.work, run.model.n_lam, x, u, xn, repair=repair if o.prune_repair else None)
         run.model.load_state_dict(pruned.state_dict())
         run.work = run.model
         save()

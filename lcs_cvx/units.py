@@ -15,7 +15,7 @@ then repair.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -90,10 +90,22 @@ def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1)
 
 
 def prune(
-    model: LCS, n_lam: int, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor
+    model: LCS,
+    n_lam: int,
+    x: torch.Tensor,
+    u: torch.Tensor,
+    x_next: torch.Tensor,
+    repair: Callable[[LCS], None] | None = None,
 ) -> LCS:
     """Remove units one at a time, each time the one whose removal gives the lowest prediction
-    loss on ``(x, u, x_next)``, until ``n_lam`` remain; returns a new model."""
+    loss on ``(x, u, x_next)``, until ``n_lam`` remain; returns a new model.
+
+    ``repair(candidate)``, if given, improves each candidate in place before it is scored (e.g.
+    two Gauss--Newton steps): the units left often need their ``C`` and hyperplanes adjusted
+    before the right removal shows. Measured on (10, 4, 4) systems trained with 6 units: scoring
+    without repair picked a wrong unit on 3 of 8 seeds (e_test 3e-5 to 3e-3 after refinement),
+    with two Gauss--Newton steps on 2,000 samples it recovered 2 of those 3 (to ~1e-8).
+    """
     if not 1 <= n_lam <= model.n_lam:
         raise LCSInputError(f"n_lam: expected an integer in [1, {model.n_lam}], received {n_lam!r}")
     current = model
@@ -101,6 +113,8 @@ def prune(
         best: tuple[float, LCS] | None = None
         for j in range(current.n_lam):
             cand = submodel(current, [i for i in range(current.n_lam) if i != j])
+            if repair is not None:
+                repair(cand)
             with torch.no_grad():
                 value = float(prediction_loss(cand, x, u, x_next))
             if best is None or value < best[0]:
