@@ -24,7 +24,8 @@ def _leading_float(text: str) -> float:
 
 def test_demo_prints_checked_facts(capsys):
     threads = torch.get_num_threads()
-    assert main(["demo", "--n", "2000", "--n-lam", "4"]) == 0
+    learn = ["--learn-n", "1000", "--learn-iterations", "300"]
+    assert main(["demo", "--n", "2000", "--n-lam", "4", *learn]) == 0
     assert torch.get_num_threads() == threads  # restored after the run
     facts = _facts(capsys.readouterr().out)
 
@@ -47,9 +48,18 @@ def test_demo_prints_checked_facts(capsys):
     assert _leading_float(facts["max |lam_fast - lam_clarabel|"]) < 1e-8
     assert _leading_float(facts["speed-up"]) > 0
 
+    # the learning part: both losses from the same start, e_test well below the start's
+    assert facts["learning"].startswith("a random LCS n_x=10, n_u=4, n_lam=4 (")
+    start = lcs_cvx.LCS(10, 4, 4, stiffness=1.0, seed=4)
+    test = lcs_cvx.make_dataset(lcs_cvx.random_lcs(10, 4, 4, 0.5, 1), 1000, seed=3)
+    e_start = lcs_cvx.relative_error(start, test)
+    for loss in ("violation", "prediction"):
+        e = float(facts[f"  {loss:<10s} loss"].split()[1])
+        assert 0 < e < 0.1 * e_start, (loss, e, e_start)
+
 
 def test_demo_threads_option(capsys):
-    assert main(["demo", "--n", "50", "--n-lam", "2", "--threads", "2"]) == 0
+    assert main(["demo", "--n", "50", "--n-lam", "2", "--threads", "2", "--learn-n-lam", "0"]) == 0
     assert "2 threads," in _facts(capsys.readouterr().out)["fast LCP"]
 
 
@@ -76,7 +86,7 @@ def test_bad_argument_exits_2_naming_it(capsys, argv, named):
 
 def test_demo_fails_when_the_check_fails(capsys, monkeypatch):
     monkeypatch.setattr("lcs_cvx.cli.CHECK_TOL", -1.0)  # no difference can pass
-    assert main(["demo", "--n", "50", "--n-lam", "2"]) == 1
+    assert main(["demo", "--n", "50", "--n-lam", "2", "--learn-n-lam", "0"]) == 1
     assert "check failed" in capsys.readouterr().err
 
 
@@ -100,7 +110,7 @@ def _entry_point() -> list[str]:
 @pytest.mark.parametrize("entry", ["script", "module"])
 def test_installed_entry_points(entry):
     cmd = _entry_point() if entry == "script" else [sys.executable, "-m", "lcs_cvx.cli"]
-    small = ["demo", "--n", "300", "--n-x", "3", "--n-u", "2", "--n-lam", "3"]
+    small = ["demo", "--n", "300", "--n-x", "3", "--n-u", "2", "--n-lam", "3", "--learn-n-lam", "0"]
     ok = subprocess.run(cmd + small, capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr
     assert _facts(ok.stdout)["LCS"].startswith("n_x=3, n_u=2, n_lam=3 ")
