@@ -17,15 +17,14 @@ differentiable function of ``(F, q)`` -- the implicit-function-theorem map of Le
 from __future__ import annotations
 
 import itertools
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-from ._checks import LCSInputError, SolverError, as_batch, as_matrix
-from .pivoting import block_pivoting
+from ._checks import LCSInputError, as_batch, as_matrix
+from .pivoting import FallbackWarning, block_pivoting, unconverged
 from .problems import convex_lcp_problem
 
 __all__ = [
@@ -40,10 +39,6 @@ __all__ = [
 
 #: Relative tolerance for feasibility of a pivoting candidate (scaled by ``1 + |q|_inf``).
 PIVOT_TOL = 1e-11
-
-
-class FallbackWarning(RuntimeWarning):
-    """The fast solver did not converge on some samples; the reference solved them."""
 
 
 @dataclass(frozen=True)
@@ -132,20 +127,9 @@ def solve_lcp_fast(
         res = block_pivoting(solve, _initial_free(q), max_iter=max_iter)
         lam = res.solution.clamp(min=0.0)
         free = res.free & (res.solution > 0)
-        n_fb = 0
-        if not bool(res.converged.all()):
-            bad_idx = (~res.converged).nonzero().squeeze(1)
-            n_fb = int(bad_idx.numel())
-            if not fallback:
-                raise SolverError(
-                    f"LCP pivoting did not converge on {n_fb} of {B} samples in {max_iter} sweeps"
-                )
-            warnings.warn(
-                f"LCP pivoting did not converge on {n_fb} of {B} samples in {max_iter} sweeps; "
-                "solved them with the Clarabel reference",
-                FallbackWarning,
-                stacklevel=2,
-            )
+        bad_idx = unconverged(res, "LCP", max_iter, fallback)
+        n_fb = 0 if bad_idx is None else int(bad_idx.numel())
+        if bad_idx is not None:
             ref = convex_lcp_problem(n).solve(F.cpu(), q[bad_idx].cpu().numpy())
             lam_ref = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
             # polish: re-solve exactly on the reference's active set, keep it if it is better

@@ -18,12 +18,19 @@ on a whole batch at once and only re-solves the samples that have not converged.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 
-__all__ = ["PivotResult", "block_pivoting"]
+from ._checks import SolverError
+
+__all__ = ["PivotResult", "block_pivoting", "unconverged", "FallbackWarning"]
+
+
+class FallbackWarning(RuntimeWarning):
+    """The fast solver did not converge on some samples; the reference solved them."""
 
 #: ``solve(free, idx) -> (solution, infeasible)``; ``idx`` selects samples (None: all).
 SolveFn = Callable[[torch.Tensor, torch.Tensor | None], tuple[torch.Tensor, torch.Tensor]]
@@ -114,3 +121,18 @@ def block_pivoting(
     failed = n_bad > 0
     converged[failed if active is None else active[failed]] = False
     return PivotResult(solution=solution, free=free, converged=converged, iterations=sweeps)
+
+
+def unconverged(res: PivotResult, what: str, max_iter: int, fallback: bool) -> torch.Tensor | None:
+    """Indices of the samples ``res`` did not converge on (None if all did), after saying so:
+    a :class:`FallbackWarning` if ``fallback`` (the caller then solves them with its reference),
+    else :class:`lcs_cvx.SolverError`."""
+    if bool(res.converged.all()):
+        return None
+    idx = (~res.converged).nonzero().squeeze(1)
+    msg = (f"{what} pivoting did not converge on {idx.numel()} of {res.converged.numel()} "
+           f"samples in {max_iter} sweeps")
+    if not fallback:
+        raise SolverError(msg)
+    warnings.warn(f"{msg}; solved them with the Clarabel reference", FallbackWarning, stacklevel=3)
+    return idx

@@ -18,14 +18,11 @@ Samples that do not converge are solved by the Clarabel reference on the same de
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import torch
 
-from ._checks import SolverError
-from .lcp import FallbackWarning
-from .pivoting import block_pivoting
+from .pivoting import block_pivoting, unconverged
 from .problems import violation_problem
 
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
@@ -135,21 +132,9 @@ def solve_violation_fast(
         state0 = torch.cat([h < 0, h < 0], dim=1)
         res = block_pivoting(solve, state0, max_iter=max_iter)
         lam = res.solution.clamp(min=0.0)
-        n_fb = 0
-        if not bool(res.converged.all()):
-            bad_idx = (~res.converged).nonzero().squeeze(1)
-            n_fb = int(bad_idx.numel())
-            if not fallback:
-                raise SolverError(
-                    f"violation QP pivoting did not converge on {n_fb} of {B} samples "
-                    f"in {max_iter} sweeps"
-                )
-            warnings.warn(
-                f"violation QP pivoting did not converge on {n_fb} of {B} samples in "
-                f"{max_iter} sweeps; solved them with the Clarabel reference",
-                FallbackWarning,
-                stacklevel=2,
-            )
+        bad_idx = unconverged(res, "violation QP", max_iter, fallback)
+        n_fb = 0 if bad_idx is None else int(bad_idx.numel())
+        if bad_idx is not None:
             sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
             ref = violation_problem(n).solve(sub)
             lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
