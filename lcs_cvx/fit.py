@@ -47,7 +47,7 @@ from typing import Any
 
 import torch
 
-from ._checks import LCSInputError
+from ._checks import LCSInputError, SolverError
 from .data import Dataset
 from .losses import prediction_loss, regularizer, violation_loss
 from .metrics import relative_error
@@ -427,7 +427,16 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         run.adam.zero_grad()
         value.backward()
         run.adam.step()
-        run.acc_loss += float(value.detach())
+        loss_value = float(value.detach())
+        with torch.no_grad():  # F = G G^T + ... overflows first when the parameters blow up
+            finite_F = bool(torch.isfinite(run.work.F).all())
+        if not (math.isfinite(loss_value) and finite_F):
+            raise SolverError(
+                f"training diverged at iteration {run.iteration + 1}: loss = {loss_value}, "
+                f"F {'finite' if finite_F else 'not finite'}; "
+                f"lower lr (now {lr:g})"
+            )
+        run.acc_loss += loss_value
         run.acc_n += 1
         run.iteration += 1
         if bar is not None:

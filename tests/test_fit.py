@@ -227,3 +227,9 @@ def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options):
     assert strip(again.history) == strip(clean.history)
     for name, p in clean_model.named_parameters():
         assert torch.equal(p, getattr(again_model, name)), name
+
+
+def test_divergence_is_reported_not_silent(small):
+    _, train, _ = small
+    with pytest.raises(lcs_cvx.SolverError, match=r"training diverged at iteration \d+: loss = .*not finite; lower lr"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=500, lr=1e200)
