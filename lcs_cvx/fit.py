@@ -18,9 +18,8 @@ Recipes (``recipe=``) are named sets of options; options given explicitly win:
 - ``"best"``: what this package recommends (see :data:`RECIPES`): Adam from lr 1e-2 on a cosine
   schedule, continuation in ``eps`` (1e-2 -> ``eps`` over the first 60 % of the iterations),
   re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
-  boundary), two extra units during Adam then pruned greedily, each candidate's ``[A B C d]``
-  refitted by least squares before it is scored (:mod:`lcs_cvx.units`: the escape from the
-  permutation trap), then a Gauss--Newton refinement on batches of 2,000 -- 4,000 Adam
+  boundary), two extra units during Adam then pruned greedily (:mod:`lcs_cvx.units`: the escape
+  from the permutation trap), then a Gauss--Newton refinement on batches of 2,000 -- 4,000 Adam
   iterations instead of the paper's 10,000 so that the whole fits the paper protocol's wall time.
 
 With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
@@ -53,7 +52,7 @@ from .losses import prediction_loss, regularizer, violation_loss
 from .metrics import relative_error
 from .second_order import gauss_newton_step, newton_step
 from .system import LCS, PARAMETER_NAMES
-from .units import grow, prune, refit_dynamics
+from .units import grow, prune
 
 __all__ = ["FitOptions", "FitResult", "RECIPES", "fit"]
 
@@ -88,8 +87,8 @@ class FitOptions:
         extra_units: Adam trains ``n_lam + extra_units`` units; the extra ones are then pruned
             greedily (:func:`lcs_cvx.units.prune`, on ``refine_batch`` samples) before the
             refinement -- the escape from the permutation trap of DESIGN.md.
-        prune_repair: refit ``[A B C d]`` of each pruning candidate by least squares
-            (:func:`lcs_cvx.units.refit_dynamics`) before it is scored.
+        prune_repair, prune_batch: Gauss--Newton steps on ``prune_batch`` samples applied to each
+            pruning candidate before it is scored.
         damping: initial Levenberg--Marquardt damping of the second-order steps.
         refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
         refine_iterations, refine_batch: its steps and batch size.
@@ -119,7 +118,8 @@ class FitOptions:
     reinit_saturated: bool = False
     reinit_every: int = 500
     extra_units: int = 0
-    prune_repair: bool = True
+    prune_repair: int = 2
+    prune_batch: int = 1000
     damping: float = 1e-3
     refine: str | None = None
     refine_iterations: int = 20
@@ -153,9 +153,9 @@ class FitOptions:
                 raise LCSInputError(f"{name}: expected a finite number >= 0, received {v!r}")
         if isinstance(self.extra_units, bool) or not isinstance(self.extra_units, int) or self.extra_units < 0:
             raise LCSInputError(f"extra_units: expected an integer >= 0, received {self.extra_units!r}")
-        if not isinstance(self.prune_repair, bool):
-            raise LCSInputError(f"prune_repair: expected True or False, received {self.prune_repair!r}")
-        for name in ("iterations", "batch_size", "reinit_every", "refine_iterations",
+        if isinstance(self.prune_repair, bool) or not isinstance(self.prune_repair, int) or self.prune_repair < 0:
+            raise LCSInputError(f"prune_repair: expected an integer >= 0, received {self.prune_repair!r}")
+        for name in ("iterations", "batch_size", "reinit_every", "refine_iterations", "prune_batch",
                      "refine_batch", "restarts", "eval_every", "checkpoint_every"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations" else 1):
@@ -451,9 +451,13 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         idx = run.next_batch(min(o.refine_batch, len(run.train)))
         d = run.train
         x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
+        r_idx = slice(0, min(o.prune_batch, len(idx)))
 
-        def repair(cand: LCS) -> None:
-            refit_dynamics(cand, x, u, xn)
+        def repair(cand: LCS) -> None:  # a few Gauss--Newton steps before a candidate is scored
+            mu = o.damping
+            for _ in range(o.prune_repair):
+                mu = gauss_newton_step(cand, x[r_idx], u[r_idx], xn[r_idx], gamma=o.gamma,
+                                       eps=o.eps, reg=o.reg, damping=mu).damping
 
         pruned = prune(run.work, run.model.n_lam, x, u, xn, repair=repair if o.prune_repair else None)
         run.model.load_state_dict(pruned.state_dict())

@@ -69,17 +69,3 @@ def test_prune_removes_the_useless_unit():
 def test_invalid_units(call, match):
     with pytest.raises(LCSInputError, match=match):
         call(lcs_cvx.random_lcs(4, 2, 3, seed=0))
-
-
-def test_refit_dynamics_recovers_the_dynamics_on_noiseless_data():
-    from lcs_cvx.units import refit_dynamics
-
-    sys = lcs_cvx.random_lcs(4, 2, 3, seed=0)
-    data = lcs_cvx.make_dataset(sys, 300, seed=1)
-    m = submodel(sys, [0, 1, 2])
-    with torch.no_grad():
-        for name in ("A", "B", "C", "d"):
-            getattr(m, name).add_(0.3)
-    refit_dynamics(m, data.x, data.u, data.x_next)
-    for name in ("A", "B", "C", "d"):
-        assert torch.allclose(getattr(m, name), getattr(sys, name), atol=1e-7), name
