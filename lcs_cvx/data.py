@@ -7,7 +7,11 @@
 
 from __future__ import annotations
 
+import csv
+import math
 import os
+import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,6 +21,11 @@ import torch
 from ._checks import LCSInputError, as_batch, check_positive
 
 __all__ = ["Dataset", "make_dataset"]
+
+#: The arrays of a dataset, in the order :meth:`Dataset.from_csv` reads their columns.
+_GROUPS = ("x", "u", "x_next", "lam")
+#: Default CSV column names: ``x_0, x_1, ...``, ``u_0, ...``, ``x_next_0, ...``, ``lam_0, ...``.
+_COLUMN = re.compile(r"^(x|u|x_next|lam)_(\d+)$")
 
 
 @dataclass(frozen=True)
@@ -72,9 +81,17 @@ class Dataset:
         return cls(x_t, u_t, xn_t, lam_t)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> Dataset:
-        """Load an ``.npz`` written by :meth:`save` (arrays ``x``, ``u``, ``x_next``, optional ``lam``)."""
+    def load(cls, path: str | os.PathLike, columns: Mapping[str, Sequence[str]] | None = None) -> Dataset:
+        """Load an ``.npz`` written by :meth:`save` (arrays ``x``, ``u``, ``x_next``, optional ``lam``),
+        or a ``.csv`` file (the name ends in ``.csv``, any case) with named columns: see
+        :meth:`from_csv`, which ``columns`` is passed to."""
         path = os.fspath(path)
+        if path.lower().endswith(".csv"):
+            return cls.from_csv(path, columns=columns)
+        if columns is not None:
+            raise LCSInputError(
+                f"columns: only for .csv files, received columns={columns!r} for {path!r}"
+            )
         if not os.path.exists(path):
             raise LCSInputError(f"path: expected an existing .npz file, received {path!r} (not found)")
         try:
@@ -89,6 +106,132 @@ class Dataset:
                 f"(found {sorted(arrays)})"
             )
         return cls.from_arrays(arrays["x"], arrays["u"], arrays["x_next"], arrays.get("lam"))
+
+    @classmethod
+    def from_csv(
+        cls, path: str | os.PathLike, columns: Mapping[str, Sequence[str]] | None = None
+    ) -> Dataset:
+        """Load transitions from a CSV file with a header row, one transition per row.
+
+        By default the columns are found by name: ``x_0, ..., x_{n_x-1}`` (the state),
+        ``u_0, ..., u_{n_u-1}`` (the input), ``x_next_0, ..., x_next_{n_x-1}`` (the next state)
+        and, optionally, ``lam_0, ...``; any other column (a time stamp, a trajectory id) is
+        ignored. ``columns`` names them instead, e.g.
+        ``{"x": ["pos", "vel"], "u": ["force"], "x_next": ["pos_next", "vel_next"]}`` (keys
+        ``"x"``, ``"u"``, ``"x_next"`` and optionally ``"lam"``, in the order of the vectors).
+        Blank lines and lines starting with ``#`` are skipped; the delimiter is a comma.
+
+        Every problem is an :class:`LCSInputError` that names the file, and the line and column
+        where there is one: a missing file, no header, duplicate or missing columns, a gap in the
+        numbering (``x_0, x_2``), a row with the wrong number of fields, a value that is not a
+        finite number, no data rows, or inconsistent sizes (``x_next`` must match ``x``).
+        """
+        path = os.fspath(path)
+        if not os.path.exists(path):
+            raise LCSInputError(f"path: expected an existing .csv file, received {path!r} (not found)")
+        try:
+            with open(path, newline="", encoding="utf-8-sig") as f:
+                lines = [(i, line) for i, line in enumerate(f.read().splitlines(), start=1)
+                         if line.strip() and not line.lstrip().startswith("#")]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
+        if not lines:
+            raise LCSInputError(f"path: expected a CSV file with a header row, {path!r} is empty")
+        rows = [next(csv.reader([line])) for _, line in lines]  # one row per line
+        header = [h.strip() for h in rows[0]]
+        seen: set[str] = set()
+        for h in header:
+            if not h:
+                raise LCSInputError(f"path: line {lines[0][0]} of {path!r} (the header) has an empty column name")
+            if h in seen:
+                raise LCSInputError(f"path: duplicate column {h!r} in the header of {path!r}")
+            seen.add(h)
+        names = cls._csv_columns(path, header, columns)
+        if len(names["x_next"]) != len(names["x"]):
+            raise LCSInputError(
+                f"path: expected as many next-state columns as state columns in {path!r}, received "
+                f"x: {names['x']}, x_next: {names['x_next']}"
+            )
+        if len(rows) == 1:
+            raise LCSInputError(f"path: expected at least one data row in {path!r}, found only the header")
+        index = {h: j for j, h in enumerate(header)}
+        wanted = [index[n] for g in _GROUPS for n in names.get(g, ())]
+        values = np.empty((len(rows) - 1, len(wanted)), dtype=np.float64)
+        for r, (row, (lineno, _)) in enumerate(zip(rows[1:], lines[1:], strict=True)):
+            if len(row) != len(header):
+                raise LCSInputError(
+                    f"path: line {lineno} of {path!r} has {len(row)} fields, expected "
+                    f"{len(header)} (the header's)"
+                )
+            for k, j in enumerate(wanted):
+                text = row[j].strip()
+                try:
+                    v = float(text)
+                except ValueError:
+                    v = math.nan
+                if not math.isfinite(v):
+                    raise LCSInputError(
+                        f"path: line {lineno} of {path!r}, column {header[j]!r}: expected a finite "
+                        f"number, received {text!r}"
+                    )
+                values[r, k] = v
+        arrays, k = {}, 0
+        for g in _GROUPS:
+            if g in names:
+                arrays[g] = values[:, k : k + len(names[g])]
+                k += len(names[g])
+        return cls.from_arrays(arrays["x"], arrays["u"], arrays["x_next"], arrays.get("lam"))
+
+    @staticmethod
+    def _csv_columns(
+        path: str, header: list[str], columns: Mapping[str, Sequence[str]] | None
+    ) -> dict[str, list[str]]:
+        """The column names of each array: given by ``columns`` or found by the default names."""
+        if columns is not None:
+            if not isinstance(columns, Mapping):
+                raise LCSInputError(
+                    f"columns: expected a dict of column-name lists, received {type(columns).__name__}"
+                )
+            unknown = sorted(set(columns) - set(_GROUPS))
+            missing = [g for g in ("x", "u", "x_next") if g not in columns]
+            if unknown or missing:
+                raise LCSInputError(
+                    f"columns: expected keys 'x', 'u', 'x_next' (and optionally 'lam'), received "
+                    f"{sorted(columns)}"
+                )
+            names = {}
+            for g, cols in columns.items():
+                if isinstance(cols, str) or not all(isinstance(c, str) for c in cols) or not cols:
+                    raise LCSInputError(
+                        f"columns: expected a non-empty list of column names for {g!r}, received {cols!r}"
+                    )
+                absent = [c for c in cols if c not in header]
+                if absent:
+                    raise LCSInputError(
+                        f"columns: {g!r} names {absent} not in the header of {path!r} (found {header})"
+                    )
+                names[g] = list(cols)
+            return names
+        found: dict[str, dict[int, str]] = {}
+        for h in header:
+            m = _COLUMN.match(h)
+            if m:
+                found.setdefault(m.group(1), {})[int(m.group(2))] = h
+        missing = [g for g in ("x", "u", "x_next") if g not in found]
+        if missing:
+            raise LCSInputError(
+                f"path: expected columns x_0.., u_0.., x_next_0.. (optionally lam_0..) in {path!r}, "
+                f"missing {[g + '_0..' for g in missing]} (found {header}); or name them with columns="
+            )
+        names = {}
+        for g, idx in found.items():
+            gap = [f"{g}_{i}" for i in range(max(idx) + 1) if i not in idx]
+            if gap:
+                raise LCSInputError(
+                    f"path: expected columns {g}_0 .. {g}_{max(idx)} in {path!r}, missing {gap}"
+                )
+            names[g] = [idx[i] for i in range(len(idx))]
+        return names
 
     def save(self, path: str | os.PathLike) -> None:
         """Write an ``.npz`` (no pickle) with arrays ``x``, ``u``, ``x_next`` (and ``lam``)."""

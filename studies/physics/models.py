@@ -1,0 +1,294 @@
+r"""The models the physics study compares, behind one interface: ``predict(x, u, contact=None)``
+maps states ``(N, 4)`` and inputs ``(N, 1)`` (physical units, float64 numpy) to next states.
+
+- :class:`LCSModel` -- a learned :class:`lcs_cvx.LCS` in physical units.
+- :class:`AffineModel` -- ``x' = A x + B u + d`` by least squares.
+- :class:`ModeAffineModel` -- the affine model fitted separately on each true contact mode
+  (free / left wall / right wall) and told the true mode when it predicts: an oracle, the best a
+  piecewise-affine model with known modes could do.
+- :class:`MLPModel` -- a small MLP (torch), ``x' = x + f(x, u)``.
+
+Learning in normalised coordinates. :class:`Scaling` maps a sample to
+``z = S_x^-1 (x - m_x)``, ``v = S_u^-1 (u - m_u)`` and the normalised increment
+``y = S_y^-1 (x' - x - m_y)`` (diagonal ``S``: the training set's standard deviations). An LCS
+learned on ``(z, v) -> y``, ``y = Â z + B̂ v + Ĉ lam + d̂``, ``0 <= lam _|_ D̂ z + Ê v + F lam + ĉ >= 0``,
+is exactly the LCS (eq. equ.lcs) in physical units with the same ``lam`` and ``F``::
+
+    A = I + S_y Â S_x^-1        B = S_y B̂ S_u^-1        C = S_y Ĉ
+    d = m_y + S_y (d̂ - Â S_x^-1 m_x - B̂ S_u^-1 m_u)
+    D = D̂ S_x^-1                E = Ê S_u^-1             c = ĉ - D̂ S_x^-1 m_x - Ê S_u^-1 m_u
+
+(:meth:`Scaling.to_physical`); the exported models are those.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+import lcs_cvx
+from lcs_cvx import LCS, Dataset
+
+__all__ = [
+    "Scaling",
+    "LCSModel",
+    "AffineModel",
+    "ModeAffineModel",
+    "MLPModel",
+    "contact_mode",
+    "fit_lcs",
+    "fit_mlp",
+    "mlp_from_result",
+]
+
+
+def contact_mode(contact: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` bool (left, right) -> mode ``0`` free, ``1`` left, ``2`` right, ``3`` both."""
+    contact = np.asarray(contact, dtype=bool)
+    return contact[:, 0].astype(np.int64) + 2 * contact[:, 1].astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Scaling:
+    """Affine normalisation of ``x``, ``u`` and the increment ``x' - x`` (see the module docstring)."""
+
+    mx: np.ndarray
+    sx: np.ndarray
+    mu: np.ndarray
+    su: np.ndarray
+    my: np.ndarray
+    sy: np.ndarray
+
+    @classmethod
+    def fit(cls, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> Scaling:
+        def ms(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            s = a.std(axis=0)
+            return a.mean(axis=0), np.where(s > 0, s, 1.0)
+
+        (mx, sx), (mu, su), (my, sy) = ms(x), ms(u), ms(x_next - x)
+        return cls(mx, sx, mu, su, my, sy)
+
+    def encode(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray | None = None):
+        """``(z, v)`` or ``(z, v, y)``."""
+        z = (x - self.mx) / self.sx
+        v = (u - self.mu) / self.su
+        if x_next is None:
+            return z, v
+        return z, v, (x_next - x - self.my) / self.sy
+
+    def decode(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``x' = x + m_y + S_y y``."""
+        return x + self.my + self.sy * y
+
+    def to_physical(self, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The matrices (``LCS.to_matrices()`` keys) of the normalised LCS ``m`` in physical units."""
+        Sx_inv = np.diag(1.0 / self.sx)
+        Su_inv = np.diag(1.0 / self.su)
+        Sy = np.diag(self.sy)
+        Ah, Bh, Ch, dh, Dh, Eh, F, ch = (m[k] for k in ("A", "B", "C", "d", "D", "E", "F", "c"))
+        return {
+            "A": np.eye(len(self.sx)) + Sy @ Ah @ Sx_inv,
+            "B": Sy @ Bh @ Su_inv,
+            "C": Sy @ Ch,
+            "d": self.my + Sy @ (dh - Ah @ Sx_inv @ self.mx - Bh @ Su_inv @ self.mu),
+            "D": Dh @ Sx_inv,
+            "E": Eh @ Su_inv,
+            "F": F,
+            "c": ch - Dh @ Sx_inv @ self.mx - Eh @ Su_inv @ self.mu,
+        }
+
+
+class LCSModel:
+    """A learned LCS in physical units; ``lam(x, u)`` is its complementarity variable."""
+
+    def __init__(self, lcs: LCS) -> None:
+        self.lcs = lcs
+
+    @classmethod
+    def from_matrices(cls, matrices: dict[str, np.ndarray]) -> LCSModel:
+        return cls(LCS.from_matrices(**matrices))
+
+    def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
+        out = np.full(x.shape, np.nan)
+        ok = np.isfinite(x).all(axis=1)  # a diverged rollout stays diverged
+        with torch.no_grad():
+            out[ok] = self.lcs.step(torch.from_numpy(np.ascontiguousarray(x[ok])),
+                                    torch.from_numpy(np.ascontiguousarray(u[ok]))).numpy()
+        return out
+
+    def lam(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return self.lcs.solve_lcp(torch.from_numpy(np.ascontiguousarray(x)),
+                                      torch.from_numpy(np.ascontiguousarray(u))).numpy()
+
+
+def _lstsq(x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> np.ndarray:
+    Z = np.hstack([x, u, np.ones((x.shape[0], 1))])
+    W, *_ = np.linalg.lstsq(Z, x_next, rcond=None)
+    return W
+
+
+def _affine(W: np.ndarray, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+    return np.hstack([x, u, np.ones((x.shape[0], 1))]) @ W
+
+
+class AffineModel:
+    """``x' = A x + B u + d`` fitted by least squares."""
+
+    def __init__(self, W: np.ndarray) -> None:
+        self.W = W
+
+    @classmethod
+    def fit(cls, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> AffineModel:
+        return cls(_lstsq(x, u, x_next))
+
+    def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
+        return _affine(self.W, x, u)
+
+
+class ModeAffineModel:
+    """One affine least-squares model per true contact mode (:func:`contact_mode`); a mode with
+    fewer than ``min_samples`` training samples uses the model fitted on all of them."""
+
+    def __init__(self, weights: dict[int, np.ndarray], fallback: np.ndarray) -> None:
+        self.weights, self.fallback = weights, fallback
+
+    @classmethod
+    def fit(cls, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, contact: np.ndarray,
+            min_samples: int = 50) -> ModeAffineModel:
+        mode = contact_mode(contact)
+        weights = {}
+        for k in np.unique(mode):
+            sel = mode == k
+            if sel.sum() >= min_samples:
+                weights[int(k)] = _lstsq(x[sel], u[sel], x_next[sel])
+        return cls(weights, _lstsq(x, u, x_next))
+
+    def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
+        if contact is None:
+            raise ValueError("contact: the mode oracle needs the true contact state of every sample")
+        mode = contact_mode(contact)
+        out = _affine(self.fallback, x, u)
+        for k, W in self.weights.items():
+            sel = mode == k
+            if sel.any():
+                out[sel] = _affine(W, x[sel], u[sel])
+        return out
+
+
+class MLPModel:
+    """``x' = x + m_y + S_y f(z, v)`` with ``f`` a tanh MLP on the normalised coordinates."""
+
+    def __init__(self, net: torch.nn.Module, scaling: Scaling) -> None:
+        self.net, self.scaling = net, scaling
+
+    def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
+        z, v = self.scaling.encode(x, u)
+        with torch.no_grad():
+            y = self.net(torch.from_numpy(np.hstack([z, v]))).numpy()
+        return self.scaling.decode(x, y)
+
+
+def _mlp(n_in: int, n_out: int, hidden: list[int], seed: int) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    layers: list[torch.nn.Module] = []
+    for h in hidden:
+        layers += [torch.nn.Linear(n_in, h), torch.nn.Tanh()]
+        n_in = h
+    layers.append(torch.nn.Linear(n_in, n_out))
+    return torch.nn.Sequential(*layers).to(torch.float64)
+
+
+def fit_mlp(job: dict[str, Any]) -> dict[str, Any]:
+    """Train the MLP baseline (a process-pool job; plain data in, plain data out).
+
+    ``job``: ``z, v, y`` (normalised training data), ``z_val, v_val, y_val`` (validation),
+    ``hidden``, ``iterations``, ``batch_size``, ``lr``, ``weight_decay``, ``seed``. Adam on the
+    mean squared error of ``y`` with a cosine learning rate; the iterate with the lowest
+    validation error (checked every 250 iterations) is kept. Returns ``state`` (the state dict as
+    numpy), ``hidden``, ``history`` and ``wall_time``.
+    """
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    Xt = torch.from_numpy(np.hstack([job["z"], job["v"]]))
+    Yt = torch.from_numpy(job["y"])
+    Xh = torch.from_numpy(np.hstack([job["z_val"], job["v_val"]]))
+    Yh = torch.from_numpy(job["y_val"])
+    gen = torch.Generator().manual_seed(job["seed"])
+    net = _mlp(Xt.shape[1], Yt.shape[1], list(job["hidden"]), job["seed"])
+    opt = torch.optim.Adam(net.parameters(), lr=job["lr"], weight_decay=job["weight_decay"])
+    iters, bs = job["iterations"], min(job["batch_size"], Xt.shape[0])
+    best, best_state, history = math.inf, None, []
+    for it in range(iters):
+        for g in opt.param_groups:
+            g["lr"] = job["lr"] * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * it / iters)))
+        idx = torch.randint(0, Xt.shape[0], (bs,), generator=gen)
+        loss = ((net(Xt[idx]) - Yt[idx]) ** 2).sum(-1).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if (it + 1) % 250 == 0 or it + 1 == iters:
+            with torch.no_grad():
+                h = float(((net(Xh) - Yh) ** 2).sum(-1).mean())
+            history.append({"iteration": it + 1, "val_mse": h})
+            if h < best:
+                best = h
+                best_state = {n: p.detach().clone() for n, p in net.state_dict().items()}
+    if best_state is not None:
+        net.load_state_dict(best_state)
+    return {"state": {n: p.numpy() for n, p in net.state_dict().items()}, "hidden": list(job["hidden"]),
+            "history": history, "val_mse": best, "wall_time": time.perf_counter() - t0}
+
+
+def mlp_from_result(result: dict[str, Any], scaling: Scaling, n_in: int, n_out: int) -> MLPModel:
+    net = _mlp(n_in, n_out, result["hidden"], 0)
+    net.load_state_dict({n: torch.from_numpy(np.asarray(p)) for n, p in result["state"].items()})
+    return MLPModel(net, scaling)
+
+
+def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
+    """Learn one LCS on the normalised data (a process-pool job; plain data in, plain data out).
+
+    ``job``: ``z, v, y`` (training) and ``z_val, v_val, y_val`` (validation: monitored, and
+    scored at the end), ``n_lam``, ``loss``, ``recipe``, ``options`` (more :func:`lcs_cvx.fit`
+    options), ``stiffness``, ``init_scale``, ``init`` (``"random"``, or ``"affine"``: ``Â, B̂, d̂``
+    from least squares and the rest random), ``seed``. Returns the normalised model's
+    ``matrices``, ``val_error`` (its relative error on the validation set, normalised
+    coordinates), ``history``, ``settings`` and ``wall_time``; a run that fails with
+    :class:`lcs_cvx.SolverError` returns ``matrices = None``, ``val_error = inf`` and ``error``.
+    """
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    train = Dataset.from_arrays(job["z"], job["v"], job["y"])
+    test = Dataset.from_arrays(job["z_val"], job["v_val"], job["y_val"])
+    n_x, n_u = train.n_x, train.n_u
+    model = LCS(n_x, n_u, job["n_lam"], stiffness=job["stiffness"], init_scale=job["init_scale"],
+                seed=job["seed"])
+    if job["init"] == "affine":
+        W = _lstsq(job["z"], job["v"], job["y"])
+        with torch.no_grad():
+            model.A.copy_(torch.from_numpy(W[:n_x].T.copy()))
+            model.B.copy_(torch.from_numpy(W[n_x:n_x + n_u].T.copy()))
+            model.d.copy_(torch.from_numpy(W[-1].copy()))
+    elif job["init"] != "random":
+        raise ValueError(f"init: expected 'random' or 'affine', received {job['init']!r}")
+    try:
+        result = lcs_cvx.fit(model, train, test=test, recipe=job["recipe"], loss=job["loss"],
+                             seed=job["seed"], progress=False, **job["options"])
+    except lcs_cvx.SolverError as exc:  # a diverged run: reported, never selected
+        return {"matrices": None, "val_error": math.inf, "history": [], "settings": None,
+                "wall_time": time.perf_counter() - t0, "error": str(exc)}
+    settings = {k: (list(v) if isinstance(v, tuple) else v)
+                for k, v in vars(result.settings).items()}
+    return {
+        "matrices": result.model.to_matrices(),
+        "val_error": lcs_cvx.relative_error(result.model, test),
+        "history": result.history,
+        "settings": settings,
+        "wall_time": time.perf_counter() - t0,
+    }
