@@ -29,13 +29,13 @@ def plot(rows, path: str) -> None:
     fig, axes = plt.subplots(1, len(LOSSES), figsize=(11, 4), sharey=True)
     width = 0.8 / len(PATHS)
     for ax, loss in zip(axes, LOSSES, strict=True):
-        for k, path in enumerate(PATHS):
+        for k, solver_path in enumerate(PATHS):
             vals = [
                 next((r.samples_per_s for r in rows if (r.n_x, r.n_u, r.n_lam) == s
-                      and r.loss == loss and r.path == path), float("nan"))
+                      and r.loss == loss and r.path == solver_path), float("nan"))
                 for s in sizes
             ]
-            ax.bar([i + k * width for i in range(len(sizes))], vals, width, label=path)
+            ax.bar([i + k * width for i in range(len(sizes))], vals, width, label=solver_path)
         ax.set_xticks([i + width for i in range(len(sizes))])
         ax.set_xticklabels([f"{s}" for s in sizes], rotation=30, fontsize=8)
         ax.set_yscale("log")
