@@ -97,16 +97,22 @@ def _fail(where: str, key: str, message: str) -> LCSInputError:
     return LCSInputError(f"{where}: {key}: {message}")
 
 
-def _read_toml(path: str, chain: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The TOML at ``path`` with its ``extends`` chain merged in (cycles refused)."""
+def read_toml(path: str, missing: str) -> dict[str, Any]:
+    """The TOML file at ``path``; ``LCSInputError`` ``"{path}: {missing}"`` if it does not exist,
+    and one naming the file if it does not parse."""
     if not os.path.isfile(path):
-        where = f" (extended by {chain[-1]!r})" if chain else ""
-        raise LCSInputError(f"{path}: config file not found{where}")
+        raise LCSInputError(f"{path}: {missing}")
     try:
         with open(path, "rb") as f:
-            raw = tomllib.load(f)
+            return tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
         raise LCSInputError(f"{path}: not valid TOML: {exc}") from None
+
+
+def _read_toml(path: str, chain: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The TOML at ``path`` with its ``extends`` chain merged in (cycles refused)."""
+    where = f" (extended by {chain[-1]!r})" if chain else ""
+    raw = read_toml(path, f"config file not found{where}")
     base = raw.pop("extends", None)
     if base is None:
         return raw

@@ -14,12 +14,12 @@ from __future__ import annotations
 import math
 import os
 import statistics
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from .._checks import LCSInputError
 from .cells import REFERENCE, expand
+from .config import read_toml
 from .store import Store
 
 __all__ = ["report", "load_anchors", "summarize", "default_anchors_path"]
@@ -42,13 +42,7 @@ def load_anchors(path: str | None) -> dict[str, Any]:
     """``{panel: {"param": ..., "sets": [{"label", "note", "rows": [{value, ...}]}]}}``."""
     if path is None:
         return {}
-    if not os.path.isfile(path):
-        raise LCSInputError(f"{path}: anchors file not found")
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise LCSInputError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "anchors file not found")
     for panel, entry in data.items():
         if not isinstance(entry, dict) or "param" not in entry or not isinstance(entry.get("sets"), list):
             raise LCSInputError(f"{path}: {panel}: expected a table with 'param' and [[{panel}.sets]]")
