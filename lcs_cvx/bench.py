@@ -4,7 +4,8 @@ For each system size, a random ground truth (:func:`lcs_cvx.random_lcs`, stiffne
 noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that is the truth
 with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
 neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
-``.backward()``; throughput is ``batch / median(time)`` over ``repeats`` calls after a warm-up.
+``.backward()``, as in a training step (without the diagnostics of ``return_info``);
+throughput is ``batch / median(time)`` over ``repeats`` calls after a warm-up.
 Errors are the max-abs difference of ``lam`` and the relative difference of the loss,
 ``|loss - loss_fast| / (1 + |loss_fast|)``, against the fast path.
 
@@ -68,11 +69,14 @@ def _perturbed(truth: LCS, scale: float, seed: int) -> LCS:
 
 
 def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
+    """``fn(model, x, u, x_next, solver, info)``: the loss, and its :class:`LossInfo` if ``info``."""
     if loss == "violation":
-        return lambda m, x, u, xn, solver: violation_loss(
-            m, x, u, xn, gamma=gamma, eps=eps, solver=solver, return_info=True
+        return lambda m, x, u, xn, solver, info=False: violation_loss(
+            m, x, u, xn, gamma=gamma, eps=eps, solver=solver, return_info=info
         )
-    return lambda m, x, u, xn, solver: prediction_loss(m, x, u, xn, solver=solver, return_info=True)
+    return lambda m, x, u, xn, solver, info=False: prediction_loss(
+        m, x, u, xn, solver=solver, return_info=info
+    )
 
 
 def _time(fn: Callable[[], None], repeats: int) -> float:
@@ -105,15 +109,14 @@ def run_bench(
         model = _perturbed(truth, 0.05, seed + 2)
         for loss in losses:
             fn = _loss_fn(loss, gamma, eps)
-            ref_loss, ref_info = fn(model, data.x, data.u, data.x_next, "fast")
+            ref_loss, ref_info = fn(model, data.x, data.u, data.x_next, "fast", True)
             for path in paths:
-                def call(path=path, fn=fn, model=model, data=data):
+                def call(path=path, fn=fn, model=model, data=data):  # what a training step runs
                     model.zero_grad()
-                    value, _ = fn(model, data.x, data.u, data.x_next, path)
-                    value.backward()
+                    fn(model, data.x, data.u, data.x_next, path).backward()
 
                 med = _time(call, repeats)
-                value, info = fn(model, data.x, data.u, data.x_next, path)
+                value, info = fn(model, data.x, data.u, data.x_next, path, True)
                 row = BenchRow(
                     n_x, n_u, n_lam, loss, path, batch, batch / med, med,
                     float((info.lam - ref_info.lam).abs().max()),

@@ -26,11 +26,36 @@ import torch
 
 from ._checks import SolverError
 
-__all__ = ["PivotResult", "block_pivoting", "unconverged", "FallbackWarning"]
+__all__ = ["PivotResult", "block_pivoting", "unconverged", "spd_solve", "FallbackWarning", "SMALL_N"]
 
 
 class FallbackWarning(RuntimeWarning):
     """The fast solver did not converge on some samples; the reference solved them."""
+
+
+#: Up to this size a batch of linear solves is one LAPACK LU call (``linalg.solve_ex``), which
+#: is 2-3x faster than Cholesky plus ``cholesky_solve`` on CPU for tiny matrices; above it,
+#: Cholesky and two triangular solves (half the flops).
+SMALL_N = 6
+
+
+def spd_solve(M: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Solve the batch of symmetric positive definite systems ``M x = rhs``.
+
+    Args:
+        M: ``(B, n, n)``; rhs: ``(B, n)``.
+
+    Returns:
+        ``x`` ``(B, n)`` and a ``(B,)`` bool mask of the systems whose factorisation failed
+        (not positive definite to working precision, or singular), or None if none did.
+    """
+    if M.shape[-1] <= SMALL_N:
+        x, info = torch.linalg.solve_ex(M, rhs.unsqueeze(-1))
+    else:
+        chol, info = torch.linalg.cholesky_ex(M)
+        y = torch.linalg.solve_triangular(chol, rhs.unsqueeze(-1), upper=False)
+        x = torch.linalg.solve_triangular(chol.mT, y, upper=True)
+    return x.squeeze(-1), (info != 0 if bool(info.any()) else None)
 
 #: ``solve(free, idx) -> (solution, infeasible)``; ``idx`` selects samples (None: all).
 SolveFn = Callable[[torch.Tensor, torch.Tensor | None], tuple[torch.Tensor, torch.Tensor]]
@@ -60,6 +85,7 @@ def block_pivoting(
     max_iter: int = 100,
     stall: int = 3,
     subset_fraction: float = 0.25,
+    subset_min_work: int = 65_536,
 ) -> PivotResult:
     """Run block principal pivoting with Murty's fallback on a batch.
 
@@ -95,7 +121,7 @@ def block_pivoting(
         if n_todo == 0:
             break
         size = B if active is None else active.numel()
-        if n_todo <= subset_fraction * size:
+        if size * k * k >= subset_min_work and n_todo <= subset_fraction * size:
             keep = todo.nonzero().squeeze(1)
             active = keep if active is None else active[keep]
             bad, n_bad, best, stalled = bad[keep], n_bad[keep], best[keep], stalled[keep]

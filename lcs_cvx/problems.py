@@ -216,16 +216,24 @@ class ViolationProblem:
         return np.maximum(out, 0.0)
 
 
-def check_gamma(F: torch.Tensor, gamma: float) -> float:
-    """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers."""
+def check_gamma(F: torch.Tensor, gamma: float) -> None:
+    """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers.
+
+    ``gamma < sigma_min(F + F^T)`` iff ``F + F^T - gamma I`` is positive definite, so the check
+    is one Cholesky factorisation (of that matrix less a round-off margin, ``1e-12`` relative,
+    so that ``gamma`` equal to ``sigma_min`` to working precision is refused); the eigenvalue
+    is computed only for the error message.
+    """
     check_positive("gamma", gamma)
-    smin = float(sym_min_eig(F.detach()))
-    if not gamma < smin:
+    Fd = F.detach()
+    S = Fd + Fd.mT
+    S.diagonal().sub_(gamma + 1e-12 * max(gamma, float(S.abs().amax())))
+    if int(torch.linalg.cholesky_ex(S)[1]) != 0:
+        smin = float(sym_min_eig(Fd))
         raise LCSInputError(
             f"gamma: expected 0 < gamma < sigma_min(F + F^T) = {smin:.6g} (Lemma 2), "
             f"received {gamma!r}; lower gamma or raise the model's stiffness"
         )
-    return smin
 
 
 def _solve_reference(problem: cp.Problem, what: str) -> None:

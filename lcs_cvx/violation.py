@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .pivoting import block_pivoting, unconverged
+from .pivoting import block_pivoting, spd_solve, unconverged
 from .problems import violation_problem
 
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
@@ -103,30 +103,36 @@ def solve_violation_fast(
         K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
         scale_g = tol * (1.0 + Ltb.abs().amax(-1, keepdim=True) + (h @ K).abs().amax(-1, keepdim=True))
         scale_t = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-        scale_l: list[torch.Tensor] = []  # lam's scale, from the first candidate
+        neg_l: list[torch.Tensor] = []  # -(lam's scale), from the first candidate
+        neg_g, neg_t = -scale_g, -scale_t
+        nLtb, nh, KT = -Ltb, -h, K.mT.contiguous()
+        LtL_flat = LtL.reshape(1, n * n)
 
         def solve(state: torch.Tensor, idx: torch.Tensor | None):
             free, pos = state[:, :n], state[:, n:]
             if idx is None:
-                bb, hh, sg, st = Ltb, h, scale_g, scale_t
+                bb, nbb, hh, nhh, ng, st, nt = Ltb, nLtb, h, nh, neg_g, scale_t, neg_t
             else:
-                bb, hh, sg, st = Ltb[idx], h[idx], scale_g[idx], scale_t[idx]
+                bb, nbb, hh, nhh = Ltb[idx], nLtb[idx], h[idx], nh[idx]
+                ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
             sf = pos.to(b.dtype)
             m = free.to(b.dtype)
-            M = torch.addmm(LtL.reshape(1, n * n), sf, K_outer).view(-1, n, n)
-            M.mul_(m[:, :, None] * m[:, None, :]).diagonal(dim1=-2, dim2=-1).add_(1.0 - m)
-            rhs = m * torch.addmm(-bb, sf * hh, K)
-            chol, info = torch.linalg.cholesky_ex(M)
-            lam = torch.cholesky_solve(rhs.unsqueeze(-1), chol).squeeze(-1)
-            t = torch.addmm(-hh, lam, K.mT)
+            M = torch.addmm(LtL_flat, sf, K_outer).view(-1, n, n)
+            M.mul_(m.unsqueeze(2) * m.unsqueeze(1)).diagonal(dim1=-2, dim2=-1).add_(1.0 - m)
+            rhs = torch.addmm(nbb, sf * hh, K).mul_(m)
+            lam, failed = spd_solve(M, rhs)
+            t = torch.addmm(nhh, lam, KT)
             g = torch.addmm(torch.addmm(bb, lam, LtL), sf * t, K)
-            if not scale_l:
-                scale_l.append(tol * (1.0 + lam.abs().amax(-1, keepdim=True)))
-            sl = scale_l[0] if idx is None else scale_l[0][idx]
+            if not neg_l:
+                neg_l.append(-tol * (1.0 + lam.abs().amax(-1, keepdim=True)))
+            nl = neg_l[0] if idx is None else neg_l[0][idx]
+            # infeasible: a free lam below 0, a bound lam with a negative gradient; a piece's
+            # t = K lam - h on the wrong side of 0 (to the tolerances above)
             bad = torch.cat(
-                [torch.where(free, lam < -sl, g < -sg), torch.where(pos, t < -st, t > st)], dim=1
+                [torch.where(free, lam < nl, g < ng), torch.where(pos, t < nt, t > st)], dim=1
             )
-            bad |= (info != 0).unsqueeze(1)  # a failed factorisation is never trusted
+            if failed is not None:
+                bad |= failed.unsqueeze(1)  # a failed factorisation is never trusted
             return lam, bad
 
         state0 = torch.cat([h < 0, h < 0], dim=1)
