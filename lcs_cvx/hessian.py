@@ -60,6 +60,8 @@ __all__ = [
     "flatten_parameters",
     "unflatten",
     "objective_hessian_zz",
+    "objective_jacobians",
+    "objective_linearisation",
 ]
 
 
@@ -149,11 +151,152 @@ def _setup(model: Any, x: Any, u: Any, x_next: Any, gamma: float, eps: float):
     return theta0, J, z, m, chol
 
 
-def _grads(J: Callable, z: torch.Tensor):
-    """``theta -> mean_t J_theta`` ``(P,)`` and ``theta -> J_z`` ``(B, 2n)``, both at fixed ``z``."""
-    grad_theta = torch.func.grad(lambda th: J(th, z).mean())
-    grad_z = lambda th: torch.func.grad(lambda zz: J(th, zz).sum())(z)  # noqa: E731
-    return grad_theta, grad_z
+def _delta_rows(f: torch.Tensor, R: int) -> torch.Tensor:
+    """``(B, R, R, K)``: ``d (M f)_i / d M_jk = delta_ij f_k`` for a row-major ``(R, K)`` ``M``."""
+    B, K = f.shape
+    out = f.new_zeros(B, R, R, K)
+    out.diagonal(dim1=1, dim2=2).copy_(f.unsqueeze(-1).expand(B, K, R))
+    return out
+
+
+def _to_GH(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Chain rule from ``F`` to ``(G, H)`` for ``F = G G^T + H - H^T + s I``: given
+    ``T_F[..., j, m] = d(.)/dF_jm``, return ``d(.)/dG`` ``= (T_F + T_F^T) G`` and
+    ``d(.)/dH = T_F - T_F^T``, each ``(..., n * n)`` row-major."""
+    sym = T_F + T_F.mT
+    lead = T_F.shape[:-2]
+    return (sym @ G).reshape(*lead, -1), (T_F - T_F.mT).reshape(*lead, -1)
+
+
+def objective_jacobians(
+    model: LCS,
+    x: torch.Tensor,
+    u: torch.Tensor,
+    x_next: torch.Tensor,
+    z: torch.Tensor,
+    gamma: float,
+    eps: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    r"""Closed-form first-order pieces of (V) at a fixed ``z = (lam, phi)``, per sample.
+
+    With ``e = C lam + A x + B u + d - x'``, ``w = F lam + D x + E u + c - phi`` and
+    ``kappa = 1 / (eps gamma)``:
+
+    - ``rho_theta`` ``(B, n_x + n, P)``: the Jacobian of the residuals
+      ``rho = [e; sqrt(kappa) w]`` (Gauss--Newton; ``J = 1/2 ||rho||^2 + lam^T phi / eps``);
+    - ``J_ztheta`` ``(B, 2 n, P)``: the Jacobian of ``J_z = [C^T e + phi / eps + kappa F^T w;
+      lam / eps - kappa w]`` (Lemma 4's mixed block).
+
+    Both are Kronecker-structured (``d e_i / d A_jk = delta_ij x_k``, ...), written out block by
+    block in ``(A, B, C, d, D, E, F, c)`` and taken to ``(G, H)`` by the chain rule of
+    ``F = G G^T + H - H^T + s I``; columns in the order of :func:`parameter_slices`. The same
+    numbers as ``torch.func.jacfwd`` through the objective (tested), ~10x faster.
+    """
+    m = model
+    n, n_x = m.n_lam, m.n_x
+    lam, phi = z[:, :n], z[:, n:]
+    B = x.shape[0]
+    kappa = 1.0 / (eps * gamma)
+    with torch.no_grad():
+        C, F, G = m.C.detach(), m.F.detach(), m.G.detach()
+        e = x @ m.A.mT + u @ m.B.mT + lam @ C.mT + m.d - x_next
+        w = x @ m.D.mT + u @ m.E.mT + lam @ F.mT + m.c - phi
+        ones = torch.ones(B, 1, dtype=x.dtype, device=x.device)
+        eye_n = torch.eye(n, dtype=x.dtype, device=x.device)
+        feats = {"A": x, "B": u, "d": ones}
+
+        # rho rows: e depends on (A, B, C, d), w on (D, E, F, c)
+        e_blocks = {k: _delta_rows(f, n_x).reshape(B, n_x, -1) for k, f in feats.items()}
+        e_blocks["C"] = _delta_rows(lam, n_x).reshape(B, n_x, -1)
+        w_blocks = {k2: _delta_rows(f, n).reshape(B, n, -1)
+                    for k2, f in (("D", x), ("E", u), ("c", ones))}
+        wF = _delta_rows(lam, n)  # (B, n, n, n): d w_i / d F_jm
+        w_blocks["G"], w_blocks["H"] = _to_GH(wF, G)
+
+        # J_z rows for lam: C^T (de/dtheta) + kappa F^T (dw/dtheta) + the explicit C and F terms
+        lam_blocks = {k: torch.einsum("jl,bk->bljk", C, f).reshape(B, n, -1) for k, f in feats.items()}
+        lam_blocks["C"] = (torch.einsum("jl,bm->bljm", C, lam)
+                           + torch.einsum("lm,bj->bljm", eye_n, e)).reshape(B, n, -1)
+        for k2, f in (("D", x), ("E", u), ("c", ones)):
+            lam_blocks[k2] = kappa * torch.einsum("jl,bk->bljk", F, f).reshape(B, n, -1)
+        lamF = kappa * (torch.einsum("jl,bm->bljm", F, lam) + torch.einsum("lm,bj->bljm", eye_n, w))
+        lam_blocks["G"], lam_blocks["H"] = _to_GH(lamF, G)
+
+        sl = parameter_slices(m)
+        P = sl[PARAMETER_NAMES[-1]].stop
+        rho_theta = x.new_zeros(B, n_x + n, P)
+        J_ztheta = x.new_zeros(B, 2 * n, P)
+        root = kappa**0.5
+        for k, block in e_blocks.items():
+            rho_theta[:, :n_x, sl[k]] = block
+        for k, block in w_blocks.items():
+            rho_theta[:, n_x:, sl[k]] = block * root
+            J_ztheta[:, n:, sl[k]] = block * -kappa
+        for k, block in lam_blocks.items():
+            J_ztheta[:, :n, sl[k]] = block
+    return rho_theta, J_ztheta
+
+
+def objective_linearisation(
+    model: LCS,
+    x: torch.Tensor,
+    u: torch.Tensor,
+    x_next: torch.Tensor,
+    z: torch.Tensor,
+    gamma: float,
+    eps: float,
+) -> tuple[Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]],
+           Callable[[torch.Tensor, torch.Tensor], torch.Tensor]]:
+    r"""Products with the two Jacobians of :func:`objective_jacobians`, without forming them.
+
+    Returns ``jvp(v) -> (rho_theta v (B, r), J_ztheta v (B, 2 n))`` for ``v`` ``(P,)``, and
+    ``vjp(a, b) -> sum_t rho_theta_t^T a_t + J_ztheta_t^T b_t`` ``(P,)`` for ``a`` ``(B, r)``,
+    ``b`` ``(B, 2 n)``: with ``dF = dG G^T + G dG^T + dH - dH^T``,
+    ``de = dA x + dB u + dC lam + dd``, ``dw = dF lam + dD x + dE u + dc``,
+    ``rho_theta v = [de; sqrt(kappa) dw]`` and
+    ``J_ztheta v = [C^T de + dC^T e + kappa (F^T dw + dF^T w); -kappa dw]``; ``vjp`` is its
+    transpose, written out. A few ``(B, n) x (n, n)`` products each: the Gauss--Newton and
+    Newton operators for large models.
+    """
+    m = model
+    n, n_x = m.n_lam, m.n_x
+    lam, phi = z[:, :n], z[:, n:]
+    kappa = 1.0 / (eps * gamma)
+    root = kappa**0.5
+    with torch.no_grad():
+        C, F, G = m.C.detach(), m.F.detach(), m.G.detach()
+        e = x @ m.A.mT + u @ m.B.mT + lam @ C.mT + m.d - x_next
+        w = x @ m.D.mT + u @ m.E.mT + lam @ F.mT + m.c - phi
+    sl = parameter_slices(m)
+    shapes = {k: getattr(m, k).shape for k in PARAMETER_NAMES}
+
+    def jvp(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = {k: v[sl[k]].reshape(shapes[k]) for k in PARAMETER_NAMES}
+        dG = d["G"] @ G.mT
+        dF = dG + dG.mT + d["H"] - d["H"].mT
+        de = x @ d["A"].mT + u @ d["B"].mT + lam @ d["C"].mT + d["d"]
+        dw = x @ d["D"].mT + u @ d["E"].mT + lam @ dF.mT + d["c"]
+        dg = de @ C + e @ d["C"] + kappa * (dw @ F + w @ dF)
+        return torch.cat([de, root * dw], 1), torch.cat([dg, -kappa * dw], 1)
+
+    def vjp(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        b_lam, b_phi = b[:, :n], b[:, n:]
+        ce = a[:, :n_x] + b_lam @ C.mT
+        cw = root * a[:, n_x:] + kappa * (b_lam @ F.mT - b_phi)
+        gF = cw.mT @ lam + kappa * (w.mT @ b_lam)
+        g = {
+            "A": ce.mT @ x, "B": ce.mT @ u, "C": ce.mT @ lam + e.mT @ b_lam, "d": ce.sum(0),
+            "D": cw.mT @ x, "E": cw.mT @ u, "G": (gF + gF.mT) @ G, "H": gF - gF.mT,
+            "c": cw.sum(0),
+        }
+        return torch.cat([g[k].reshape(-1) for k in PARAMETER_NAMES])
+
+    return jvp, vjp
+
+
+def _grad_theta(J: Callable, z: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``theta -> mean_t J_theta`` ``(P,)`` at fixed ``z`` (its jacobian is ``J_thth``)."""
+    return torch.func.grad(lambda th: J(th, z).mean())
 
 
 def violation_hessian(
@@ -182,9 +325,10 @@ def violation_hessian(
         torch.Size([44, 44])
     """
     theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
-    grad_theta, grad_z = _grads(J, z)
+    grad_theta = _grad_theta(J, z)
     H = torch.func.jacfwd(grad_theta)(theta0)  # J_thth, z fixed
-    Jzt = torch.func.jacfwd(grad_z)(theta0)  # (B, 2n, P)
+    x, u, x_next = _inputs(model, x, u, x_next)
+    _, Jzt = objective_jacobians(model, x, u, x_next, z, gamma, eps)  # (B, 2n, P)
     # Y_t = chol_t^{-1} (m o J_zth): the correction mean_t Y_t^T Y_t is symmetric PSD by form
     Y = torch.linalg.solve_triangular(chol, m[:, :, None] * Jzt, upper=False)
     return H - torch.einsum("bkp,bkq->pq", Y, Y) / z.shape[0]
@@ -196,14 +340,17 @@ def hvp_operator(
     """``v -> hess L_eps @ v`` (Lemma 4) with the solve and factorisations done once, for
     iterative methods that need many products at the same ``theta`` (see :func:`violation_hvp`)."""
     theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
-    grad_theta, grad_z = _grads(J, z)
-    _, vjp = torch.func.vjp(grad_z, theta0)
+    grad_theta = _grad_theta(J, z)
+    x, u, x_next = _inputs(model, x, u, x_next)
+    jvp, vjp = objective_linearisation(model, x, u, x_next, z, gamma, eps)
+    no_rho = torch.zeros(z.shape[0], model.n_x + model.n_lam, dtype=z.dtype, device=z.device)
 
     def matvec(v: torch.Tensor) -> torch.Tensor:
-        _, Hv = torch.func.jvp(grad_theta, (theta0,), (v,))
-        _, Jzt_v = torch.func.jvp(grad_z, (theta0,), (v,))  # (B, 2n)
-        s = torch.cholesky_solve((m * Jzt_v).unsqueeze(-1), chol).squeeze(-1) * m
-        return Hv - vjp(s)[0] / z.shape[0]
+        _, Hv = torch.func.jvp(grad_theta, (theta0,), (v,))  # J_thth v, z fixed
+        with torch.no_grad():
+            _, Jzt_v = jvp(v)  # (B, 2n)
+            s = torch.cholesky_solve((m * Jzt_v).unsqueeze(-1), chol).squeeze(-1) * m
+            return Hv - vjp(no_rho, s) / z.shape[0]
 
     return matvec
 

@@ -28,17 +28,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from torch import nn
 
 from .hessian import (
     _setup,
     flatten_parameters,
     hvp_operator,
+    objective_jacobians,
+    objective_linearisation,
     parameter_slices,
-    unflatten,
     violation_hessian,
 )
-from .losses import regularizer, violation_loss
+from .losses import _inputs, regularizer, violation_loss
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -81,42 +81,14 @@ def _snapshot(model: LCS) -> dict[str, torch.Tensor]:
     return {k: getattr(model, k).detach().clone() for k in PARAMETER_NAMES}
 
 
-class _Residual(nn.Module):
-    """Per-sample residuals ``rho_t(theta, z)`` ``(B, n_x + n_lam)`` through ``model``."""
-
-    def __init__(self, model: LCS) -> None:
-        super().__init__()
-        self.model = model
-
-    def forward(self, z, x, u, x_next, scale):
-        m, n = self.model, self.model.n_lam
-        lam, phi = z[:, :n], z[:, n:]
-        e_dyn = x @ m.A.mT + u @ m.B.mT + lam @ m.C.mT + m.d - x_next
-        e_w = x @ m.D.mT + u @ m.E.mT + lam @ m.F.mT + m.c - phi
-        return torch.cat([e_dyn, e_w * scale], dim=1)
-
-
-def _gn_pieces(model: LCS, x, u, x_next, gamma: float, eps: float):
-    """What the Gauss--Newton matrix and its products need: ``theta0``, the residuals
-    ``rho(theta)`` at fixed ``z``, ``grad_z J(theta)`` at fixed ``z``, the free masks, the
-    per-sample Cholesky factors of ``(J_zz)_FF`` and ``rho_z`` ``(r, 2n)``."""
-    theta0, J, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
-    n = model.n_lam
-    scale = 1.0 / math.sqrt(eps * gamma)
-    wrapped = _Residual(model)
-
-    def rho(theta: torch.Tensor) -> torch.Tensor:
-        params = {f"model.{k}": v for k, v in unflatten(model, theta).items()}
-        return torch.func.functional_call(wrapped, params, (z, x, u, x_next, scale))
-
-    def grad_z(theta: torch.Tensor) -> torch.Tensor:
-        return torch.func.grad(lambda zz: J(theta, zz).sum())(z)
-
+def _rho_z(model: LCS, gamma: float, eps: float) -> torch.Tensor:
+    """``d rho / d z`` ``(n_x + n, 2 n)``, the same for every sample."""
+    n, scale = model.n_lam, 1.0 / math.sqrt(eps * gamma)
     with torch.no_grad():
-        eye = torch.eye(n, dtype=x.dtype, device=x.device)
-        top = torch.cat([model.C, torch.zeros(model.n_x, n, dtype=x.dtype, device=x.device)], 1)
-        rho_z = torch.cat([top, torch.cat([model.F * scale, -eye * scale], 1)], 0)
-    return theta0, rho, grad_z, m, chol, rho_z
+        kw = {"dtype": model.dtype, "device": model.device}
+        eye = torch.eye(n, **kw)
+        top = torch.cat([model.C, torch.zeros(model.n_x, n, **kw)], 1)
+        return torch.cat([top, torch.cat([model.F * scale, -eye * scale], 1)], 0)
 
 
 def gauss_newton_matrix(
@@ -126,33 +98,40 @@ def gauss_newton_matrix(
 
     Costs ``O(N r P^2)``: for small models; :func:`gauss_newton_operator` for large ones.
     """
-    theta0, rho, grad_z, m, chol, rho_z = _gn_pieces(model, x, u, x_next, gamma, eps)
-    Jzt = torch.func.jacfwd(grad_z)(theta0)  # (B, 2n, P)
-    dz = -torch.cholesky_solve(m[:, :, None] * Jzt, chol) * m[:, :, None]
-    J_theta = torch.func.jacfwd(rho)(theta0)  # (B, r, P), z fixed
+    x, u, x_next = _inputs(model, x, u, x_next)
+    _, _, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    J_theta, Jzt = objective_jacobians(model, x, u, x_next, z, gamma, eps)  # z fixed
     with torch.no_grad():
-        Jt = J_theta + rho_z @ dz
-        return torch.einsum("brp,brq->pq", Jt, Jt) / x.shape[0]
+        # J_t = rho_theta + rho_z dz/dtheta with dz_F = -(J_zz)_FF^{-1} (J_ztheta)_F:
+        # first the small per-sample (r, 2n) factor rho_z (m o M^{-1} o m), then one bmm
+        inv_masked = torch.cholesky_solve(torch.diag_embed(m), chol) * m[:, :, None]
+        Jt = torch.baddbmm(J_theta, _rho_z(model, gamma, eps) @ inv_masked, Jzt, alpha=-1.0)
+        Jt = Jt.reshape(-1, Jt.shape[-1])
+        return (Jt.mT @ Jt) / x.shape[0]
 
 
 def gauss_newton_operator(
     model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, gamma: float, eps: float
 ) -> Callable[[torch.Tensor], torch.Tensor]:
-    """``v -> mean_t J_t^T J_t v`` without forming the matrix: ``J v`` by two jvps and a
-    batched Cholesky solve, ``J^T w`` by the matching vjps. ``O(N r m)`` per product."""
-    theta0, rho, grad_z, m, chol, rho_z = _gn_pieces(model, x, u, x_next, gamma, eps)
-    _, vjp_rho = torch.func.vjp(rho, theta0)
-    _, vjp_gz = torch.func.vjp(grad_z, theta0)
+    """``v -> mean_t J_t^T J_t v`` without forming the matrix: ``J v`` by the closed-form
+    products of :func:`lcs_cvx.hessian.objective_linearisation` and a batched Cholesky solve,
+    ``J^T w`` by their transposes. ``O(N r n)`` per product."""
+    x, u, x_next = _inputs(model, x, u, x_next)
+    _, _, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    jvp, vjp = objective_linearisation(model, x, u, x_next, z, gamma, eps)
+    rho_z = _rho_z(model, gamma, eps)
     N = x.shape[0]
+    with torch.no_grad():  # m o (J_zz)_FF^{-1} o m per sample, factored once for all products
+        inv_masked = torch.cholesky_solve(torch.diag_embed(m), chol) * m[:, :, None]
 
-    def solve(y: torch.Tensor) -> torch.Tensor:  # m o (J_zz)_FF^{-1} (m o y), batched
-        return torch.cholesky_solve((m * y).unsqueeze(-1), chol).squeeze(-1) * m
+    def solve(y: torch.Tensor) -> torch.Tensor:
+        return (inv_masked @ y.unsqueeze(-1)).squeeze(-1)
 
     def matvec(v: torch.Tensor) -> torch.Tensor:
-        _, Jv_theta = torch.func.jvp(rho, (theta0,), (v,))
-        _, Jzt_v = torch.func.jvp(grad_z, (theta0,), (v,))
-        w = Jv_theta - solve(Jzt_v) @ rho_z.mT  # J v, (B, r)
-        return (vjp_rho(w)[0] - vjp_gz(solve(w @ rho_z))[0]) / N
+        with torch.no_grad():
+            Jv_theta, Jzt_v = jvp(v)
+            w = Jv_theta - solve(Jzt_v) @ rho_z.mT  # J v, (B, r)
+            return vjp(w, -solve(w @ rho_z)) / N
 
     return matvec
 
