@@ -48,7 +48,7 @@ import torch
 
 from ._checks import LCSInputError, SolverError
 from .data import Dataset
-from .losses import prediction_loss, regularizer, violation_loss
+from .losses import _prediction_fast, _violation_fast, regularizer
 from .metrics import relative_error
 from .second_order import gauss_newton_step, newton_step
 from .system import LCS, PARAMETER_NAMES
@@ -60,7 +60,7 @@ LOSSES = ("violation", "prediction")
 OPTIMIZERS = ("adam", "gauss-newton", "newton")
 SCHEDULES = ("constant", "cosine")
 REFINERS = (None, "gauss-newton", "newton")
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2  # 2: the solver's active sets per sample (warm starts)
 
 
 @dataclass(frozen=True)
@@ -293,6 +293,10 @@ class _Run:
         self.damping = opts.damping
         self.best: tuple[float, dict[str, torch.Tensor]] | None = None
         self.acc_loss, self.acc_n = 0.0, 0
+        # the fast solver's final active sets per training sample, the warm start of its next
+        # visit (from the second epoch on); the loss does not depend on them, the work does
+        self.active: torch.Tensor | None = None
+        self.seen = torch.zeros(len(train), dtype=torch.bool)
 
     # state for checkpoints (tensors and plain types only: loadable with weights_only=True)
     def state(self) -> dict:
@@ -307,6 +311,7 @@ class _Run:
             "damping": self.damping,
             "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
             "acc": [self.acc_loss, self.acc_n],
+            "active": self.active, "seen": self.seen,
         }
 
     def load(self, st: dict) -> None:
@@ -323,6 +328,7 @@ class _Run:
         self.damping = st["damping"]
         self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
         self.acc_loss, self.acc_n = st["acc"]
+        self.active, self.seen = st["active"], st["seen"]
 
     # schedules
     def eps_at(self, it: int) -> float:
@@ -350,10 +356,18 @@ class _Run:
     def loss(self, idx: torch.Tensor, eps: float) -> torch.Tensor:
         d, m, o = self.train, self.work, self.opts
         x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
+        warm = self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
+        # the losses' fast paths directly: the data were validated once, by fit
         if o.loss == "violation":
-            value = violation_loss(m, x, u, xn, gamma=o.gamma, eps=eps)
+            value, sol, _, _ = _violation_fast(m, x, u, xn, o.gamma, eps, warm, residual=False)
+            active = sol.active
         else:
-            value = prediction_loss(m, x, u, xn)
+            value, sol, _ = _prediction_fast(m, x, u, xn, warm)
+            active = sol.free
+        if self.active is None:
+            self.active = torch.zeros(len(d), active.shape[1], dtype=torch.bool)
+        self.active[idx] = active.to(self.active.device)
+        self.seen[idx] = True
         return value + regularizer(m, o.reg)
 
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict:
@@ -497,7 +511,18 @@ def _check_data(name: str, data: Any, model: LCS) -> Dataset:
         )
     if len(data) == 0:
         raise LCSInputError(f"{name}: expected at least one sample, received an empty dataset")
-    return data.to(model.device) if data.x.device != model.device else data
+    for field_name in ("x", "u", "x_next"):  # checked once here: the training loop does not
+        t = getattr(data, field_name)
+        if not t.is_floating_point() or not bool(torch.isfinite(t).all()):
+            raise LCSInputError(
+                f"{name}: expected finite real values in {field_name}, received "
+                f"{'dtype ' + str(t.dtype) if not t.is_floating_point() else 'NaN/inf entries'}"
+            )
+    if data.x.device == model.device and data.x.dtype == model.dtype:
+        return data
+    kw = {"device": model.device, "dtype": model.dtype}
+    return Dataset(data.x.to(**kw), data.u.to(**kw), data.x_next.to(**kw),
+                   None if data.lam is None else data.lam.to(**kw))
 
 
 def fit(

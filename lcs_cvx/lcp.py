@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError, as_batch, as_matrix
-from .pivoting import FallbackWarning, block_pivoting, unconverged
+from .pivoting import FallbackWarning, block_pivoting, initial_state, unconverged
 from .problems import convex_lcp_problem
 
 __all__ = [
@@ -96,6 +96,7 @@ def solve_lcp_fast(
     max_iter: int = 100,
     tol: float = PIVOT_TOL,
     fallback: bool = True,
+    warm_start: torch.Tensor | None = None,
 ) -> LCPSolution:
     """Solve ``0 <= lam _|_ F lam + q >= 0`` for a batch by block principal pivoting.
 
@@ -106,6 +107,9 @@ def solve_lcp_fast(
         tol: relative feasibility tolerance of a candidate free set.
         fallback: re-solve unconverged samples with the Clarabel reference (and warn);
             if False, raise :class:`SolverError` instead.
+        warm_start: ``(B, n)`` bool first guess of the free sets, e.g. ``free`` of an earlier
+            solve of the same samples (default: ``q < 0``, the guess of ``lam = 0``). The
+            solution is unique (Assumption 1) and does not depend on it; the sweeps do.
 
     Returns:
         :class:`LCPSolution` (no autograd graph; see :func:`active_set_solve`).
@@ -124,7 +128,7 @@ def solve_lcp_fast(
             bad = torch.where(free, lam < -at, w < -at)
             return lam, bad
 
-        res = block_pivoting(solve, _initial_free(q), max_iter=max_iter)
+        res = block_pivoting(solve, initial_state(_initial_free(q), warm_start), max_iter=max_iter)
         lam = res.solution.clamp(min=0.0)
         free = res.free & (res.solution > 0)
         bad_idx = unconverged(res, "LCP", max_iter, fallback)

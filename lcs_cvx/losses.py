@@ -80,6 +80,9 @@ class LossInfo:
         n_degenerate: samples with some ``lam_i = w_i = 0`` (prediction loss; 0 otherwise).
         max_residual: largest relative KKT residual over the batch (on every path; a layer
             solution above ``LAYER_RESIDUAL_TOL`` also raises a :class:`LayerAccuracyWarning`).
+        active: the fast solver's final active sets, bool -- ``(B, 2 n_lam)`` ``[lam_i > 0,
+            phi_i = 0]`` (violation) or ``(B, n_lam)`` ``lam_i > 0`` (prediction) -- to pass as
+            ``warm_start`` when the same samples come again; None on the layer paths.
     """
 
     lam: torch.Tensor
@@ -88,6 +91,7 @@ class LossInfo:
     n_fallback: int = 0
     n_degenerate: int = 0
     max_residual: float = 0.0
+    active: torch.Tensor | None = None
 
 
 class _EnvelopeLoss(torch.autograd.Function):
@@ -139,6 +143,13 @@ def _inputs(model: Any, x: Any, u: Any, x_next: Any):
     return x, u, x_next
 
 
+def _check_warm_start(warm_start: Any, solver: str) -> None:
+    if warm_start is not None and solver != "fast":
+        raise LCSInputError(
+            f"warm_start: only the 'fast' solver uses it, received solver={solver!r} with a warm start"
+        )
+
+
 def _check_solver(solver: str) -> str:
     if solver not in SOLVERS:
         raise LCSInputError(f"solver: expected one of {SOLVERS}, received {solver!r}")
@@ -154,6 +165,7 @@ def violation_loss(
     eps: float = 1e-4,
     solver: str = "fast",
     return_info: bool = False,
+    warm_start: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, LossInfo]:
     r"""Violation-based loss ``L_eps`` (eq. equ.contactnet), averaged over the batch.
 
@@ -168,41 +180,54 @@ def violation_loss(
         eps: ``eps > 0`` weight of the complementarity violation.
         solver: ``"fast"``, ``"cvxpylayers"`` or ``"cvxpylayers-scs"``.
         return_info: also return a :class:`LossInfo`.
+        warm_start: first guess of the fast solver's active sets, ``LossInfo.active`` of an
+            earlier call on the same samples (:func:`lcs_cvx.fit` keeps one per sample). The
+            value and gradients do not depend on it (to round-off); the solver's work does.
 
     Returns:
         Scalar tensor (and the info). Gradients w.r.t. the model's parameters are Lemma 3's.
     """
     backend = _check_solver(solver)
+    _check_warm_start(warm_start, solver)
     check_positive("eps", eps)
     x, u, x_next = _inputs(model, x, u, x_next)
+    if solver == "fast":
+        loss, sol, lam, phi = _violation_fast(model, x, u, x_next, gamma, eps, warm_start, return_info)
+        if not return_info:
+            return loss
+        resid = float(sol.residual.max())
+        return loss, LossInfo(lam, phi, sol.iterations, sol.n_fallback, 0, resid, sol.active)
     F, C = model.F, model.C  # gamma < sigma_min(F + F^T) is checked by parameter_values
     q = x @ model.D.mT + u @ model.E.mT + model.c
     r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
     decl = violation_problem(model.n_lam)
-    iterations = n_fb = 0
-    resid = 0.0
-    if solver == "fast":
-        with torch.no_grad():
-            values = decl.parameter_values(C.detach(), F.detach(), q.detach(), r.detach(), gamma, eps)
-            sol = solve_violation_fast(values, residual=return_info)
-        lam = sol.lam
-        phi = decl.phi(lam, F.detach(), q.detach(), gamma)
-        iterations, n_fb = sol.iterations, sol.n_fallback
-        resid = float(sol.residual.max()) if sol.residual is not None else 0.0
-        loss = _EnvelopeLoss.apply(C, F, q, r, lam, phi, gamma, eps)
-    else:
-        values = decl.parameter_values(C, F, q, r, gamma, eps)
-        lam = solve_layer(violation_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
-        lam = lam.clamp(min=0.0)
-        phi = decl.phi(lam, F, q, gamma)
-        resid = _check_layer(
-            violation_kkt_residual({k: v.detach() for k, v in values.items()}, lam.detach()),
-            "violation_loss",
-        )
-        loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
+    values = decl.parameter_values(C, F, q, r, gamma, eps)
+    lam = solve_layer(violation_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
+    lam = lam.clamp(min=0.0)
+    phi = decl.phi(lam, F, q, gamma)
+    resid = _check_layer(
+        violation_kkt_residual({k: v.detach() for k, v in values.items()}, lam.detach()),
+        "violation_loss",
+    )
+    loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
     if not return_info:
         return loss
-    return loss, LossInfo(lam.detach(), phi.detach(), iterations, n_fb, 0, resid)
+    return loss, LossInfo(lam.detach(), phi.detach(), 0, 0, 0, resid, None)
+
+
+def _violation_fast(model, x, u, x_next, gamma: float, eps: float,
+                    warm_start: torch.Tensor | None, residual: bool):
+    """The fast path of :func:`violation_loss` on validated tensors: ``(loss, solution, lam,
+    phi)``. :func:`lcs_cvx.fit` calls it directly (its data are validated once)."""
+    F, C = model.F, model.C  # gamma < sigma_min(F + F^T) is checked by parameter_values
+    q = x @ model.D.mT + u @ model.E.mT + model.c
+    r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
+    decl = violation_problem(model.n_lam)
+    with torch.no_grad():
+        values = decl.parameter_values(C.detach(), F.detach(), q.detach(), r.detach(), gamma, eps)
+        sol = solve_violation_fast(values, residual=residual, warm_start=warm_start)
+        phi = decl.phi(sol.lam, F.detach(), q.detach(), gamma)
+    return _EnvelopeLoss.apply(C, F, q, r, sol.lam, phi, gamma, eps), sol, sol.lam, phi
 
 
 def prediction_loss(
@@ -212,6 +237,7 @@ def prediction_loss(
     x_next: Any,
     solver: str = "fast",
     return_info: bool = False,
+    warm_start: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, LossInfo]:
     r"""Prediction-based loss ``L_pred`` (eq. equ.prednet), averaged over the batch.
 
@@ -220,34 +246,49 @@ def prediction_loss(
     set (Lemma 1); on the ``"cvxpylayers"`` paths through diffcp on the declared problem (P).
 
     Args:
-        model, x, u, x_next, solver, return_info: as in :func:`violation_loss`.
+        model, x, u, x_next, solver, return_info, warm_start: as in :func:`violation_loss`
+            (``warm_start`` ``(B, n_lam)``: the free sets).
     """
     backend = _check_solver(solver)
+    _check_warm_start(warm_start, solver)
     x, u, x_next = _inputs(model, x, u, x_next)
-    F = model.F
-    q = x @ model.D.mT + u @ model.E.mT + model.c
     iterations = n_fb = 0
-    resid = 0.0
+    active = None
     if solver == "fast":
-        sol = solve_lcp_fast(F, q)
-        free = sol.free
-        iterations, n_fb, resid = sol.iterations, sol.n_fallback, float(sol.residual.max())
-        lam = active_set_solve(F, q, free) if torch.is_grad_enabled() else sol.lam
+        loss, sol, lam = _prediction_fast(model, x, u, x_next, warm_start)
+        iterations, n_fb, resid, active = sol.iterations, sol.n_fallback, float(sol.residual.max()), sol.free
     else:
+        F = model.F
+        q = x @ model.D.mT + u @ model.E.mT + model.c
         decl = convex_lcp_problem(model.n_lam)
         values = decl.parameter_values(F, q)
         lam = solve_layer(lcp_layer(model.n_lam), [values[k] for k in decl.parameter_order], backend)
         resid = _check_layer(lcp_residual(F.detach(), q.detach(), lam.detach()), "prediction_loss")
-    pred = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
-    loss = 0.5 * ((pred - x_next) ** 2).sum(-1).mean()
+        loss = _prediction_error(model, x, u, x_next, lam)
     if not return_info:
         return loss
     with torch.no_grad():
         lam_d = lam.detach()
-        w = lam_d @ F.detach().mT + q.detach()
-        tol = DEGENERATE_TOL * (1.0 + q.detach().abs().amax(-1, keepdim=True))
+        q = x @ model.D.mT + u @ model.E.mT + model.c
+        w = lam_d @ model.F.mT + q
+        tol = DEGENERATE_TOL * (1.0 + q.abs().amax(-1, keepdim=True))
         n_deg = int(((lam_d.abs() <= tol) & (w.abs() <= tol)).any(-1).sum())
-    return loss, LossInfo(lam_d, w, iterations, n_fb, n_deg, resid)
+    return loss, LossInfo(lam_d, w, iterations, n_fb, n_deg, resid, active)
+
+
+def _prediction_error(model, x, u, x_next, lam: torch.Tensor) -> torch.Tensor:
+    pred = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
+    return 0.5 * ((pred - x_next) ** 2).sum(-1).mean()
+
+
+def _prediction_fast(model, x, u, x_next, warm_start: torch.Tensor | None):
+    """The fast path of :func:`prediction_loss` on validated tensors: ``(loss, solution, lam)``,
+    ``lam`` differentiable (Lemma 1) when grad is enabled. :func:`lcs_cvx.fit` calls it directly."""
+    F = model.F
+    q = x @ model.D.mT + u @ model.E.mT + model.c
+    sol = solve_lcp_fast(F, q, warm_start=warm_start)
+    lam = active_set_solve(F, q, sol.free) if torch.is_grad_enabled() else sol.lam
+    return _prediction_error(model, x, u, x_next, lam), sol, lam
 
 
 def regularizer(model: Any, weight: float = 1e-5) -> torch.Tensor:

@@ -24,9 +24,12 @@ from dataclasses import dataclass
 
 import torch
 
-from ._checks import SolverError
+from ._checks import LCSInputError, SolverError
 
-__all__ = ["PivotResult", "block_pivoting", "unconverged", "spd_solve", "FallbackWarning", "SMALL_N"]
+__all__ = [
+    "PivotResult", "block_pivoting", "unconverged", "initial_state", "spd_solve", "FallbackWarning",
+    "SMALL_N",
+]
 
 
 class FallbackWarning(RuntimeWarning):
@@ -37,6 +40,22 @@ class FallbackWarning(RuntimeWarning):
 #: is 2-3x faster than Cholesky plus ``cholesky_solve`` on CPU for tiny matrices; above it,
 #: Cholesky and two triangular solves (half the flops).
 SMALL_N = 6
+
+
+def initial_state(guess: torch.Tensor, warm_start: torch.Tensor | None) -> torch.Tensor:
+    """The pivoting's starting state: ``warm_start`` where given (checked to be a bool tensor of
+    ``guess``'s shape), else the cold ``guess``."""
+    if warm_start is None:
+        return guess
+    if not isinstance(warm_start, torch.Tensor) or warm_start.dtype != torch.bool \
+            or warm_start.shape != guess.shape:
+        got = (f"{warm_start.dtype} tensor of shape {tuple(warm_start.shape)}"
+               if isinstance(warm_start, torch.Tensor) else type(warm_start).__name__)
+        raise LCSInputError(
+            f"warm_start: expected a bool tensor of shape {tuple(guess.shape)} (the active sets of "
+            f"an earlier solve of these samples, LossInfo.active), received {got}"
+        )
+    return warm_start.to(guess.device)
 
 
 def spd_solve(M: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

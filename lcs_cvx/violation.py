@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .pivoting import block_pivoting, spd_solve, unconverged
+from .pivoting import block_pivoting, initial_state, spd_solve, unconverged
 from .problems import violation_problem
 
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
@@ -54,6 +54,11 @@ class ViolationSolution:
     n_fallback: int
     residual: torch.Tensor | None
 
+    @property
+    def active(self) -> torch.Tensor:
+        """``(B, 2 n)`` bool ``[free, pos]``: the ``warm_start`` of a later solve."""
+        return torch.cat([self.free, self.pos], dim=1)
+
 
 def _gradient(L: torch.Tensor, b: torch.Tensor, K: torch.Tensor, h: torch.Tensor, lam: torch.Tensor):
     t = lam @ K.mT - h
@@ -80,6 +85,7 @@ def solve_violation_fast(
     tol: float = PIVOT_TOL,
     fallback: bool = True,
     residual: bool = True,
+    warm_start: torch.Tensor | None = None,
 ) -> ViolationSolution:
     """Solve (V) for a batch, from the declaration's parameter values.
 
@@ -90,6 +96,10 @@ def solve_violation_fast(
         tol: relative feasibility tolerance of a candidate.
         fallback: if False, raise :class:`lcs_cvx.SolverError` on non-convergence instead.
         residual: also compute the per-sample KKT residual (a few more batched products).
+        warm_start: ``(B, 2 n)`` bool first guess ``[free, pos]`` of the pivoting, e.g.
+            :attr:`ViolationSolution.active` of an earlier solve of the same samples (default:
+            the guess of ``lam = 0``). The solution does not depend on it (the problem is
+            strongly convex); the number of sweeps does: from the exact active sets, none.
 
     Returns:
         :class:`ViolationSolution` (no autograd graph).
@@ -135,7 +145,7 @@ def solve_violation_fast(
                 bad |= failed.unsqueeze(1)  # a failed factorisation is never trusted
             return lam, bad
 
-        state0 = torch.cat([h < 0, h < 0], dim=1)
+        state0 = initial_state(torch.cat([h < 0, h < 0], dim=1), warm_start)
         res = block_pivoting(solve, state0, max_iter=max_iter)
         lam = res.solution.clamp(min=0.0)
         bad_idx = unconverged(res, "violation QP", max_iter, fallback)

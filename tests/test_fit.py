@@ -136,6 +136,10 @@ def test_invalid_options(small, kwargs, match):
 
 def test_invalid_data(small):
     _, train, _ = small
+    x = train.x.clone()
+    x[3, 1] = float("nan")
+    with pytest.raises(LCSInputError, match=r"train: expected finite real values in x, received NaN/inf"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), lcs_cvx.Dataset(x, train.u, train.x_next), progress=False)
     with pytest.raises(LCSInputError, match=r"train: expected n_x=3, n_u=1 \(the model's\), received n_x=2"):
         lcs_cvx.fit(lcs_cvx.LCS(3, 1, 2), train, progress=False)
     with pytest.raises(LCSInputError, match="train: expected an lcs_cvx.Dataset"):

@@ -857,3 +857,51 @@ def test_loss_info_prediction_fields():
     assert float((info.lam * info.phi).abs().max()) <= 1e-9
     assert info.n_fallback == 0 and info.n_degenerate == 0 and info.max_residual <= 1e-13
     assert not info.lam.requires_grad
+
+
+# -- warm starts of the fast solvers ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("loss_fn", ["violation", "prediction"])
+def test_warm_start_changes_the_work_not_the_result(loss_fn):
+    """From the final active sets of an earlier call the solver needs no pivoting sweep; from a
+    perturbed model's sets, some; the loss and every gradient agree with a cold start."""
+    model, data = make_problem(n_lam=6, model="perturbed", seed=11)
+    other, _ = make_problem(n_lam=6, model="perturbed", seed=12)
+
+    def run(m, warm=None):
+        m.zero_grad()
+        if loss_fn == "violation":
+            value, info = violation_loss(m, data.x, data.u, data.x_next, gamma=1e-2, eps=1e-3,
+                                         return_info=True, warm_start=warm)
+        else:
+            value, info = prediction_loss(m, data.x, data.u, data.x_next, return_info=True,
+                                          warm_start=warm)
+        value.backward()
+        return value.detach(), {k: p.grad.clone() for k, p in m.named_parameters()}, info
+
+    cold_value, cold_grad, cold = run(model)
+    assert cold.active.dtype == torch.bool
+    assert cold.active.shape == (len(data.x), (2 if loss_fn == "violation" else 1) * 6)
+    assert cold.iterations >= 1
+    _, _, stale = run(other)
+    for warm, sweeps in ((cold.active, 0), (stale.active, None)):
+        value, grad, info = run(model, warm)
+        if sweeps is not None:
+            assert info.iterations == sweeps
+        assert torch.equal(info.active, cold.active)
+        assert abs(float(value - cold_value)) <= 1e-12 * (1 + abs(float(cold_value)))
+        for k in grad:
+            assert rel_err(grad[k], cold_grad[k]) <= 1e-10, k
+
+
+def test_invalid_warm_start_raises():
+    model, data = make_problem(n_lam=3, model="init", seed=0)
+    n = len(data.x)
+    with pytest.raises(LCSInputError, match=rf"warm_start: expected a bool tensor of shape \({n}, 6\)"):
+        violation_loss(model, data.x, data.u, data.x_next, warm_start=torch.zeros(n, 3, dtype=torch.bool))
+    with pytest.raises(LCSInputError, match=r"warm_start: expected a bool tensor .*received torch.float64"):
+        prediction_loss(model, data.x, data.u, data.x_next, warm_start=torch.zeros(n, 3, dtype=torch.float64))
+    with pytest.raises(LCSInputError, match=r"warm_start: only the 'fast' solver uses it"):
+        prediction_loss(model, data.x, data.u, data.x_next, solver="cvxpylayers",
+                        warm_start=torch.zeros(n, 3, dtype=torch.bool))
