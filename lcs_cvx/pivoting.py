@@ -168,9 +168,10 @@ def block_pivoting(
     return PivotResult(solution=solution, free=free, converged=converged, iterations=sweeps)
 
 
-def unconverged(res: PivotResult, what: str, max_iter: int, fallback: bool) -> torch.Tensor | None:
+def unconverged(res: PivotResult, what: str, max_iter: int, fallback: bool,
+                reference: str = "the Clarabel reference") -> torch.Tensor | None:
     """Indices of the samples ``res`` did not converge on (None if all did), after saying so:
-    a :class:`FallbackWarning` if ``fallback`` (the caller then solves them with its reference),
+    a :class:`FallbackWarning` if ``fallback`` (the caller then solves them with ``reference``),
     else :class:`lcs_cvx.SolverError`."""
     if bool(res.converged.all()):
         return None
@@ -179,5 +180,5 @@ def unconverged(res: PivotResult, what: str, max_iter: int, fallback: bool) -> t
            f"samples in {max_iter} sweeps")
     if not fallback:
         raise SolverError(msg)
-    warnings.warn(f"{msg}; solved them with the Clarabel reference", FallbackWarning, stacklevel=3)
+    warnings.warn(f"{msg}; solved them with {reference}", FallbackWarning, stacklevel=3)
     return idx

@@ -7,6 +7,8 @@ by Clarabel (``cvxpy``, the reference; ~10^3 samples/s, so its batches stay smal
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -268,7 +270,13 @@ def test_lcp_residual_zero_at_solution_positive_elsewhere():
 # -- fallback to the reference ------------------------------------------------------------
 
 
-def test_fallback_warns_and_is_correct():
+@pytest.mark.parametrize("reference, brute_max, resid_tol", [
+    ("enumeration of the 2\\^6 free sets", 12, 1e-12),
+    ("the Clarabel reference", 0, 1e-8),
+])
+def test_fallback_warns_and_is_correct(monkeypatch, reference, brute_max, resid_tol):
+    """Unconverged samples go to enumeration (n <= BRUTE_MAX, exact) or to Clarabel, polished."""
+    monkeypatch.setattr(lcs_cvx.lcp, "BRUTE_MAX", brute_max)
     F = random_p_matrix(6, smin=0.5, seed=3)
     q = random_q(20, 6, seed=0)
     brute = solve_lcp_brute(F, q)
@@ -276,15 +284,31 @@ def test_fallback_warns_and_is_correct():
     needs_pivot = (brute.lam > 0) != (q < 0)
     n_need = int(needs_pivot.any(-1).sum())
     assert n_need > 0
-    with pytest.warns(lcs_cvx.FallbackWarning, match="did not converge"):
+    with pytest.warns(lcs_cvx.FallbackWarning, match=f"did not converge.*solved them with {reference}"):
         sol = solve_lcp_fast(F, q, max_iter=0)
     assert sol.n_fallback == n_need
     assert sol.iterations == 0
     assert max_abs(sol.lam, brute.lam) <= ATOL
     assert torch.equal(sol.free, brute.lam > 0)
-    # the fallback samples carry Clarabel's accuracy, not the pivoting's round-off
-    assert float(sol.residual.max()) <= 1e-8
+    assert float(sol.residual.max()) <= resid_tol
     check_against_reference(F, q, brute.lam, sol.lam, smin=0.5)
+
+
+def test_nearly_skew_symmetric_F_converges_without_fallback():
+    """Fig. 1(c)'s stiffest truth, F = s I + H - H^T with s = 1e-5 (G = 0): pivoting needs many
+    sweeps on some samples (here ~70; up to ~220 on Fig. 1(c)'s 50,000 samples at n = 10, where
+    the former limit of 100 sent 2,441 of them to a Clarabel that failed); the default limit
+    covers them and the answer is the enumeration's."""
+    gen = torch.Generator().manual_seed(5)
+    H = torch.rand(8, 8, generator=gen, dtype=torch.float64) * 2 - 1
+    F = 1e-5 * torch.eye(8, dtype=torch.float64) + H - H.mT
+    q = 10 * (torch.rand(3000, 8, generator=gen, dtype=torch.float64) * 2 - 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", lcs_cvx.FallbackWarning)
+        sol = solve_lcp_fast(F, q)
+    assert sol.iterations > 20  # the hard samples are there
+    brute = solve_lcp_brute(F, q)
+    assert float((sol.lam - brute.lam).abs().max() / (1 + brute.lam.abs().max())) <= 1e-8
 
 
 def test_fallback_disabled_raises():
