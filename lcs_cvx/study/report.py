@@ -164,7 +164,7 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[st
     pos, log_x = _positions(summary["values"])
     gaps = [abs(a - b) for a, b in zip(pos, pos[1:], strict=False) if a != b]
     width = 0.7 * (min(gaps) if gaps else 1.0) / max(1, len(methods))
-    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    fig, ax = plt.subplots(figsize=(5.2, 4.4))
     offsets = {m: (k - (len(methods) - 1) / 2) * width for k, m in enumerate(methods)}
     for m in methods:
         offset = offsets[m]
@@ -205,7 +205,8 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[st
     title = config["name"] + (f" — Fig. 1({config['panel']})" if config.get("panel") else "")
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="major", axis="y", alpha=0.3)
-    ax.legend(fontsize=7, loc="best")
+    # below the axes: inside, "best" still hid the medians of some boxes
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
     fig.tight_layout()
     out = [f"{stem}.png", f"{stem}.pdf"]
     fig.savefig(out[0], dpi=150)
