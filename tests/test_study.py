@@ -80,11 +80,39 @@ def test_smoke_config_runs_on_the_process_pool(pool_out, name):
     if config["reference_methods"]:
         assert {r["method"] for r in rows if r["value_index"] == REFERENCE} == {"prediction"}
     conn = sqlite3.connect(pool_out / "studies.sqlite")
-    n_curve = conn.execute(
-        "SELECT COUNT(*) FROM curves JOIN cells ON cells.id = curves.cell_id WHERE study = ?",
-        (name,)).fetchone()[0]
+    ids = [i for (i,) in conn.execute("SELECT id FROM cells WHERE study = ?", (name,))]
     conn.close()
-    assert n_curve == 2 * len(rows)  # 20 iterations, eval_every 10
+    with Store(pool_out) as store:
+        curves = [store.curve(i) for i in ids]
+    assert [[r["iteration"] for r in c] for c in curves] == [[10, 20]] * len(rows)  # eval_every 10
+    assert all(math.isfinite(r["loss"]) and r["phase"] == "adam" for c in curves for r in c)
+
+
+def test_schema_1_database_is_converted_on_open(tmp_path):
+    """A database of schema 1 (one row per curve record) opens as schema 2, curves intact."""
+    conn = sqlite3.connect(tmp_path / "studies.sqlite")
+    conn.executescript("""
+        CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+        INSERT INTO meta VALUES ('schema_version', '1');
+        CREATE TABLE cells (id INTEGER PRIMARY KEY, key TEXT NOT NULL UNIQUE);
+        INSERT INTO cells VALUES (1, 'a'), (2, 'b');
+        CREATE TABLE curves (cell_id INTEGER NOT NULL, iteration INTEGER, phase TEXT, loss REAL,
+            e_test REAL, eps REAL, lr REAL, wall_time REAL, restart INTEGER);
+        INSERT INTO curves VALUES (1, 100, 'adam', 0.5, NULL, 1e-4, 1e-3, 1.5, 0),
+            (2, 100, 'adam', 0.25, 1e-3, 1e-4, 1e-3, 2.0, 0), (1, 200, 'adam', 0.125, 2e-4, 1e-4, 1e-3, 3.0, 0);
+    """)
+    conn.commit()
+    conn.close()
+    with Store(tmp_path) as store:
+        assert store.curve(1) == [
+            {"iteration": 100, "phase": "adam", "loss": 0.5, "e_test": None, "eps": 1e-4,
+             "lr": 1e-3, "wall_time": 1.5, "restart": 0},
+            {"iteration": 200, "phase": "adam", "loss": 0.125, "e_test": 2e-4, "eps": 1e-4,
+             "lr": 1e-3, "wall_time": 3.0, "restart": 0},
+        ]
+        assert [r["loss"] for r in store.curve(2)] == [0.25]
+        version = store.conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        assert version == ("2",)
 
 
 def test_running_again_skips_every_finished_cell(pool_out):
