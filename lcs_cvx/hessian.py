@@ -50,8 +50,8 @@ from typing import Any
 
 import torch
 
-from ._checks import LCSInputError, SolverError, as_matrix
-from .losses import _inputs, violation_loss
+from ._checks import LCSInputError, SolverError, as_matrix, check_positive
+from .losses import _inputs, _violation_fast
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -116,10 +116,11 @@ def _setup(model: Any, x: Any, u: Any, x_next: Any, gamma: float, eps: float):
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
     x, u, x_next = _inputs(model, x, u, x_next)
-    with torch.no_grad():  # checks gamma and eps; z is exactly the loss's (lam, phi)
-        _, info = violation_loss(model, x, u, x_next, gamma, eps, solver="fast", return_info=True)
+    check_positive("eps", eps)
+    with torch.no_grad():  # checks gamma; z is exactly the loss's (lam, phi)
+        _, _, lam, phi = _violation_fast(model, x, u, x_next, gamma, eps, None, residual=False)
     kw = {"dtype": model.dtype, "device": model.device}
-    z = torch.cat([info.lam, info.phi], dim=1)
+    z = torch.cat([lam, phi], dim=1)
     m = (z > 0).to(z.dtype)
     with torch.no_grad():
         Jzz = objective_hessian_zz(model.C, model.F, gamma, eps)
