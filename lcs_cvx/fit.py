@@ -18,8 +18,9 @@ Recipes (``recipe=``) are named sets of options; options given explicitly win:
 - ``"best"``: what this package recommends (see :data:`RECIPES`): Adam from lr 1e-2 on a cosine
   schedule, continuation in ``eps`` (1e-2 -> ``eps`` over the first 60 % of the iterations),
   re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
-  boundary), two extra units during Adam then pruned greedily (:mod:`lcs_cvx.units`: the escape
-  from the permutation trap), then a Gauss--Newton refinement on batches of 2,000 -- 4,000 Adam
+  boundary), four extra units during Adam then pruned greedily by deletion or elimination
+  (:mod:`lcs_cvx.units`: the escape from the permutation trap), with one Gauss--Newton step after
+  each removal, then a Gauss--Newton refinement on batches of 2,000 -- 4,000 Adam
   iterations instead of the paper's 10,000 so that the whole fits the paper protocol's wall time.
 
 With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
@@ -85,10 +86,11 @@ class FitOptions:
             ``reinit_every`` iterations during the continuation phase.
         reinit_every: see ``reinit_saturated``.
         extra_units: Adam trains ``n_lam + extra_units`` units; the extra ones are then pruned
-            greedily (:func:`lcs_cvx.units.prune`, on ``refine_batch`` samples) before the
+            greedily (:func:`lcs_cvx.units.prune`: deletion or elimination of a unit, scored after
+            a least-squares refit of ``(A, B, C, d)`` on ``refine_batch`` samples) before the
             refinement -- the escape from the permutation trap of DESIGN.md.
-        prune_repair, prune_batch: Gauss--Newton steps on ``prune_batch`` samples applied to each
-            pruning candidate before it is scored.
+        prune_repair, prune_batch: Gauss--Newton steps on ``prune_batch`` samples applied to the
+            model after each removal.
         damping: initial Levenberg--Marquardt damping of the second-order steps.
         refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
         refine_iterations, refine_batch: its steps and batch size.
@@ -118,7 +120,7 @@ class FitOptions:
     reinit_saturated: bool = False
     reinit_every: int = 500
     extra_units: int = 0
-    prune_repair: int = 2
+    prune_repair: int = 1
     prune_batch: int = 1000
     damping: float = 1e-3
     refine: str | None = None
@@ -188,8 +190,8 @@ RECIPES: dict[str, dict[str, Any]] = {
     "paper": {"optimizer": "adam", "lr": 1e-3, "lr_schedule": "constant", "eps_start": None,
               "refine": None, "restarts": 1, "reinit_saturated": False},
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
-             "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": 2,
-             "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 2000},
+             "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": 4,
+             "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 2000},
 }
 
 #: Defaults that depend on the optimiser (applied to options nobody set).
@@ -467,13 +469,14 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
         r_idx = slice(0, min(o.prune_batch, len(idx)))
 
-        def repair(cand: LCS) -> None:  # a few Gauss--Newton steps before a candidate is scored
+        def repair(kept: LCS) -> None:  # a few Gauss--Newton steps after each removal
             mu = o.damping
             for _ in range(o.prune_repair):
-                mu = gauss_newton_step(cand, x[r_idx], u[r_idx], xn[r_idx], gamma=o.gamma,
+                mu = gauss_newton_step(kept, x[r_idx], u[r_idx], xn[r_idx], gamma=o.gamma,
                                        eps=o.eps, reg=o.reg, damping=mu).damping
 
-        pruned = prune(run.work, run.model.n_lam, x, u, xn, repair=repair if o.prune_repair else None)
+        pruned = prune(run.work, run.model.n_lam, x, u, xn, reg=o.reg,
+                       repair=repair if o.prune_repair else None)
         run.model.load_state_dict(pruned.state_dict())
         run.work = run.model
         save()

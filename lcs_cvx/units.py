@@ -3,55 +3,136 @@ r"""Adding and removing complementarity units (the coordinates of ``lam``) of an
 Learning an LCS is prone to a permutation trap: two units settle on the same mode boundary while
 another boundary of the data is left unmodelled, and no local method leaves that basin
 (DESIGN.md). Over-parameterising -- training with ``n_lam + k`` units -- and then removing the
-``k`` least useful ones avoids it: :func:`grow` embeds a model in a larger one, :func:`prune`
-removes units greedily, each time the one whose removal raises the prediction loss
-(eq. equ.prednet) least, and :func:`submodel` keeps a subset.
+``k`` least useful ones avoids it: :func:`grow` embeds a model in a larger one and :func:`prune`
+removes units greedily.
 
-Removing unit ``j`` keeps the principal submatrix of ``F`` (its symmetric part stays
-``>= s I``, so Assumption 1 still holds) and drops ``C[:, j]``, ``D[j]``, ``E[j]``, ``c[j]``; the
-remaining units' ``lam`` changes through the coupling in ``F``, which a few second-order steps
-then repair.
+A unit can leave in two ways, each exact in one limit (eq. equ.lcp, ``w = D x + E u + F lam + c``):
+
+- :func:`submodel` *deletes* it (``lam_j = 0``): the principal submatrix of ``F`` is kept and
+  ``C[:, j]``, ``D[j]``, ``E[j]``, ``c[j]`` dropped. Exact for a unit that is never active.
+- :func:`pivot` *eliminates* it on ``w_j = 0``: ``lam_j = -(D_j x + E_j u + c_j + F_{j,r}
+  lam_r) / F_jj`` is substituted into the other units and the dynamics, so ``F`` becomes its
+  Schur complement and the unit's affine effect moves into ``A, B, d`` and the other units'
+  ``D, E, c``. Exact for a unit that is always active -- the units Adam leaves saturated.
+
+:func:`prune` tries both for every unit, refits ``(A, B, C, d)`` by least squares on each
+candidate (:func:`refit_output`, exact for the prediction loss at fixed ``lam``) and keeps the
+best; ``repair`` (a few Gauss--Newton steps in :func:`lcs_cvx.fit`) then adjusts the survivor.
 """
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Callable, Sequence
 
 import torch
 
 from ._checks import LCSInputError
-from .losses import prediction_loss
 from .system import LCS
 
-__all__ = ["submodel", "grow", "prune"]
+__all__ = ["submodel", "pivot", "grow", "prune", "refit_output"]
 
 
 def _from_F(model: LCS, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` whose symmetric part is ``>= s I``."""
+    """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` whose symmetric part is ``>= s I``
+    (below that, the symmetric part's eigenvalues are raised to ``s``: the nearest ``F`` of the
+    model's set in the symmetric part)."""
     n, s = F.shape[0], float(model.stiffness)
     sym = 0.5 * (F + F.mT) - s * torch.eye(n, dtype=F.dtype, device=F.device)
     vals, vecs = torch.linalg.eigh(sym)
     return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
 
 
-def submodel(model: LCS, keep: Sequence[int]) -> LCS:
-    """A new LCS with only the units ``keep`` (in that order) of ``model``."""
-    keep = list(keep)
-    if not keep or len(set(keep)) != len(keep) or not all(0 <= k < model.n_lam for k in keep):
+def _check_unit(model: LCS, name: str, keep: Sequence[int]) -> list[int]:
+    """``keep`` as a list of distinct ints in ``[0, n_lam)``, or a clear error."""
+    try:
+        out = [operator.index(k) for k in keep]
+    except TypeError:
+        out = None
+    if not out or len(set(out)) != len(out) or not all(0 <= k < model.n_lam for k in out):
         raise LCSInputError(
-            f"keep: expected distinct unit indices in [0, {model.n_lam}), received {keep}"
+            f"{name}: expected distinct unit indices in [0, {model.n_lam}), received {list(keep)}"
         )
-    idx = torch.tensor(keep, device=model.device)
+    return out
+
+
+def _build(model: LCS, F: torch.Tensor, **matrices: torch.Tensor) -> LCS:
+    G, H = _from_F(model, F)
+    new = LCS(model.n_x, model.n_u, F.shape[0], stiffness=float(model.stiffness),
+              init_scale=0.0, dtype=model.dtype).to(model.device)
     with torch.no_grad():
-        F = model.F[idx][:, idx]
-        G, H = _from_F(model, F)
-        new = LCS(model.n_x, model.n_u, len(keep), stiffness=float(model.stiffness),
-                  init_scale=0.0, dtype=model.dtype).to(model.device)
-        for name, value in (("A", model.A), ("B", model.B), ("d", model.d), ("C", model.C[:, idx]),
-                            ("D", model.D[idx]), ("E", model.E[idx]), ("c", model.c[idx]),
-                            ("G", G), ("H", H)):
+        for name, value in (*matrices.items(), ("G", G), ("H", H)):
             getattr(new, name).copy_(value)
     return new
+
+
+def submodel(model: LCS, keep: Sequence[int]) -> LCS:
+    """A new LCS with only the units ``keep`` (in that order) of ``model`` (the others deleted:
+    ``lam_j = 0``)."""
+    keep = _check_unit(model, "keep", keep)
+    idx = torch.tensor(keep, device=model.device)
+    with torch.no_grad():
+        return _build(model, model.F[idx][:, idx], A=model.A, B=model.B, d=model.d,
+                      C=model.C[:, idx], D=model.D[idx], E=model.E[idx], c=model.c[idx])
+
+
+def pivot(model: LCS, j: int) -> LCS:
+    r"""A new LCS without unit ``j``, eliminated on ``w_j = 0`` (the unit always active).
+
+    With ``r`` the other units and ``f = F_{r,j} / F_jj``::
+
+        F' = F_rr - f F_{j,r}          D' = D_r - f D_j      E' = E_r - f E_j      c' = c_r - f c_j
+        C' = C_r - C_j F_{j,r} / F_jj  A' = A - C_j D_j / F_jj   B' = B - C_j E_j / F_jj   d' = d - C_j c_j / F_jj
+
+    On samples where the unit is active the result predicts exactly what ``model`` does. ``F'``
+    stays in the model's set: with ``x = (y, -f^T y)``, ``F x = (F' y, 0)``, so
+    ``y^T F' y = x^T F x >= s |x|^2 >= s |y|^2`` (Assumption 1 carries over).
+    """
+    if isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < model.n_lam or model.n_lam < 2:
+        raise LCSInputError(
+            f"j: expected a unit index in [0, {model.n_lam}) of a model with n_lam >= 2, "
+            f"received {j!r} (n_lam = {model.n_lam})"
+        )
+    r = torch.tensor([i for i in range(model.n_lam) if i != j], device=model.device)
+    with torch.no_grad():
+        F = model.F
+        fjj = F[j, j]
+        f = F[r, j] / fjj
+        cj = model.C[:, j] / fjj
+        return _build(
+            model, F[r][:, r] - torch.outer(f, F[j, r]),
+            A=model.A - torch.outer(cj, model.D[j]), B=model.B - torch.outer(cj, model.E[j]),
+            d=model.d - cj * model.c[j], C=model.C[:, r] - torch.outer(cj, F[j, r]),
+            D=model.D[r] - torch.outer(f, model.D[j]), E=model.E[r] - torch.outer(f, model.E[j]),
+            c=model.c[r] - f * model.c[j],
+        )
+
+
+def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
+                 reg: float = 0.0) -> float:
+    r"""Refit ``(A, B, C, d)`` in place by least squares with ``lam = LCP(F, D x + E u + c)`` fixed.
+
+    The prediction loss (eq. equ.prednet) plus ``reg ||C||_F^2`` is quadratic in ``(A, B, C, d)``
+    at fixed ``lam``; this is its exact minimiser (normal equations with a ``1e-12`` relative
+    ridge so that units inactive on every sample stay well posed). Returns the loss after the
+    refit.
+    """
+    with torch.no_grad():
+        lam = model.solve_lcp(x, u)
+        n = x.shape[0]
+        phi = torch.cat([x, u, lam, torch.ones(n, 1, dtype=x.dtype, device=x.device)], 1)
+        gram = phi.mT @ phi / n
+        ridge = torch.zeros(gram.shape[0], dtype=x.dtype, device=x.device)
+        c0 = model.n_x + model.n_u
+        ridge[c0:c0 + model.n_lam] = 2.0 * reg
+        ridge += 1e-12 * float(gram.diagonal().max())
+        W = torch.linalg.solve(gram + torch.diag(ridge), phi.mT @ x_next / n).mT
+        model.A.copy_(W[:, :model.n_x])
+        model.B.copy_(W[:, model.n_x:c0])
+        model.C.copy_(W[:, c0:c0 + model.n_lam])
+        model.d.copy_(W[:, -1])
+        fit_err = 0.5 * ((phi @ W.mT - x_next) ** 2).sum(-1).mean() + reg * (model.C ** 2).sum()
+        return float(fit_err)
 
 
 def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1) -> LCS:
@@ -96,29 +177,35 @@ def prune(
     u: torch.Tensor,
     x_next: torch.Tensor,
     repair: Callable[[LCS], None] | None = None,
+    reg: float = 0.0,
 ) -> LCS:
-    """Remove units one at a time, each time the one whose removal gives the lowest prediction
-    loss on ``(x, u, x_next)``, until ``n_lam`` remain; returns a new model.
+    """Remove units one at a time until ``n_lam`` remain; returns a new model.
 
-    ``repair(candidate)``, if given, improves each candidate in place before it is scored (e.g.
-    two Gauss--Newton steps): the units left often need their ``C`` and hyperplanes adjusted
-    before the right removal shows. Measured on (10, 4, 4) systems trained with 6 units: scoring
-    without repair picked a wrong unit on 3 of 8 seeds (e_test 3e-5 to 3e-3 after refinement),
-    with two Gauss--Newton steps on 2,000 samples it recovered 2 of those 3 (to ~1e-8).
+    Each removal tries, for every unit, deleting it (:func:`submodel`) and eliminating it
+    (:func:`pivot`), refits ``(A, B, C, d)`` on each candidate (:func:`refit_output`) and keeps
+    the one with the lowest prediction loss (plus ``reg ||C||^2``) on ``(x, u, x_next)``;
+    ``repair(model)``, if given, then improves the kept one in place (e.g. a Gauss--Newton step)
+    before the next removal.
+
+    Measured on the training comparison's systems (``studies/configs/train_best.toml``: (10, 4,
+    n_lam) trained with 4 extra units): most removals are eliminations of saturated units, which
+    are exact; with deletion alone and two Gauss--Newton steps on every candidate, pruning cost
+    ~75 s per n_lam = 20 model and picked a wrong unit on some seeds (e_test 1e-4 to 1e-3 where
+    both reductions reach ~1e-8 at n_lam <= 8).
     """
-    if not 1 <= n_lam <= model.n_lam:
+    if isinstance(n_lam, bool) or not isinstance(n_lam, int) or not 1 <= n_lam <= model.n_lam:
         raise LCSInputError(f"n_lam: expected an integer in [1, {model.n_lam}], received {n_lam!r}")
-    current = model
+    current = submodel(model, range(model.n_lam))
     while current.n_lam > n_lam:
         best: tuple[float, LCS] | None = None
         for j in range(current.n_lam):
-            cand = submodel(current, [i for i in range(current.n_lam) if i != j])
-            if repair is not None:
-                repair(cand)
-            with torch.no_grad():
-                value = float(prediction_loss(cand, x, u, x_next))
-            if best is None or value < best[0]:
-                best = (value, cand)
+            rest = [i for i in range(current.n_lam) if i != j]
+            for cand in (submodel(current, rest), pivot(current, j)):
+                value = refit_output(cand, x, u, x_next, reg=reg)
+                if best is None or value < best[0]:
+                    best = (value, cand)
         assert best is not None
         current = best[1]
-    return current if current is not model else submodel(model, range(model.n_lam))
+        if repair is not None:
+            repair(current)
+    return current

@@ -108,7 +108,7 @@ def test_recipes_and_option_resolution():
     assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
     best = resolve_options("best", lr=2e-2)
     assert best.lr == 2e-2 and best.eps_start == 1e-2 and best.refine == "gauss-newton"
-    assert best.extra_units == 2
+    assert best.extra_units == 4 and best.prune_repair == 1
     gn = resolve_options(optimizer="gauss-newton")
     assert gn.iterations == 50 and gn.batch_size == 5000
     assert resolve_options(optimizer="gauss-newton", iterations=7).iterations == 7

@@ -5,7 +5,7 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
-from lcs_cvx.units import grow, prune, submodel
+from lcs_cvx.units import grow, pivot, prune, refit_output, submodel
 
 
 def test_submodel_of_all_units_is_the_model():
@@ -57,6 +57,68 @@ def test_prune_removes_the_useless_unit():
     assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-8)
 
 
+def _always_active(seed: int = 0) -> lcs_cvx.LCS:
+    """A (4, 2, 4) system whose unit 3 is active on every sample of make_dataset's box."""
+    sys = lcs_cvx.random_lcs(4, 2, 4, seed=seed)
+    with torch.no_grad():
+        sys.c[3] = -1e3
+    return sys
+
+
+def test_pivot_is_exact_for_an_always_active_unit():
+    sys = _always_active()
+    data = lcs_cvx.make_dataset(sys, 300, seed=1)
+    assert bool((data.lam[:, 3] > 0).all())
+    small = pivot(sys, 3)
+    assert small.n_lam == 3 and small.sigma_min >= 2 * float(sys.stiffness) - 1e-9  # Assumption 1 kept
+    assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-8)
+    # the kept units' lam is unchanged; deleting the unit instead is wrong
+    assert torch.allclose(small.solve_lcp(data.x, data.u), data.lam[:, :3], atol=1e-8)
+    deleted = submodel(sys, [0, 1, 2])
+    with torch.no_grad():
+        assert float((deleted.step(data.x, data.u) - data.x_next).abs().max()) > 1.0
+
+
+def test_pivot_matches_the_schur_complement_formula():
+    sys = lcs_cvx.random_lcs(3, 1, 3, seed=4)
+    small = pivot(sys, 1)
+    F, r = sys.F.detach(), [0, 2]
+    schur = F[r][:, r] - F[r][:, [1]] @ F[[1]][:, r] / F[1, 1]
+    assert torch.allclose(small.F, schur, atol=1e-12)
+    assert torch.allclose(small.A, sys.A - torch.outer(sys.C[:, 1], sys.D[1]) / F[1, 1], atol=1e-12)
+
+
+def test_refit_output_recovers_the_output_matrices():
+    sys = lcs_cvx.random_lcs(4, 2, 3, seed=2)
+    data = lcs_cvx.make_dataset(sys, 400, seed=3)
+    m = lcs_cvx.LCS.from_matrices(**sys.to_matrices())
+    with torch.no_grad():
+        for name in ("A", "B", "C", "d"):
+            getattr(m, name).add_(0.3 * torch.randn_like(getattr(m, name)))
+    loss = refit_output(m, data.x, data.u, data.x_next)
+    assert loss < 1e-20
+    for name in ("A", "B", "C", "d"):
+        assert torch.allclose(getattr(m, name), getattr(sys, name), atol=1e-9), name
+    # with reg, the exact minimiser of L_pred + reg ||C||^2: its gradient in (A, B, C, d) vanishes
+    refit_output(m, data.x, data.u, data.x_next, reg=0.1)
+    m.zero_grad()
+    lam = m.solve_lcp(data.x, data.u).detach()
+    pred = data.x @ m.A.mT + data.u @ m.B.mT + lam @ m.C.mT + m.d
+    (0.5 * ((pred - data.x_next) ** 2).sum(-1).mean() + 0.1 * (m.C ** 2).sum()).backward()
+    for name in ("A", "B", "C", "d"):
+        assert float(getattr(m, name).grad.abs().max()) < 1e-9, name
+
+
+def test_prune_eliminates_an_always_active_unit():
+    """Deleting any unit of this system loses its predictions; eliminating unit 3 keeps them."""
+    sys = _always_active(seed=5)
+    data = lcs_cvx.make_dataset(sys, 300, seed=1)
+    calls = []
+    small = prune(sys, 3, data.x, data.u, data.x_next, repair=lambda m: calls.append(m.n_lam))
+    assert small.n_lam == 3 and calls == [3]
+    assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-7)
+
+
 @pytest.mark.parametrize(
     "call, match",
     [
@@ -64,6 +126,10 @@ def test_prune_removes_the_useless_unit():
         (lambda s: submodel(s, [0, 0]), r"keep: expected distinct"),
         (lambda s: submodel(s, [3]), r"keep: expected distinct"),
         (lambda s: grow(s, -1, torch.Generator()), r"extra: expected an integer >= 0"),
+        (lambda s: pivot(s, 3), r"j: expected a unit index in \[0, 3\)"),
+        (lambda s: pivot(s, True), r"j: expected a unit index"),
+        (lambda s: pivot(submodel(s, [0]), 0), r"n_lam >= 2, received 0 \(n_lam = 1\)"),
+        (lambda s: prune(s, 0, *([torch.zeros(1, 4)] * 3)), r"n_lam: expected an integer in \[1, 3\]"),
     ],
 )
 def test_invalid_units(call, match):
