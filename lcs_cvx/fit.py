@@ -20,7 +20,7 @@ Recipes (``recipe=``) are named sets of options; options given explicitly win:
   re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
   boundary), four extra units during Adam then pruned greedily by deletion or elimination
   (:mod:`lcs_cvx.units`: the escape from the permutation trap), with one Gauss--Newton step after
-  each removal, then a Gauss--Newton refinement on batches of 2,000 -- 4,000 Adam
+  each removal, then a Gauss--Newton refinement on batches of 1,000 -- 4,000 Adam
   iterations instead of the paper's 10,000 so that the whole fits the paper protocol's wall time.
 
 With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
@@ -87,10 +87,10 @@ class FitOptions:
         reinit_every: see ``reinit_saturated``.
         extra_units: Adam trains ``n_lam + extra_units`` units; the extra ones are then pruned
             greedily (:func:`lcs_cvx.units.prune`: deletion or elimination of a unit, scored after
-            a least-squares refit of ``(A, B, C, d)`` on ``refine_batch`` samples) before the
-            refinement -- the escape from the permutation trap of DESIGN.md.
-        prune_repair, prune_batch: Gauss--Newton steps on ``prune_batch`` samples applied to the
-            model after each removal.
+            a least-squares refit of ``(A, B, C, d)``) before the refinement -- the escape from
+            the permutation trap of DESIGN.md.
+        prune_repair, prune_batch: the pruning's samples (``prune_batch`` of them score the
+            candidates) and its Gauss--Newton steps on them after each removal.
         damping: initial Levenberg--Marquardt damping of the second-order steps.
         refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
         refine_iterations, refine_batch: its steps and batch size.
@@ -191,7 +191,7 @@ RECIPES: dict[str, dict[str, Any]] = {
               "refine": None, "restarts": 1, "reinit_saturated": False},
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
              "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": 4,
-             "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 2000},
+             "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 1000},
 }
 
 #: Defaults that depend on the optimiser (applied to options nobody set).
@@ -464,16 +464,15 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         if run.iteration % o.checkpoint_every == 0:
             save()
     if run.work is not run.model:  # prune the grown model back to the user's size
-        idx = run.next_batch(min(o.refine_batch, len(run.train)))
+        idx = run.next_batch(min(o.prune_batch, len(run.train)))
         d = run.train
         x, u, xn = d.x[idx], d.u[idx], d.x_next[idx]
-        r_idx = slice(0, min(o.prune_batch, len(idx)))
 
         def repair(kept: LCS) -> None:  # a few Gauss--Newton steps after each removal
             mu = o.damping
             for _ in range(o.prune_repair):
-                mu = gauss_newton_step(kept, x[r_idx], u[r_idx], xn[r_idx], gamma=o.gamma,
-                                       eps=o.eps, reg=o.reg, damping=mu).damping
+                mu = gauss_newton_step(kept, x, u, xn, gamma=o.gamma, eps=o.eps, reg=o.reg,
+                                       damping=mu).damping
 
         pruned = prune(run.work, run.model.n_lam, x, u, xn, reg=o.reg,
                        repair=repair if o.prune_repair else None)

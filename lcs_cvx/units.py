@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from ._checks import LCSInputError
+from .lcp import solve_lcp_fast
 from .system import LCS
 
 __all__ = ["submodel", "pivot", "grow", "prune", "refit_output"]
@@ -109,16 +110,16 @@ def pivot(model: LCS, j: int) -> LCS:
 
 
 def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
-                 reg: float = 0.0) -> float:
+                 reg: float = 0.0, warm_start: torch.Tensor | None = None) -> float:
     r"""Refit ``(A, B, C, d)`` in place by least squares with ``lam = LCP(F, D x + E u + c)`` fixed.
 
     The prediction loss (eq. equ.prednet) plus ``reg ||C||_F^2`` is quadratic in ``(A, B, C, d)``
     at fixed ``lam``; this is its exact minimiser (normal equations with a ``1e-12`` relative
     ridge so that units inactive on every sample stay well posed). Returns the loss after the
-    refit.
+    refit. ``warm_start``: a first guess of the LCP's free sets (:func:`lcs_cvx.lcp.solve_lcp_fast`).
     """
     with torch.no_grad():
-        lam = model.solve_lcp(x, u)
+        lam = solve_lcp_fast(model.F, model.lcp_offset(x, u), warm_start=warm_start).lam
         n = x.shape[0]
         phi = torch.cat([x, u, lam, torch.ones(n, 1, dtype=x.dtype, device=x.device)], 1)
         gram = phi.mT @ phi / n
@@ -198,10 +199,12 @@ def prune(
     current = submodel(model, range(model.n_lam))
     while current.n_lam > n_lam:
         best: tuple[float, LCS] | None = None
+        with torch.no_grad():  # the candidates' active sets are mostly the current model's
+            free = solve_lcp_fast(current.F, current.lcp_offset(x, u)).free
         for j in range(current.n_lam):
             rest = [i for i in range(current.n_lam) if i != j]
             for cand in (submodel(current, rest), pivot(current, j)):
-                value = refit_output(cand, x, u, x_next, reg=reg)
+                value = refit_output(cand, x, u, x_next, reg=reg, warm_start=free[:, rest])
                 if best is None or value < best[0]:
                     best = (value, cand)
         assert best is not None

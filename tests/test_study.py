@@ -122,6 +122,15 @@ def test_running_again_skips_every_finished_cell(pool_out):
     assert [tuple(r) for r in _rows(pool_out)] == [tuple(r) for r in before]
 
 
+def test_a_new_description_of_the_same_config_replaces_the_old(tmp_path):
+    config = {"name": "s", "panel": "a", "description": "old", "path": "a.toml"}
+    with Store(str(tmp_path)) as store:
+        store.add_study("h", config)
+        store.add_study("h", {**config, "description": "new", "path": "b.toml"})
+        (study,) = store.studies()
+    assert study["config"]["description"] == "new" and study["path"] == "b.toml"
+
+
 def test_an_interrupted_run_resumes_without_duplicates(pool_out, tmp_path):
     path = CONFIGS / "fig1e_eps_smoke.toml"
     first = run_config(path, out=tmp_path, workers=2, max_cells=1, progress=False)

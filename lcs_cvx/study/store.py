@@ -125,10 +125,13 @@ class Store:
 
     # -- writing (the client only) ------------------------------------------------------
     def add_study(self, h: str, config: dict[str, Any]) -> None:
+        """Record the study; a re-run of the same hash refreshes what the hash leaves out (the
+        description, the path), so the report follows the config file."""
         body = {k: v for k, v in config.items() if k != "path"}
         with self.conn:
             self.conn.execute(
-                "INSERT OR IGNORE INTO studies VALUES (?, ?, ?, ?, ?, ?)",
+                "INSERT INTO studies VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT(config_hash) DO UPDATE "
+                "SET config_json = excluded.config_json, path = excluded.path",
                 (h, config["name"], config.get("panel"), json.dumps(body, sort_keys=True),
                  config.get("path"), _now()),
             )
