@@ -20,7 +20,7 @@ Recipes (``recipe=``) are named sets of options; options given explicitly win:
   re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
   boundary), four extra units during Adam then pruned greedily by deletion or elimination
   (:mod:`lcs_cvx.units`: the escape from the permutation trap), with one Gauss--Newton step after
-  each removal, then a Gauss--Newton refinement on batches of 1,000 -- 4,000 Adam
+  each removal, then a Gauss--Newton refinement on batches of 500 -- 4,000 Adam
   iterations instead of the paper's 10,000 so that the whole fits the paper protocol's wall time.
 
 With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
@@ -191,7 +191,7 @@ RECIPES: dict[str, dict[str, Any]] = {
               "refine": None, "restarts": 1, "reinit_saturated": False},
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
              "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": 4,
-             "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 1000},
+             "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 500},
 }
 
 #: Defaults that depend on the optimiser (applied to options nobody set).
