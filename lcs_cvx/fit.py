@@ -18,10 +18,11 @@ Recipes (``recipe=``) are named sets of options; options given explicitly win:
 - ``"best"``: what this package recommends (see :data:`RECIPES`): Adam from lr 1e-2 on a cosine
   schedule, continuation in ``eps`` (1e-2 -> ``eps`` over the first 60 % of the iterations),
   re-initialisation of saturated units (active on >= 98 % of samples: no gradient reaches their
-  boundary), four extra units during Adam then pruned greedily by deletion or elimination
-  (:mod:`lcs_cvx.units`: the escape from the permutation trap), with one Gauss--Newton step after
-  each removal, then a Gauss--Newton refinement on batches of 500 -- 4,000 Adam
-  iterations instead of the paper's 10,000 so that the whole fits the paper protocol's wall time.
+  boundary), ``min(4, ceil(n_lam / 2))`` extra units during Adam then pruned greedily by
+  deletion or elimination (:mod:`lcs_cvx.units`: the escape from the permutation trap) with one
+  Gauss--Newton step after each removal, then a Gauss--Newton refinement on batches of 500 --
+  4,000 Adam iterations instead of the paper's 10,000 so that the whole fits the paper
+  protocol's wall time.
 
 With ``restarts > 1`` the runs start from different initialisations (the first from ``model``),
 train on ``1 - holdout`` of the data, and the one with the lowest relative error on the held-out
@@ -55,7 +56,7 @@ from .second_order import gauss_newton_step, newton_step
 from .system import LCS, PARAMETER_NAMES
 from .units import grow, prune
 
-__all__ = ["FitOptions", "FitResult", "RECIPES", "fit"]
+__all__ = ["FitOptions", "FitResult", "RECIPES", "extra_units", "fit"]
 
 LOSSES = ("violation", "prediction")
 OPTIMIZERS = ("adam", "gauss-newton", "newton")
@@ -85,7 +86,8 @@ class FitOptions:
         reinit_saturated: re-draw the hyperplane of a unit active on >= 98 % of samples, every
             ``reinit_every`` iterations during the continuation phase.
         reinit_every: see ``reinit_saturated``.
-        extra_units: Adam trains ``n_lam + extra_units`` units; the extra ones are then pruned
+        extra_units: Adam trains ``n_lam + extra_units`` units (``"auto"``: see
+            :func:`extra_units`); the extra ones are then pruned
             greedily (:func:`lcs_cvx.units.prune`: deletion or elimination of a unit, scored after
             a least-squares refit of ``(A, B, C, d)``) before the refinement -- the escape from
             the permutation trap of DESIGN.md.
@@ -119,7 +121,7 @@ class FitOptions:
     eps_fraction: float = 0.6
     reinit_saturated: bool = False
     reinit_every: int = 500
-    extra_units: int = 0
+    extra_units: int | str = 0
     prune_repair: int = 1
     prune_batch: int = 1000
     damping: float = 1e-3
@@ -153,8 +155,11 @@ class FitOptions:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < math.inf:
                 raise LCSInputError(f"{name}: expected a finite number >= 0, received {v!r}")
-        if isinstance(self.extra_units, bool) or not isinstance(self.extra_units, int) or self.extra_units < 0:
-            raise LCSInputError(f"extra_units: expected an integer >= 0, received {self.extra_units!r}")
+        if self.extra_units != "auto" and (isinstance(self.extra_units, bool)
+                                           or not isinstance(self.extra_units, int) or self.extra_units < 0):
+            raise LCSInputError(
+                f"extra_units: expected an integer >= 0 or 'auto', received {self.extra_units!r}"
+            )
         if isinstance(self.prune_repair, bool) or not isinstance(self.prune_repair, int) or self.prune_repair < 0:
             raise LCSInputError(f"prune_repair: expected an integer >= 0, received {self.prune_repair!r}")
         for name in ("iterations", "batch_size", "reinit_every", "refine_iterations", "prune_batch",
@@ -173,7 +178,7 @@ class FitOptions:
         b = self.betas
         if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(0 <= x < 1 for x in b)):
             raise LCSInputError(f"betas: expected two numbers in [0, 1), received {b!r}")
-        if self.extra_units > 0 and (self.optimizer != "adam" or self.refine is None):
+        if self.extra_units != 0 and (self.optimizer != "adam" or self.refine is None):
             raise LCSInputError(
                 "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
                 f"with refine set, received optimizer={self.optimizer!r}, refine={self.refine!r}"
@@ -190,7 +195,7 @@ RECIPES: dict[str, dict[str, Any]] = {
     "paper": {"optimizer": "adam", "lr": 1e-3, "lr_schedule": "constant", "eps_start": None,
               "refine": None, "restarts": 1, "reinit_saturated": False},
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
-             "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": 4,
+             "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000, "extra_units": "auto",
              "prune_repair": 1, "refine": "gauss-newton", "refine_iterations": 10, "refine_batch": 500},
 }
 
@@ -222,6 +227,17 @@ class FitResult:
     settings: FitOptions
     restart_scores: list[float] = field(default_factory=list)
     wall_time: float = 0.0
+
+
+def extra_units(option: int | str, n_lam: int) -> int:
+    """The extra units Adam trains: ``option``, or for ``"auto"`` ``min(4, ceil(n_lam / 2))``.
+
+    Measured on the training comparison (studies/configs/train_best.toml, 10 seeds each): four
+    extra units took n_lam = 8 from one stuck seed in ten (2 extra) to none and n_lam = 20 from a
+    mean e_test of ~3e-4 to ~1e-4; at n_lam = 4 they left one seed of ten stuck at 7e-4 after
+    pruning (two of the six non-saturated units shared one boundary), which 2 extra units solve.
+    """
+    return min(4, math.ceil(n_lam / 2)) if option == "auto" else int(option)
 
 
 def resolve_options(recipe: str | None = None, **options: Any) -> FitOptions:
@@ -282,8 +298,8 @@ class _Run:
         self.model, self.train, self.test, self.opts, self.restart = model, train, test, opts, restart
         self.gen = torch.Generator().manual_seed(opts.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one pruned back after the Adam phase
-        grows = opts.extra_units > 0 and opts.optimizer == "adam"
-        self.work = grow(model, opts.extra_units, self.gen) if grows else model
+        self.extra = extra_units(opts.extra_units, model.n_lam) if opts.optimizer == "adam" else 0
+        self.work = grow(model, self.extra, self.gen) if self.extra else model
         self.adam = torch.optim.Adam(
             self.work.parameters(), lr=opts.lr, betas=tuple(opts.betas), eps=opts.adam_eps
         )
@@ -306,7 +322,7 @@ class _Run:
         return {
             "model": {k: v.detach().clone() for k, v in self.model.state_dict().items()},
             "work": {k: v.detach().clone() for k, v in self.work.state_dict().items()} if grown else None,
-            "adam": self.adam.state_dict() if grown or self.opts.extra_units == 0 else None,
+            "adam": self.adam.state_dict() if grown or self.extra == 0 else None,
             "gen": self.gen.get_state(),
             "iteration": self.iteration, "second": self.second,
             "perm": self.perm, "pos": self.pos, "history": self.history,

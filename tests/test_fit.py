@@ -14,7 +14,7 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
-from lcs_cvx.fit import FitOptions, resolve_options
+from lcs_cvx.fit import FitOptions, extra_units, resolve_options
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +108,8 @@ def test_recipes_and_option_resolution():
     assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
     best = resolve_options("best", lr=2e-2)
     assert best.lr == 2e-2 and best.eps_start == 1e-2 and best.refine == "gauss-newton"
-    assert best.extra_units == 4 and best.prune_repair == 1
+    assert best.extra_units == "auto" and best.prune_repair == 1
+    assert [extra_units("auto", n) for n in (1, 4, 8, 20)] == [1, 2, 4, 4]
     gn = resolve_options(optimizer="gauss-newton")
     assert gn.iterations == 50 and gn.batch_size == 5000
     assert resolve_options(optimizer="gauss-newton", iterations=7).iterations == 7
@@ -126,6 +127,8 @@ def test_recipes_and_option_resolution():
         ({"loss": "prediction", "optimizer": "newton"}, r"second-order methods are for the violation loss"),
         ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best'\), received 'fast'"),
         ({"extra_units": 2}, r"extra_units: the pruned model needs a refinement phase"),
+        ({"extra_units": "many"}, r"extra_units: expected an integer >= 0 or 'auto', received 'many'"),
+        ({"extra_units": -1}, r"extra_units: expected an integer >= 0 or 'auto', received -1"),
     ],
 )
 def test_invalid_options(small, kwargs, match):
