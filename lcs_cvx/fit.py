@@ -96,6 +96,9 @@ class FitOptions:
         damping: initial Levenberg--Marquardt damping of the second-order steps.
         refine: second-order refinement after Adam: ``None``, ``"gauss-newton"`` or ``"newton"``.
         refine_iterations, refine_batch: its steps and batch size.
+        polish_iterations, polish_lr: Adam steps (minibatches of ``batch_size``, constant
+            ``polish_lr``) on the prediction loss (eq. equ.prednet) after everything else -- the
+            "final polish": the model is then judged by the loss it is used with. 0: none.
         restarts: independent runs; the best on the held-out split is returned.
         holdout: fraction of the data held out to score restarts (only when ``restarts > 1``).
         seed: seed of minibatches, restarts' initialisations and re-initialisations.
@@ -128,6 +131,8 @@ class FitOptions:
     refine: str | None = None
     refine_iterations: int = 20
     refine_batch: int = 5000
+    polish_iterations: int = 0
+    polish_lr: float = 1e-4
     restarts: int = 1
     holdout: float = 0.1
     seed: int = 0
@@ -147,7 +152,7 @@ class FitOptions:
         choice("recipe", (None, *RECIPES))
         choice("lr_schedule", SCHEDULES)
         choice("refine", REFINERS)
-        for name in ("gamma", "eps", "lr", "adam_eps", "lr_floor", "eps_fraction"):
+        for name in ("gamma", "eps", "lr", "adam_eps", "lr_floor", "eps_fraction", "polish_lr"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < math.inf:
                 raise LCSInputError(f"{name}: expected a finite number > 0, received {v!r}")
@@ -163,10 +168,11 @@ class FitOptions:
         if isinstance(self.prune_repair, bool) or not isinstance(self.prune_repair, int) or self.prune_repair < 0:
             raise LCSInputError(f"prune_repair: expected an integer >= 0, received {self.prune_repair!r}")
         for name in ("iterations", "batch_size", "reinit_every", "refine_iterations", "prune_batch",
-                     "refine_batch", "restarts", "eval_every", "checkpoint_every"):
+                     "refine_batch", "restarts", "eval_every", "checkpoint_every", "polish_iterations"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < (0 if name == "iterations" else 1):
-                raise LCSInputError(f"{name}: expected an integer >= 1, received {v!r}")
+            low = 0 if name in ("iterations", "polish_iterations") else 1
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise LCSInputError(f"{name}: expected an integer >= {low}, received {v!r}")
         if self.eps_start is not None and not (
             isinstance(self.eps_start, (int, float)) and self.eps_start >= self.eps
         ):
@@ -215,7 +221,7 @@ class FitResult:
         model: the trained model (the same object as the ``model`` argument, updated in place,
             unless ``restarts > 1`` chose another initialisation).
         history: one dict per record: ``iteration``, ``phase`` (``"adam"`` / ``"gauss-newton"`` /
-            ``"newton"``), ``loss`` (mean regularised training loss since the last record),
+            ``"newton"`` / ``"polish"``), ``loss`` (mean regularised training loss since the last record),
             ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s), ``restart``.
         settings: the resolved :class:`FitOptions`.
         restart_scores: held-out relative error of each restart (empty with one run).
@@ -305,6 +311,10 @@ class _Run:
         )
         self.iteration = 0  # Adam iterations done
         self.second = 0  # second-order steps done
+        self.polished = 0  # polish steps done (prediction loss, Adam on the final model)
+        self.polish_adam = torch.optim.Adam(
+            model.parameters(), lr=opts.polish_lr, betas=tuple(opts.betas), eps=opts.adam_eps
+        )
         self.perm = torch.randperm(len(train), generator=self.gen)
         self.pos = 0
         self.history: list[dict[str, Any]] = []
@@ -324,7 +334,8 @@ class _Run:
             "work": {k: v.detach().clone() for k, v in self.work.state_dict().items()} if grown else None,
             "adam": self.adam.state_dict() if grown or self.extra == 0 else None,
             "gen": self.gen.get_state(),
-            "iteration": self.iteration, "second": self.second,
+            "iteration": self.iteration, "second": self.second, "polished": self.polished,
+            "polish_adam": self.polish_adam.state_dict(),
             "perm": self.perm, "pos": self.pos, "history": self.history,
             "damping": self.damping,
             "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
@@ -341,7 +352,8 @@ class _Run:
         if st["adam"] is not None:
             self.adam.load_state_dict(st["adam"])
         self.gen.set_state(st["gen"])
-        self.iteration, self.second = st["iteration"], st["second"]
+        self.iteration, self.second, self.polished = st["iteration"], st["second"], st["polished"]
+        self.polish_adam.load_state_dict(st["polish_adam"])
         self.perm, self.pos, self.history = st["perm"], st["pos"], st["history"]
         self.damping = st["damping"]
         self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
@@ -391,7 +403,7 @@ class _Run:
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict:
         e_test = relative_error(self.work, self.test) if self.test is not None else None
         rec = {
-            "iteration": self.iteration + self.second, "phase": phase,
+            "iteration": self.iteration + self.second + self.polished, "phase": phase,
             "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
             "e_test": e_test, "wall_time": elapsed, "restart": self.restart,
         }
@@ -515,6 +527,25 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
                 save()
                 return True
         save()
+    while run.polished < o.polish_iterations:
+        idx = run.next_batch(min(o.batch_size, len(run.train)))
+        d = run.train
+        value = _prediction_fast(run.model, d.x[idx], d.u[idx], d.x_next[idx], None)[0]
+        value = value + regularizer(run.model, o.reg)
+        run.polish_adam.zero_grad()
+        value.backward()
+        run.polish_adam.step()
+        run.acc_loss += float(value.detach())
+        run.acc_n += 1
+        run.polished += 1
+        if bar is not None:
+            bar.update(1)
+        if run.polished % o.eval_every == 0 or run.polished == o.polish_iterations:
+            if after_record(run.record("polish", o.eps, o.polish_lr, elapsed())):
+                save()
+                return True
+        if run.polished % o.checkpoint_every == 0:
+            save()
     save()
     return False
 
@@ -601,6 +632,7 @@ def fit(
     total = opts.restarts * (
         (opts.iterations if opts.optimizer == "adam" else 0)
         + (opts.iterations if opts.optimizer != "adam" else (opts.refine_iterations if opts.refine else 0))
+        + opts.polish_iterations
     )
     use_bar = progress and sys.stderr.isatty()
     bar = None

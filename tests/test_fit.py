@@ -103,6 +103,25 @@ def test_restarts_pick_the_best_on_holdout(small):
     assert {h["restart"] for h in result.history} == {0, 1, 2}
 
 
+def test_polish_lowers_the_prediction_loss(small):
+    """A final polish on the prediction loss: recorded as its own phase, counted in the
+    iterations, and it lowers L_pred on the training data from where Adam on L_eps left it."""
+    truth, train, test = small
+    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    kw = {"iterations": 300, "lr": 5e-3, "progress": False, "eval_every": 50}
+    plain = lcs_cvx.fit(model, train, test=test, **kw)
+    with torch.no_grad():
+        before = float(lcs_cvx.prediction_loss(plain.model, train.x, train.u, train.x_next))
+    polished = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, polish_iterations=200,
+                           polish_lr=1e-3, **kw)
+    with torch.no_grad():
+        after = float(lcs_cvx.prediction_loss(polished.model, train.x, train.u, train.x_next))
+    phases = [h["phase"] for h in polished.history]
+    assert phases.count("polish") == 4 and phases[-1] == "polish"
+    assert polished.history[-1]["iteration"] == 500
+    assert after < 0.9 * before  # measured: 0.051 -> 0.042
+
+
 def test_recipes_and_option_resolution():
     paper = resolve_options("paper")
     assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
@@ -122,13 +141,15 @@ def test_recipes_and_option_resolution():
         ({"optimizer": "sgd"}, r"optimizer: expected one of .*received 'sgd'"),
         ({"loss": "mse"}, r"loss: expected one of .*received 'mse'"),
         ({"lr": -1.0}, r"lr: expected a finite number > 0, received -1.0"),
-        ({"iterations": 2.5}, r"iterations: expected an integer >= 1, received 2.5"),
+        ({"iterations": 2.5}, r"iterations: expected an integer >= 0, received 2.5"),
         ({"eps_start": 1e-6}, r"eps_start: expected None or a number >= eps"),
         ({"loss": "prediction", "optimizer": "newton"}, r"second-order methods are for the violation loss"),
         ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best'\), received 'fast'"),
         ({"extra_units": 2}, r"extra_units: the pruned model needs a refinement phase"),
         ({"extra_units": "many"}, r"extra_units: expected an integer >= 0 or 'auto', received 'many'"),
         ({"extra_units": -1}, r"extra_units: expected an integer >= 0 or 'auto', received -1"),
+        ({"polish_iterations": -3}, r"polish_iterations: expected an integer >= 0, received -3"),
+        ({"polish_lr": 0.0}, r"polish_lr: expected a finite number > 0, received 0.0"),
     ],
 )
 def test_invalid_options(small, kwargs, match):
@@ -188,7 +209,7 @@ _SCRIPT = textwrap.dedent(
         {"iterations": 2500, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
          "reinit_saturated": True, "eps_start": 1e-2, "lr_schedule": "cosine",
          "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000,
-         "extra_units": 1},
+         "extra_units": 1, "polish_iterations": 150},
         {"optimizer": "newton", "iterations": 40, "batch_size": 1000},
     ],
     ids=["adam+refine", "newton"],
