@@ -441,6 +441,25 @@ class _Run:
                             st[key][:, sat] = 0.0
 
 
+def _adam_step(run: _Run, adam: torch.optim.Adam, model: LCS, value: torch.Tensor,
+               iteration: int, lr: float) -> None:
+    """One Adam step on ``value``, accumulated into the run's loss record; a clear error when
+    the loss or ``F`` stops being finite."""
+    adam.zero_grad()
+    value.backward()
+    adam.step()
+    loss_value = float(value.detach())
+    with torch.no_grad():  # F = G G^T + ... overflows first when the parameters blow up
+        finite_F = bool(torch.isfinite(model.F).all())
+    if not (math.isfinite(loss_value) and finite_F):
+        raise SolverError(
+            f"training diverged at iteration {iteration}: loss = {loss_value}, "
+            f"F {'finite' if finite_F else 'not finite'}; lower lr (now {lr:g})"
+        )
+    run.acc_loss += loss_value
+    run.acc_n += 1
+
+
 def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[], dict],
          bar, t_offset: float) -> bool:
     """Train ``run`` to completion (or until a callback asks to stop); returns True if stopped."""
@@ -468,20 +487,7 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         if o.reinit_saturated and it > 0 and it % o.reinit_every == 0 and it < o.eps_fraction * o.iterations:
             run.reinit_saturated()
         value = run.loss(run.next_batch(min(o.batch_size, len(run.train))), eps)
-        run.adam.zero_grad()
-        value.backward()
-        run.adam.step()
-        loss_value = float(value.detach())
-        with torch.no_grad():  # F = G G^T + ... overflows first when the parameters blow up
-            finite_F = bool(torch.isfinite(run.work.F).all())
-        if not (math.isfinite(loss_value) and finite_F):
-            raise SolverError(
-                f"training diverged at iteration {run.iteration + 1}: loss = {loss_value}, "
-                f"F {'finite' if finite_F else 'not finite'}; "
-                f"lower lr (now {lr:g})"
-            )
-        run.acc_loss += loss_value
-        run.acc_n += 1
+        _adam_step(run, run.adam, run.work, value, run.iteration + 1, lr)
         run.iteration += 1
         if bar is not None:
             bar.update(1)
@@ -532,11 +538,8 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
         d = run.train
         value = _prediction_fast(run.model, d.x[idx], d.u[idx], d.x_next[idx], None)[0]
         value = value + regularizer(run.model, o.reg)
-        run.polish_adam.zero_grad()
-        value.backward()
-        run.polish_adam.step()
-        run.acc_loss += float(value.detach())
-        run.acc_n += 1
+        _adam_step(run, run.polish_adam, run.model, value,
+                   run.iteration + run.second + run.polished + 1, o.polish_lr)
         run.polished += 1
         if bar is not None:
             bar.update(1)

@@ -44,7 +44,7 @@ def _from_F(model: LCS, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
 
 
-def _check_unit(model: LCS, name: str, keep: Sequence[int]) -> list[int]:
+def _check_keep(model: LCS, keep: Sequence[int]) -> list[int]:
     """``keep`` as a list of distinct ints in ``[0, n_lam)``, or a clear error."""
     try:
         out = [operator.index(k) for k in keep]
@@ -52,7 +52,7 @@ def _check_unit(model: LCS, name: str, keep: Sequence[int]) -> list[int]:
         out = None
     if not out or len(set(out)) != len(out) or not all(0 <= k < model.n_lam for k in out):
         raise LCSInputError(
-            f"{name}: expected distinct unit indices in [0, {model.n_lam}), received {list(keep)}"
+            f"keep: expected distinct unit indices in [0, {model.n_lam}), received {list(keep)}"
         )
     return out
 
@@ -70,7 +70,7 @@ def _build(model: LCS, F: torch.Tensor, **matrices: torch.Tensor) -> LCS:
 def submodel(model: LCS, keep: Sequence[int]) -> LCS:
     """A new LCS with only the units ``keep`` (in that order) of ``model`` (the others deleted:
     ``lam_j = 0``)."""
-    keep = _check_unit(model, "keep", keep)
+    keep = _check_keep(model, keep)
     idx = torch.tensor(keep, device=model.device)
     with torch.no_grad():
         return _build(model, model.F[idx][:, idx], A=model.A, B=model.B, d=model.d,
@@ -126,7 +126,7 @@ def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Ten
         ridge = torch.zeros(gram.shape[0], dtype=x.dtype, device=x.device)
         c0 = model.n_x + model.n_u
         ridge[c0:c0 + model.n_lam] = 2.0 * reg
-        ridge += 1e-12 * float(gram.diagonal().max())
+        ridge += 1e-12 * gram.diagonal().max()  # no host sync per candidate
         W = torch.linalg.solve(gram + torch.diag(ridge), phi.mT @ x_next / n).mT
         model.A.copy_(W[:, :model.n_x])
         model.B.copy_(W[:, model.n_x:c0])
