@@ -17,7 +17,7 @@ import torch
 import lcs_cvx
 from lcs_cvx.cli import main
 from lcs_cvx.study import Store, cell_seeds, expand, load_config, run_config
-from lcs_cvx.study.cells import REFERENCE
+from lcs_cvx.study.cells import REFERENCE, run_cell, setup_cell
 
 CONFIGS = Path(__file__).resolve().parents[1] / "studies" / "configs"
 SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
@@ -322,3 +322,19 @@ def test_module_kind_calls_the_modules_run_study(tmp_path, capsys):
     assert main(["study", "run", str(bad)]) == 2
     assert "module: cannot import 'no_such_module_x'" in capsys.readouterr().err
 
+
+
+def test_setup_cell_is_the_work_run_cell_measures():
+    """setup_cell (what studies/train_budget.py times) draws the cell's truth, data and learner
+    from its seeds: fitting them as run_cell does gives run_cell's e_test exactly."""
+    cell = expand(load_config(CONFIGS / "fig1a_n_lam_smoke.toml"))[1]
+    truth, train, test, learner, options = setup_cell(cell)
+    s = cell["system"]
+    assert (learner.n_x, learner.n_u, learner.n_lam) == (s["n_x"], s["n_u"], s["n_lam"])
+    assert (len(train), len(test)) == (cell["data"]["n_train"], cell["data"]["n_test"])
+    assert float(test.x.abs().max()) <= cell["data"]["x_scale"]
+    result = lcs_cvx.fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
+                         seed=cell["seeds"]["fit"], **options)
+    ran = run_cell(cell)
+    assert lcs_cvx.relative_error(result.model, test) == ran["e_test"]
+    assert truth.sigma_min == ran["sigma_min"]

@@ -33,7 +33,7 @@ import numpy as np
 
 from .config import config_hash, fit_options
 
-__all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "run_cell", "REFERENCE"]
+__all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "setup_cell", "run_cell", "REFERENCE"]
 
 STREAMS = ("truth", "train", "test", "init", "fit")
 #: ``value_index`` of a reference cell (trained once per trial, independent of the swept value).
@@ -89,6 +89,24 @@ def expand(config: dict[str, Any]) -> list[dict[str, Any]]:
     return cells
 
 
+def setup_cell(cell: dict[str, Any]) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
+    """What a cell trains on, drawn from its seeds: ``(truth, train, test, learner, options)``,
+    with ``options`` the keyword arguments of :func:`lcs_cvx.fit` besides ``recipe`` and
+    ``seed`` (``cell["recipe"]``, ``cell["seeds"]["fit"]``)."""
+    from .. import LCS, make_dataset, random_lcs
+
+    s, d, ln, seeds = cell["system"], cell["data"], cell["learner"], cell["seeds"]
+    truth = random_lcs(s["n_x"], s["n_u"], s["n_lam"], stiffness=s["stiffness"],
+                       seed=seeds["truth"], g_scale=s["g_scale"])
+    scales = {"x_scale": d["x_scale"], "u_scale": d["u_scale"]}
+    train = make_dataset(truth, d["n_train"], noise=d["noise"], seed=seeds["train"], **scales)
+    test = make_dataset(truth, d["n_test"], noise=0.0, seed=seeds["test"], **scales)
+    learner = LCS(s["n_x"], s["n_u"], s["n_lam"], stiffness=ln["stiffness"],
+                  init_scale=ln["init_scale"], seed=seeds["init"])
+    options = {k: tuple(v) if isinstance(v, list) else v for k, v in cell["fit"].items()}
+    return truth, train, test, learner, options
+
+
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     """Run one cell (in a worker; one torch thread) and return its metrics and curve.
 
@@ -100,25 +118,17 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     """
     import torch
 
-    from .. import LCS, fit, make_dataset, random_lcs, relative_error
+    from .. import fit, relative_error
 
     torch.set_num_threads(1)  # reproducible and no oversubscription (DESIGN.md)
     t0 = time.perf_counter()
-    s, d, ln, seeds = cell["system"], cell["data"], cell["learner"], cell["seeds"]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        truth = random_lcs(s["n_x"], s["n_u"], s["n_lam"], stiffness=s["stiffness"],
-                           seed=seeds["truth"], g_scale=s["g_scale"])
-        scales = {"x_scale": d["x_scale"], "u_scale": d["u_scale"]}
-        train = make_dataset(truth, d["n_train"], noise=d["noise"], seed=seeds["train"], **scales)
-        test = make_dataset(truth, d["n_test"], noise=0.0, seed=seeds["test"], **scales)
+        truth, train, test, learner, options = setup_cell(cell)
         # = count_modes(truth, train.x, train.u), without solving the (possibly stiff) LCPs again
         modes = int(torch.unique(train.lam > MODE_TOL, dim=0).shape[0])
-        learner = LCS(s["n_x"], s["n_u"], s["n_lam"], stiffness=ln["stiffness"],
-                      init_scale=ln["init_scale"], seed=seeds["init"])
-        options = {k: tuple(v) if isinstance(v, list) else v for k, v in cell["fit"].items()}
         result = fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
-                     seed=seeds["fit"], **options)
+                     seed=cell["seeds"]["fit"], **options)
         e_test = relative_error(result.model, test)
     settings = dataclasses.asdict(result.settings)
     settings["betas"] = list(settings["betas"])
