@@ -52,7 +52,7 @@ import torch
 
 from ._checks import LCSInputError, SolverError, as_matrix, check_positive
 from .losses import _inputs, _violation_fast
-from .system import LCS, PARAMETER_NAMES
+from .system import LCS, PARAMETER_NAMES, F_adjoint
 
 __all__ = [
     "violation_hessian",
@@ -154,12 +154,10 @@ def _delta_rows(f: torch.Tensor, R: int) -> torch.Tensor:
 
 
 def _to_GH(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Chain rule from ``F`` to ``(G, H)`` for ``F = G G^T + H - H^T + s I``: given
-    ``T_F[..., j, m] = d(.)/dF_jm``, return ``d(.)/dG`` ``= (T_F + T_F^T) G`` and
-    ``d(.)/dH = T_F - T_F^T``, each ``(..., n * n)`` row-major."""
-    sym = T_F + T_F.mT
+    """:func:`lcs_cvx.system.F_adjoint`, each block ``(..., n * n)`` row-major."""
     lead = T_F.shape[:-2]
-    return (sym @ G).reshape(*lead, -1), (T_F - T_F.mT).reshape(*lead, -1)
+    dG, dH = F_adjoint(T_F, G)
+    return dG.reshape(*lead, -1), dH.reshape(*lead, -1)
 
 
 def objective_jacobians(

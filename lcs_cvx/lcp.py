@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError, as_batch, as_matrix
-from .pivoting import FallbackWarning, block_pivoting, initial_state, unconverged
+from .pivoting import FallbackWarning, array_ops, block_pivoting, initial_state, unconverged
 from .problems import convex_lcp_problem
 
 __all__ = [
@@ -100,6 +100,7 @@ def solve_lcp_fast(
     tol: float = PIVOT_TOL,
     fallback: bool = True,
     warm_start: torch.Tensor | None = None,
+    backend: str = "auto",
 ) -> LCPSolution:
     """Solve ``0 <= lam _|_ F lam + q >= 0`` for a batch by block principal pivoting.
 
@@ -116,6 +117,8 @@ def solve_lcp_fast(
         warm_start: ``(B, n)`` bool first guess of the free sets, e.g. ``free`` of an earlier
             solve of the same samples (default: ``q < 0``, the guess of ``lam = 0``). The
             solution is unique (Assumption 1) and does not depend on it; the sweeps do.
+        backend: the kernel's arrays (:func:`lcs_cvx.pivoting.array_ops`): ``"auto"`` (NumPy
+            for CPU tensors, torch otherwise), ``"numpy"`` or ``"torch"``.
 
     Returns:
         :class:`LCPSolution` (no autograd graph; see :func:`active_set_solve`).
@@ -124,21 +127,29 @@ def solve_lcp_fast(
         F = F.detach()
         q = q.detach()
         B, n = q.shape
-        abs_tol = tol * (1.0 + q.abs().amax(-1, keepdim=True))
+        xp = array_ops(q, backend)
+        Fa, qa = xp.wrap(F), xp.wrap(q)
+        F_flat, FT = Fa.reshape(1, n * n), xp.contiguous(Fa.T)
+        abs_tol = -tol * (1.0 + xp.amax_abs(qa))
 
-        def solve(free: torch.Tensor, idx: torch.Tensor | None):
-            qq = q if idx is None else q[idx]
+        def solve(free: Any, idx: Any):
+            qq = qa if idx is None else qa[idx]
             at = abs_tol if idx is None else abs_tol[idx]
-            lam = active_set_solve(F, qq, free)
-            w = lam @ F.mT + qq
-            bad = torch.where(free, lam < -at, w < -at)
+            # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
+            lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
+            w = xp.addmm(qq, lam, FT)
+            bad = xp.where(free, lam < at, w < at)
+            if failed is not None:
+                bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
             return lam, bad
 
-        res = block_pivoting(solve, initial_state(_initial_free(q), warm_start), max_iter=max_iter)
-        lam = res.solution.clamp(min=0.0)
-        free = res.free & (res.solution > 0)
+        res = block_pivoting(xp, solve, initial_state(xp, _initial_free(qa), warm_start, q.device),
+                             max_iter=max_iter)
+        solution = xp.unwrap(res.solution, q.device)
+        lam = solution.clamp(min=0.0)
+        free = xp.unwrap(res.free, q.device) & (solution > 0)
         brute = n <= BRUTE_MAX
-        bad_idx = unconverged(res, "LCP", max_iter, fallback,
+        bad_idx = unconverged(xp.unwrap(res.converged, q.device), "LCP", max_iter, fallback,
                               f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
         n_fb = 0 if bad_idx is None else int(bad_idx.numel())
         if bad_idx is not None and brute:

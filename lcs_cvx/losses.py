@@ -29,6 +29,7 @@ from ._checks import LCSInputError, as_batch, check_positive
 from .layers import lcp_layer, solve_layer, violation_layer
 from .lcp import active_set_solve, lcp_residual, solve_lcp_fast
 from .problems import convex_lcp_problem, violation_problem
+from .system import F_adjoint
 from .violation import solve_violation_fast, violation_kkt_residual
 
 __all__ = [
@@ -97,42 +98,49 @@ class LossInfo:
 class _EnvelopeLoss(torch.autograd.Function):
     r"""Batch mean of (V)'s objective at a fixed optimum ``(lam, phi)``, with Lemma 3's gradients.
 
-    Forward: ``mean_t 1/2 ||e_t||^2 + (lam_t^T phi_t + ||w_t||^2 / (2 gamma)) / eps`` with
-    ``e = C lam + r`` and ``w = F lam + q - phi``. Backward (the envelope theorem: ``lam`` and
-    ``phi`` are optimal, so their variation does not contribute)::
+    Differentiable inputs are the model's parameters ``A, B, C, d, D, E, G, H, c``; the others
+    are the data, ``F`` and the residuals ``q = D x + E u + c``, ``r = A x + B u + d - x'``
+    (computed by the caller without a graph) and the optimum. Forward:
+    ``mean_t 1/2 ||e_t||^2 + (lam_t^T phi_t + ||w_t||^2 / (2 gamma)) / eps`` with
+    ``e = C lam + r`` and ``w = F lam + q - phi``. Backward, the envelope theorem (``lam`` and
+    ``phi`` are optimal, so their variation does not contribute), with ``g_e = e / B`` and
+    ``g_w = w / (gamma eps B)``::
 
-        dL/dr = e / B,   dL/dC = e^T lam / B,   dL/dq = w / (gamma eps B),   dL/dF = w^T lam / (gamma eps B)
+        dA = g_e^T x,  dB = g_e^T u,  dC = g_e^T lam,  dd = sum_t g_e,
+        dD = g_w^T x,  dE = g_w^T u,  dF = g_w^T lam,  dc = sum_t g_w,
 
-    The same numbers as autograd through :meth:`ViolationProblem.objective` at the detached
-    optimum, in a handful of fused products instead of a graph of ~20 nodes (the loss is called
-    at every training step). Not twice differentiable; Lemma 4 lives in :mod:`lcs_cvx.hessian`.
+    and ``dG, dH`` from ``dF`` by :func:`lcs_cvx.system.F_adjoint` -- one small product per
+    gradient, no autograd graph. The same numbers as autograd through
+    :meth:`ViolationProblem.objective` at the detached optimum (tested), at a fraction of the
+    cost (the loss is called at every training step). Not twice differentiable; Lemma 4 lives
+    in :mod:`lcs_cvx.hessian`.
     """
 
     @staticmethod
-    def forward(ctx, C, F, q, r, lam, phi, gamma: float, eps: float):  # noqa: D102
+    def forward(ctx, A, B, C, d, D, E, G, H, c, F, x, u, q, r, lam, phi, gamma: float, eps: float):  # noqa: D102
         e = torch.addmm(r, lam, C.mT)
         w = torch.addmm(q, lam, F.mT).sub_(phi)  # the association of the closed form
-        ctx.save_for_backward(lam, e, w)
-        ctx.scale = (1.0 / lam.shape[0], 1.0 / (gamma * eps * lam.shape[0]))
+        n = lam.shape[0]
         total = 0.5 * torch.vdot(e.reshape(-1), e.reshape(-1)) + (
             torch.vdot(lam.reshape(-1), phi.reshape(-1)) + 0.5 / gamma * torch.vdot(w.reshape(-1), w.reshape(-1))
         ) / eps
-        return total / lam.shape[0]
+        if any(ctx.needs_input_grad[:9]):
+            # the residuals, already scaled by the gradient's 1/B and 1/(gamma eps B)
+            ctx.save_for_backward(x, u, lam, G, e.mul_(1.0 / n), w.mul_(1.0 / (gamma * eps * n)))
+        return total / n
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
-        lam, e, w = ctx.saved_tensors
-        s_dyn, s_lcp = ctx.scale
-        ge = e * (grad * s_dyn)
-        gw = w * (grad * s_lcp)
+        x, u, lam, G, ge, gw = ctx.saved_tensors
+        geT, gwT = (ge * grad).mT, (gw * grad).mT
         need = ctx.needs_input_grad
-        return (
-            ge.mT @ lam if need[0] else None,
-            gw.mT @ lam if need[1] else None,
-            gw if need[2] else None,
-            ge if need[3] else None,
-            None, None, None, None,
-        )
+        dG, dH = F_adjoint(gwT @ lam, G) if need[6] or need[7] else (None, None)
+        # one product per gradient (each comes out contiguous, as the parameters are laid out)
+        return (geT @ x if need[0] else None, geT @ u if need[1] else None,
+                geT @ lam if need[2] else None, geT.sum(1) if need[3] else None,
+                gwT @ x if need[4] else None, gwT @ u if need[5] else None,
+                dG, dH, gwT.sum(1) if need[8] else None,
+                None, None, None, None, None, None, None, None, None)
 
 
 def _inputs(model: Any, x: Any, u: Any, x_next: Any):
@@ -219,15 +227,19 @@ def _violation_fast(model, x, u, x_next, gamma: float, eps: float,
                     warm_start: torch.Tensor | None, residual: bool):
     """The fast path of :func:`violation_loss` on validated tensors: ``(loss, solution, lam,
     phi)``. :func:`lcs_cvx.fit` calls it directly (its data are validated once)."""
-    F, C = model.F, model.C  # gamma < sigma_min(F + F^T) is checked by parameter_values
-    q = x @ model.D.mT + u @ model.E.mT + model.c
-    r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
-    decl = violation_problem(model.n_lam)
+    m = model
+    decl = violation_problem(m.n_lam)
     with torch.no_grad():
-        values = decl.parameter_values(C.detach(), F.detach(), q.detach(), r.detach(), gamma, eps)
+        F = m.F
+        q = x @ m.D.mT + u @ m.E.mT + m.c  # the association of the closed form (Lemma 3's
+        r = x @ m.A.mT + u @ m.B.mT + m.d - x_next  # w = F lam + q - phi cancels: keep it)
+        # gamma < sigma_min(F + F^T) is checked there; F + F^T >= 2 s I by construction
+        values = decl.parameter_values(m.C, F, q, r, gamma, eps, 2.0 * float(m.stiffness))
         sol = solve_violation_fast(values, residual=residual, warm_start=warm_start)
-        phi = decl.phi(sol.lam, F.detach(), q.detach(), gamma)
-    return _EnvelopeLoss.apply(C, F, q, r, sol.lam, phi, gamma, eps), sol, sol.lam, phi
+        phi = decl.phi(sol.lam, F, q, gamma)
+    loss = _EnvelopeLoss.apply(m.A, m.B, m.C, m.d, m.D, m.E, m.G, m.H, m.c,
+                               F, x, u, q, r, sol.lam, phi, gamma, eps)
+    return loss, sol, sol.lam, phi
 
 
 def prediction_loss(

@@ -14,6 +14,10 @@ round-off, not an approximate one.
 The driver is problem-agnostic: a ``solve(free, idx)`` callback returns the solution of
 the linear system for the given free sets and a mask of infeasible indices; it works
 on a whole batch at once and only re-solves the samples that have not converged.
+
+The kernels are framework-free: they are written against :class:`ArrayOps`, which runs them on
+NumPy arrays for CPU tensors (a NumPy call costs a fraction of a torch dispatch, and a kernel
+call is a few hundred operations on small arrays) and on torch tensors for other devices.
 """
 
 from __future__ import annotations
@@ -21,14 +25,16 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 
 from ._checks import LCSInputError, SolverError
 
 __all__ = [
     "PivotResult", "block_pivoting", "unconverged", "initial_state", "spd_solve", "FallbackWarning",
-    "SMALL_N",
+    "SMALL_N", "ArrayOps", "array_ops", "BACKENDS",
 ]
 
 
@@ -42,33 +48,18 @@ class FallbackWarning(RuntimeWarning):
 SMALL_N = 6
 
 
-def initial_state(guess: torch.Tensor, warm_start: torch.Tensor | None) -> torch.Tensor:
-    """The pivoting's starting state: ``warm_start`` where given (checked to be a bool tensor of
-    ``guess``'s shape), else the cold ``guess``."""
-    if warm_start is None:
-        return guess
-    if not isinstance(warm_start, torch.Tensor) or warm_start.dtype != torch.bool \
-            or warm_start.shape != guess.shape:
-        got = (f"{warm_start.dtype} tensor of shape {tuple(warm_start.shape)}"
-               if isinstance(warm_start, torch.Tensor) else type(warm_start).__name__)
-        raise LCSInputError(
-            f"warm_start: expected a bool tensor of shape {tuple(guess.shape)} (the active sets of "
-            f"an earlier solve of these samples, LossInfo.active), received {got}"
-        )
-    return warm_start.to(guess.device)
-
-
-def spd_solve(M: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Solve the batch of symmetric positive definite systems ``M x = rhs``.
+def spd_solve(M: torch.Tensor, rhs: torch.Tensor, spd: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Solve the batch of systems ``M x = rhs``.
 
     Args:
         M: ``(B, n, n)``; rhs: ``(B, n)``.
+        spd: ``M`` is symmetric positive definite (Cholesky above :data:`SMALL_N`); if False, LU.
 
     Returns:
         ``x`` ``(B, n)`` and a ``(B,)`` bool mask of the systems whose factorisation failed
         (not positive definite to working precision, or singular), or None if none did.
     """
-    if M.shape[-1] <= SMALL_N:
+    if M.shape[-1] <= SMALL_N or not spd:
         x, info = torch.linalg.solve_ex(M, rhs.unsqueeze(-1))
     else:
         chol, info = torch.linalg.cholesky_ex(M)
@@ -76,13 +67,161 @@ def spd_solve(M: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.T
         x = torch.linalg.solve_triangular(chol.mT, y, upper=True)
     return x.squeeze(-1), (info != 0 if bool(info.any()) else None)
 
+
+class ArrayOps:
+    """The array operations of the fast kernels, for one array library (the kernels' core).
+
+    :func:`block_pivoting` and the per-sweep solves of :mod:`lcs_cvx.violation` and
+    :mod:`lcs_cvx.lcp` are written once, against Python's operators (``@ + * < & | ^ ~``,
+    indexing, ``.sum``, ``.any``, ``.all``, ``.reshape``, ``.T`` of a matrix) and the methods
+    below, which NumPy arrays and torch tensors share through this adapter. Two instances:
+
+    - ``"numpy"`` (CPU tensors, the default there): the kernels are a few hundred operations
+      on arrays of a few hundred numbers per call, so they cost the per-call overhead of the
+      array library, which is several times lower for NumPy than for a torch dispatch. The
+      arrays share memory with the tensors (``Tensor.numpy()`` / ``torch.from_numpy``: no copy);
+      the batched factorisations are torch's LAPACK calls on the same memory.
+    - ``"torch"`` (any device; used for CUDA tensors): the same kernel on torch tensors.
+
+    Both give the same answer to round-off (tested on CPU, side by side).
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.np = name == "numpy"
+        #: :func:`block_pivoting` shrinks its work set to the unconverged samples only above this
+        #: much work (``samples * k * k``): an indexing pass is cheap in NumPy, not in torch.
+        self.subset_min_work = 0 if self.np else 65_536
+
+    def __repr__(self) -> str:
+        return f"ArrayOps({self.name!r})"
+
+    # -- boundary
+    def wrap(self, t: torch.Tensor) -> Any:
+        """The kernel's array for the tensor ``t`` (no copy on CPU; detached)."""
+        t = t.detach()
+        return t.cpu().numpy() if self.np else t
+
+    def unwrap(self, a: Any, device: torch.device) -> torch.Tensor:
+        """The tensor on ``device`` for the kernel's array ``a``."""
+        return torch.from_numpy(np.ascontiguousarray(a)).to(device) if self.np else a
+
+    # -- construction
+    def copy(self, a: Any) -> Any:
+        return a.copy() if self.np else a.clone()
+
+    def arange(self, k: int, like: Any) -> Any:
+        """``[0, 1, ..., k - 1]`` (int64) beside ``like``."""
+        return np.arange(k) if self.np else torch.arange(k, device=like.device)
+
+    def ones_bool(self, n: int, like: Any) -> Any:
+        """``n`` True values beside ``like``."""
+        return np.ones(n, dtype=bool) if self.np else torch.ones(n, dtype=torch.bool, device=like.device)
+
+    def free_block(self, M: Any, free: Any) -> Any:
+        """The batch of matrices of a linear solve on the free sets: ``M`` (row-major
+        ``(b, n * n)``, or ``(1, n * n)`` for one matrix) on the rows and columns of ``free``
+        ``(b, n)``, the identity elsewhere; ``(b, n, n)``."""
+        b, n = free.shape
+        both = (free[:, :, None] & free[:, None, :]).reshape(b, n * n)
+        if self.np:
+            eye = np.eye(n, dtype=M.dtype).reshape(1, n * n)
+        else:
+            eye = torch.eye(n, dtype=M.dtype, device=M.device).reshape(1, n * n)
+        return self.where(both, M, eye).reshape(b, n, n)
+
+    def to_float(self, a: Any, like: Any) -> Any:
+        """``a`` (bool) as 0/1 of ``like``'s floating dtype."""
+        return a.astype(like.dtype) if self.np else a.to(like.dtype)
+
+    def contiguous(self, a: Any) -> Any:
+        return np.ascontiguousarray(a) if self.np else a.contiguous()
+
+    # -- elementwise and reductions
+    def where(self, cond: Any, a: Any, b: Any) -> Any:
+        return np.where(cond, a, b) if self.np else torch.where(cond, a, b)
+
+    def minimum(self, a: Any, b: Any) -> Any:
+        return np.minimum(a, b) if self.np else torch.minimum(a, b)
+
+    def clamp_min(self, a: Any, lo: float) -> Any:
+        return np.maximum(a, lo) if self.np else a.clamp(min=lo)
+
+    def amax_abs(self, a: Any) -> Any:
+        """``max_j |a_ij|`` as a ``(B, 1)`` column."""
+        return np.abs(a).max(axis=-1, keepdims=True) if self.np else a.abs().amax(-1, keepdim=True)
+
+    def argmax(self, a: Any) -> Any:
+        """Index of the largest entry of each row, ``(B,)``."""
+        return a.argmax(axis=1) if self.np else a.argmax(dim=1)
+
+    def concat(self, parts: list[Any]) -> Any:
+        """Join along the last axis."""
+        return np.concatenate(parts, axis=-1) if self.np else torch.cat(parts, dim=-1)
+
+    def flatnonzero(self, a: Any) -> Any:
+        """Indices of the True entries of the 1-D ``a``."""
+        return np.flatnonzero(a) if self.np else a.nonzero().squeeze(1)
+
+    # -- linear algebra
+    def addmm(self, c: Any, a: Any, b: Any) -> Any:
+        """``c + a @ b``."""
+        return c + a @ b if self.np else torch.addmm(c, a, b)
+
+    def solve(self, M: Any, rhs: Any, spd: bool = True) -> tuple[Any, Any | None]:
+        """:func:`spd_solve` on the kernel's arrays."""
+        if not self.np:
+            return spd_solve(M, rhs, spd)
+        if M.shape[-1] <= SMALL_N or not spd:  # spd_solve's small case, checked in NumPy
+            x, info = torch.linalg.solve_ex(torch.from_numpy(M), torch.from_numpy(rhs[:, :, None]))
+            info = info.numpy()
+            return x.numpy()[:, :, 0], (info != 0 if info.any() else None)
+        x, failed = spd_solve(torch.from_numpy(M), torch.from_numpy(rhs), spd)
+        return x.numpy(), None if failed is None else failed.numpy()
+
+
+#: The kernel back-ends: ``"auto"`` picks NumPy for CPU tensors and torch otherwise.
+BACKENDS = ("auto", "numpy", "torch")
+_OPS = {"numpy": ArrayOps("numpy"), "torch": ArrayOps("torch")}
+
+
+def array_ops(t: torch.Tensor, backend: str = "auto") -> ArrayOps:
+    """The :class:`ArrayOps` that runs the kernels on ``t``'s device.
+
+    ``backend``: ``"auto"`` (NumPy for CPU tensors, torch otherwise), ``"numpy"`` (CPU tensors
+    only) or ``"torch"``.
+    """
+    if backend not in BACKENDS:
+        raise LCSInputError(f"backend: expected one of {BACKENDS}, received {backend!r}")
+    cpu = t.device.type == "cpu"
+    if backend == "numpy" and not cpu:
+        raise LCSInputError(f"backend: 'numpy' runs on CPU tensors only, received a tensor on {t.device}")
+    return _OPS["numpy" if (backend == "auto" and cpu) or backend == "numpy" else "torch"]
+
+
+def initial_state(xp: ArrayOps, guess: Any, warm_start: torch.Tensor | None, device: torch.device) -> Any:
+    """The pivoting's starting state (a kernel array for ``device``): ``warm_start`` where given
+    (checked to be a bool tensor of ``guess``'s shape), else the cold ``guess``."""
+    if warm_start is None:
+        return guess
+    if not isinstance(warm_start, torch.Tensor) or warm_start.dtype != torch.bool \
+            or tuple(warm_start.shape) != tuple(guess.shape):
+        got = (f"{warm_start.dtype} tensor of shape {tuple(warm_start.shape)}"
+               if isinstance(warm_start, torch.Tensor) else type(warm_start).__name__)
+        raise LCSInputError(
+            f"warm_start: expected a bool tensor of shape {tuple(guess.shape)} (the active sets of "
+            f"an earlier solve of these samples, LossInfo.active), received {got}"
+        )
+    return xp.wrap(warm_start.to(device))
+
+
 #: ``solve(free, idx) -> (solution, infeasible)``; ``idx`` selects samples (None: all).
-SolveFn = Callable[[torch.Tensor, torch.Tensor | None], tuple[torch.Tensor, torch.Tensor]]
+SolveFn = Callable[[Any, Any], tuple[Any, Any]]
 
 
 @dataclass(frozen=True)
 class PivotResult:
-    """Outcome of :func:`block_pivoting` for a batch of ``B`` problems.
+    """Outcome of :func:`block_pivoting` for a batch of ``B`` problems (kernel arrays).
 
     Attributes:
         solution: ``(B, ...)`` solution of the last linear solve of each sample.
@@ -91,27 +230,29 @@ class PivotResult:
         iterations: number of pivoting sweeps made.
     """
 
-    solution: torch.Tensor
-    free: torch.Tensor
-    converged: torch.Tensor
+    solution: Any
+    free: Any
+    converged: Any
     iterations: int
 
 
 def block_pivoting(
+    xp: ArrayOps,
     solve: SolveFn,
-    free0: torch.Tensor,
+    free0: Any,
     *,
     max_iter: int = 100,
     stall: int = 3,
     subset_fraction: float = 0.25,
-    subset_min_work: int = 65_536,
+    subset_min_work: int | None = None,
 ) -> PivotResult:
     """Run block principal pivoting with Murty's fallback on a batch.
 
     Args:
+        xp: the array operations (:func:`array_ops`) of ``free0`` and of ``solve``'s arrays.
         solve: callback ``solve(free, idx)``; ``free`` is ``(b, k)`` bool for the samples
-            ``idx`` (a LongTensor, or None for the whole batch). Returns the ``(b, ...)``
-            solution and a ``(b, k)`` bool mask of infeasible indices.
+            ``idx`` (an int64 index array, or None for the whole batch). Returns the
+            ``(b, ...)`` solution and a ``(b, k)`` bool mask of infeasible indices.
         free0: ``(B, k)`` bool initial guess of the free set.
         max_iter: sweeps before giving up on the remaining samples (they come back with
             ``converged = False``; callers fall back to a reference solver).
@@ -120,35 +261,39 @@ def block_pivoting(
         subset_fraction: once at most this fraction of the work set is unconverged, the work
             set shrinks to those samples (a converged sample re-solved with its unchanged free
             set gives the same answer, so shrinking is only a saving, not a correctness matter).
+        subset_min_work: ... and only when the work set is this large (``size * k * k``): on
+            small batches one more indexing pass can cost more than the solves it saves
+            (default: the back-end's :attr:`ArrayOps.subset_min_work`).
 
     Returns:
         :class:`PivotResult`.
     """
-    free = free0.clone()
+    if subset_min_work is None:
+        subset_min_work = xp.subset_min_work
+    free = xp.copy(free0)
     B, k = free.shape
-    device = free.device
     solution, bad = solve(free, None)
-    active: torch.Tensor | None = None  # None: the whole batch is the work set
-    n_bad = bad.sum(dim=1)
-    best = n_bad.clone()
-    stalled = torch.zeros_like(n_bad)
-    weights = torch.arange(1, k + 1, device=device)
+    active = None  # None: the whole batch is the work set
+    n_bad = bad.sum(1)
+    best = xp.copy(n_bad)
+    stalled = n_bad * 0
+    columns = xp.arange(k, free)
     sweeps = 0
     while sweeps < max_iter:
         todo = n_bad > 0
         n_todo = int(todo.sum())
         if n_todo == 0:
             break
-        size = B if active is None else active.numel()
+        size = B if active is None else active.shape[0]
         if size * k * k >= subset_min_work and n_todo <= subset_fraction * size:
-            keep = todo.nonzero().squeeze(1)
+            keep = xp.flatnonzero(todo)
             active = keep if active is None else active[keep]
             bad, n_bad, best, stalled = bad[keep], n_bad[keep], best[keep], stalled[keep]
         flip = bad
         if sweeps >= stall:  # Murty's rule (largest infeasible index) for stalled samples
-            last = torch.argmax(bad.long() * weights, dim=1, keepdim=True)
-            single = torch.zeros_like(bad).scatter_(1, last, True) & bad
-            flip = torch.where((stalled >= stall)[:, None], single, bad)
+            last = xp.argmax(xp.where(bad, columns, -1))
+            single = (columns == last[:, None]) & bad
+            flip = xp.where((stalled >= stall)[:, None], single, bad)
         if active is None:
             free ^= flip
             solution, bad = solve(free, None)
@@ -158,25 +303,27 @@ def block_pivoting(
             sol, bad = solve(free_act, active)
             solution[active] = sol
         sweeps += 1
-        n_bad = bad.sum(dim=1)
+        n_bad = bad.sum(1)
         improved = n_bad < best
-        best = torch.minimum(best, n_bad)
-        stalled = torch.where(improved, 0, stalled + 1)
-    converged = torch.ones(B, dtype=torch.bool, device=device)
-    failed = n_bad > 0
-    converged[failed if active is None else active[failed]] = False
+        best = xp.minimum(best, n_bad)
+        stalled = xp.where(improved, 0, stalled + 1)
+    converged = n_bad == 0
+    if active is not None:  # the samples outside the work set had converged
+        converged_all = xp.ones_bool(B, free)
+        converged_all[active] = converged
+        converged = converged_all
     return PivotResult(solution=solution, free=free, converged=converged, iterations=sweeps)
 
 
-def unconverged(res: PivotResult, what: str, max_iter: int, fallback: bool,
+def unconverged(converged: torch.Tensor, what: str, max_iter: int, fallback: bool,
                 reference: str = "the Clarabel reference") -> torch.Tensor | None:
-    """Indices of the samples ``res`` did not converge on (None if all did), after saying so:
-    a :class:`FallbackWarning` if ``fallback`` (the caller then solves them with ``reference``),
-    else :class:`lcs_cvx.SolverError`."""
-    if bool(res.converged.all()):
+    """Indices of the samples that did not converge (``converged`` ``(B,)`` bool tensor is False;
+    None if all did), after saying so: a :class:`FallbackWarning` if ``fallback`` (the caller
+    then solves them with ``reference``), else :class:`lcs_cvx.SolverError`."""
+    if bool(converged.all()):
         return None
-    idx = (~res.converged).nonzero().squeeze(1)
-    msg = (f"{what} pivoting did not converge on {idx.numel()} of {res.converged.numel()} "
+    idx = (~converged).nonzero().squeeze(1)
+    msg = (f"{what} pivoting did not converge on {idx.numel()} of {converged.numel()} "
            f"samples in {max_iter} sweeps")
     if not fallback:
         raise SolverError(msg)

@@ -76,7 +76,7 @@ def sym_min_eig(F: torch.Tensor) -> torch.Tensor:
 def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
     """``U`` with ``U^T U = S`` for a symmetric positive definite ``S``; a clear error otherwise."""
     Lc, info = torch.linalg.cholesky_ex(S)
-    if bool((info != 0).any()):
+    if int(info) != 0:
         raise LCSInputError(
             f"{name}: expected a positive definite matrix, received one with smallest "
             f"eigenvalue {float(torch.linalg.eigvalsh(S).min()):.3e}"
@@ -153,20 +153,25 @@ class ViolationProblem:
         r: torch.Tensor,
         gamma: float,
         eps: float,
+        sigma_min_bound: float = 0.0,
     ) -> dict[str, torch.Tensor]:
         """Parameter values of (V) (differentiable in every input).
 
         Args:
             C: ``(n_x, n)``; F: ``(n, n)``; q: ``(B, n)`` the LCP offset ``D x + E u + c``;
             r: ``(B, n_x)`` the dynamics residual ``A x + B u + d - x'``;
-            gamma, eps: the paper's ``gamma`` (``0 < gamma < sigma_min(F + F^T)``) and ``eps``.
+            gamma, eps: the paper's ``gamma`` (``0 < gamma < sigma_min(F + F^T)``, checked) and
+                ``eps``.
+            sigma_min_bound: a known lower bound of ``sigma_min(F + F^T)`` (an
+                :class:`lcs_cvx.LCS` has ``2 s``): a ``gamma`` below it needs no factorisation
+                to be checked (:func:`check_gamma`).
 
         Returns:
             ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}``.
         """
         n = self.n_lam
         eye = torch.eye(n, dtype=F.dtype, device=F.device)
-        check_gamma(F, gamma)
+        check_gamma(F, gamma, sigma_min_bound)
         H = eps * (C.mT @ C) + F + F.mT - gamma * eye
         L = _upper_cholesky("eps C^T C + F + F^T - gamma I", H)
         g = eps * (r @ C) + q  # rows of eps C^T r + q
@@ -216,15 +221,18 @@ class ViolationProblem:
         return np.maximum(out, 0.0)
 
 
-def check_gamma(F: torch.Tensor, gamma: float) -> None:
+def check_gamma(F: torch.Tensor, gamma: float, sigma_min_bound: float = 0.0) -> None:
     """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers.
 
     ``gamma < sigma_min(F + F^T)`` iff ``F + F^T - gamma I`` is positive definite, so the check
     is one Cholesky factorisation (of that matrix less a round-off margin, ``1e-12`` relative,
     so that ``gamma`` equal to ``sigma_min`` to working precision is refused); the eigenvalue
-    is computed only for the error message.
+    is computed only for the error message. A ``gamma`` below ``sigma_min_bound``, a known lower
+    bound of ``sigma_min(F + F^T)``, passes without it.
     """
     check_positive("gamma", gamma)
+    if gamma < sigma_min_bound:
+        return
     Fd = F.detach()
     S = Fd + Fd.mT
     S.diagonal().sub_(gamma + 1e-12 * max(gamma, float(S.abs().amax())))

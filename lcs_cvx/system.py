@@ -20,7 +20,7 @@ from ._checks import LCSInputError, as_batch, as_matrix, check_positive
 from .lcp import active_set_solve, solve_lcp
 from .problems import sym_min_eig
 
-__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES"]
+__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES", "F_adjoint"]
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
@@ -41,6 +41,13 @@ def _shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
         "F": (n_lam, n_lam),
         "c": (n_lam,),
     }
+
+
+def F_adjoint(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The chain rule of ``F = G G^T + H - H^T + s I`` (Sec. 5): given ``T_F[..., j, m] =
+    d(.)/dF_jm`` ``(..., n, n)``, return ``d(.)/dG = (T_F + T_F^T) G`` and
+    ``d(.)/dH = T_F - T_F^T``, each ``(..., n, n)``."""
+    return (T_F + T_F.mT) @ G, T_F - T_F.mT
 
 
 class LCS(nn.Module):

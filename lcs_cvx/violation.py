@@ -19,10 +19,11 @@ Samples that do not converge are solved by the Clarabel reference on the same de
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
-from .pivoting import block_pivoting, initial_state, spd_solve, unconverged
+from .pivoting import array_ops, block_pivoting, initial_state, unconverged
 from .problems import violation_problem
 
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
@@ -86,6 +87,7 @@ def solve_violation_fast(
     fallback: bool = True,
     residual: bool = True,
     warm_start: torch.Tensor | None = None,
+    backend: str = "auto",
 ) -> ViolationSolution:
     """Solve (V) for a batch, from the declaration's parameter values.
 
@@ -100,61 +102,65 @@ def solve_violation_fast(
             :attr:`ViolationSolution.active` of an earlier solve of the same samples (default:
             the guess of ``lam = 0``). The solution does not depend on it (the problem is
             strongly convex); the number of sweeps does: from the exact active sets, none.
+        backend: the kernel's arrays (:func:`lcs_cvx.pivoting.array_ops`): ``"auto"`` (NumPy
+            for CPU tensors, torch otherwise), ``"numpy"`` or ``"torch"``.
 
     Returns:
-        :class:`ViolationSolution` (no autograd graph).
+        :class:`ViolationSolution` (no autograd graph), on the device of ``values``.
     """
     with torch.no_grad():
-        L, b, K, h = (values[k].detach() for k in ("L", "b", "K", "h"))
+        device = values["b"].device
+        xp = array_ops(values["b"], backend)
+        L, b, K, h = (xp.wrap(values[k]) for k in ("L", "b", "K", "h"))
         B, n = b.shape
-        LtL = L.mT @ L
+        LtL = L.T @ L
         Ltb = b @ L  # rows of L^T b
         # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
         K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
-        scale_g = tol * (1.0 + Ltb.abs().amax(-1, keepdim=True) + (h @ K).abs().amax(-1, keepdim=True))
-        scale_t = tol * (1.0 + h.abs().amax(-1, keepdim=True))
-        neg_l: list[torch.Tensor] = []  # -(lam's scale), from the first candidate
+        scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
+        scale_t = tol * (1.0 + xp.amax_abs(h))
+        neg_l: list[Any] = []  # -(lam's scale), from the first candidate
         neg_g, neg_t = -scale_g, -scale_t
-        nLtb, nh, KT = -Ltb, -h, K.mT.contiguous()
+        nLtb, nh, KT = -Ltb, -h, xp.contiguous(K.T)
         LtL_flat = LtL.reshape(1, n * n)
 
-        def solve(state: torch.Tensor, idx: torch.Tensor | None):
+        def solve(state: Any, idx: Any):
             free, pos = state[:, :n], state[:, n:]
             if idx is None:
                 bb, nbb, hh, nhh, ng, st, nt = Ltb, nLtb, h, nh, neg_g, scale_t, neg_t
             else:
                 bb, nbb, hh, nhh = Ltb[idx], nLtb[idx], h[idx], nh[idx]
                 ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
-            sf = pos.to(b.dtype)
-            m = free.to(b.dtype)
-            M = torch.addmm(LtL_flat, sf, K_outer).view(-1, n, n)
-            M.mul_(m.unsqueeze(2) * m.unsqueeze(1)).diagonal(dim1=-2, dim2=-1).add_(1.0 - m)
-            rhs = torch.addmm(nbb, sf * hh, K).mul_(m)
-            lam, failed = spd_solve(M, rhs)
-            t = torch.addmm(nhh, lam, KT)
-            g = torch.addmm(torch.addmm(bb, lam, LtL), sf * t, K)
+            sf = xp.to_float(pos, b)
+            # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
+            M = xp.free_block(xp.addmm(LtL_flat, sf, K_outer), free)
+            rhs = xp.where(free, xp.addmm(nbb, sf * hh, K), 0.0)
+            lam, failed = xp.solve(M, rhs)
+            t = xp.addmm(nhh, lam, KT)
+            g = xp.addmm(xp.addmm(bb, lam, LtL), sf * t, K)
             if not neg_l:
-                neg_l.append(-tol * (1.0 + lam.abs().amax(-1, keepdim=True)))
+                neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
             nl = neg_l[0] if idx is None else neg_l[0][idx]
             # infeasible: a free lam below 0, a bound lam with a negative gradient; a piece's
             # t = K lam - h on the wrong side of 0 (to the tolerances above)
-            bad = torch.cat(
-                [torch.where(free, lam < nl, g < ng), torch.where(pos, t < nt, t > st)], dim=1
-            )
+            bad = xp.concat([xp.where(free, lam < nl, g < ng), xp.where(pos, t < nt, t > st)])
             if failed is not None:
-                bad |= failed.unsqueeze(1)  # a failed factorisation is never trusted
+                bad |= failed[:, None]  # a failed factorisation is never trusted
             return lam, bad
 
-        state0 = initial_state(torch.cat([h < 0, h < 0], dim=1), warm_start)
-        res = block_pivoting(solve, state0, max_iter=max_iter)
-        lam = res.solution.clamp(min=0.0)
-        bad_idx = unconverged(res, "violation QP", max_iter, fallback)
+        state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
+        res = block_pivoting(xp, solve, state0, max_iter=max_iter)
+        lam_a = xp.clamp_min(res.solution, 0.0)
+        lam, free, pos = (xp.unwrap(a, device) for a in (lam_a, lam_a > 0, (lam_a @ KT - h) > 0))
+        bad_idx = None if res.converged.all() else unconverged(
+            xp.unwrap(res.converged, device), "violation QP", max_iter, fallback)
         n_fb = 0 if bad_idx is None else int(bad_idx.numel())
+        L, b, K, h = (values[k].detach() for k in ("L", "b", "K", "h"))
         if bad_idx is not None:
             sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
             ref = violation_problem(n).solve(sub)
             lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
-        free = lam > 0
-        pos = (lam @ K.mT - h) > 0
+            free[bad_idx] = lam[bad_idx] > 0
+            pos[bad_idx] = (lam[bad_idx] @ K.mT - h[bad_idx]) > 0
         resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam) if residual else None
         return ViolationSolution(lam, free, pos, res.iterations, n_fb, resid)
