@@ -24,7 +24,15 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError, as_batch, as_matrix
-from .pivoting import FallbackWarning, array_ops, block_pivoting, initial_state, unconverged
+from .pivoting import (
+    ArrayOps,
+    FallbackWarning,
+    PivotResult,
+    array_ops,
+    block_pivoting,
+    initial_state,
+    unconverged,
+)
 from .problems import convex_lcp_problem
 
 __all__ = [
@@ -88,8 +96,30 @@ def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> to
     return torch.linalg.solve(M, -(m * q).unsqueeze(-1)).squeeze(-1)
 
 
-def _initial_free(q: torch.Tensor) -> torch.Tensor:
+def _initial_free(q: Any) -> Any:
     return q < 0
+
+
+def _pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
+           warm_start: torch.Tensor | None, device: torch.device) -> PivotResult:
+    """Block pivoting on the LCP in the kernel's arrays."""
+    n = q.shape[1]
+    F_flat, FT = F.reshape(1, n * n), xp.contiguous(F.T)
+    abs_tol = -tol * (1.0 + xp.amax_abs(q))
+
+    def solve(free: Any, idx: Any):
+        qq = q if idx is None else q[idx]
+        at = abs_tol if idx is None else abs_tol[idx]
+        # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
+        lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
+        w = xp.addmm(qq, lam, FT)
+        bad = xp.where(free, lam < at, w < at)
+        if failed is not None:
+            bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
+        return lam, bad
+
+    state0 = initial_state(xp, _initial_free(q), warm_start, device)
+    return block_pivoting(xp, solve, state0, max_iter=max_iter)
 
 
 def solve_lcp_fast(
@@ -128,23 +158,8 @@ def solve_lcp_fast(
         q = q.detach()
         B, n = q.shape
         xp = array_ops(q, backend)
-        Fa, qa = xp.wrap(F), xp.wrap(q)
-        F_flat, FT = Fa.reshape(1, n * n), xp.contiguous(Fa.T)
-        abs_tol = -tol * (1.0 + xp.amax_abs(qa))
-
-        def solve(free: Any, idx: Any):
-            qq = qa if idx is None else qa[idx]
-            at = abs_tol if idx is None else abs_tol[idx]
-            # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
-            lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
-            w = xp.addmm(qq, lam, FT)
-            bad = xp.where(free, lam < at, w < at)
-            if failed is not None:
-                bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
-            return lam, bad
-
-        res = block_pivoting(xp, solve, initial_state(xp, _initial_free(qa), warm_start, q.device),
-                             max_iter=max_iter)
+        with xp.threads():
+            res = _pivot(xp, xp.wrap(F), xp.wrap(q), tol, max_iter, warm_start, q.device)
         solution = xp.unwrap(res.solution, q.device)
         lam = solution.clamp(min=0.0)
         free = xp.unwrap(res.free, q.device) & (solution > 0)

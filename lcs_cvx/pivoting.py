@@ -22,8 +22,10 @@ call is a few hundred operations on small arrays) and on torch tensors for other
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -95,6 +97,25 @@ class ArrayOps:
 
     def __repr__(self) -> str:
         return f"ArrayOps({self.name!r})"
+
+    @contextlib.contextmanager
+    def threads(self) -> Iterator[None]:
+        """Run the enclosed kernel with as many BLAS threads as torch may use
+        (``torch.get_num_threads()``). NumPy's OpenBLAS would otherwise put every core on
+        products of a few thousand numbers: no faster here, and it oversubscribes a process
+        pool whose workers run one torch thread each. The setting is restored on exit."""
+        if not self.np:
+            yield
+            return
+        libs = _numpy_blas()
+        before = [lib.get_num_threads() for lib in libs]
+        for lib in libs:
+            lib.set_num_threads(torch.get_num_threads())
+        try:
+            yield
+        finally:
+            for lib, n in zip(libs, before, strict=True):
+                lib.set_num_threads(n)
 
     # -- boundary
     def wrap(self, t: torch.Tensor) -> Any:
@@ -178,6 +199,14 @@ class ArrayOps:
             return x.numpy()[:, :, 0], (info != 0 if info.any() else None)
         x, failed = spd_solve(torch.from_numpy(M), torch.from_numpy(rhs), spd)
         return x.numpy(), None if failed is None else failed.numpy()
+
+
+@functools.cache
+def _numpy_blas() -> list[Any]:
+    """threadpoolctl's controllers of the BLAS libraries loaded with NumPy (found once)."""
+    from threadpoolctl import ThreadpoolController
+
+    return list(ThreadpoolController().select(user_api="blas").lib_controllers)
 
 
 #: The kernel back-ends: ``"auto"`` picks NumPy for CPU tensors and torch otherwise.

@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from .pivoting import array_ops, block_pivoting, initial_state, unconverged
+from .pivoting import ArrayOps, PivotResult, array_ops, block_pivoting, initial_state, unconverged
 from .problems import violation_problem
 
 __all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
@@ -79,6 +79,51 @@ def violation_kkt_residual(values: dict[str, torch.Tensor], lam: torch.Tensor) -
     return torch.minimum(lam, g / hdiag).abs().amax(-1) / (1.0 + lam.abs().amax(-1))
 
 
+def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: int,
+           warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, Any, PivotResult]:
+    """Block pivoting on (V) in the kernel's arrays: ``(lam, free, pos, result)``."""
+    B, n = b.shape
+    LtL = L.T @ L
+    Ltb = b @ L  # rows of L^T b
+    # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
+    K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
+    scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
+    scale_t = tol * (1.0 + xp.amax_abs(h))
+    neg_l: list[Any] = []  # -(lam's scale), from the first candidate
+    neg_g, neg_t = -scale_g, -scale_t
+    nLtb, nh, KT = -Ltb, -h, xp.contiguous(K.T)
+    LtL_flat = LtL.reshape(1, n * n)
+
+    def solve(state: Any, idx: Any):
+        free, pos = state[:, :n], state[:, n:]
+        if idx is None:
+            bb, nbb, hh, nhh, ng, st, nt = Ltb, nLtb, h, nh, neg_g, scale_t, neg_t
+        else:
+            bb, nbb, hh, nhh = Ltb[idx], nLtb[idx], h[idx], nh[idx]
+            ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
+        sf = xp.to_float(pos, b)
+        # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
+        M = xp.free_block(xp.addmm(LtL_flat, sf, K_outer), free)
+        rhs = xp.where(free, xp.addmm(nbb, sf * hh, K), 0.0)
+        lam, failed = xp.solve(M, rhs)
+        t = xp.addmm(nhh, lam, KT)
+        g = xp.addmm(xp.addmm(bb, lam, LtL), sf * t, K)
+        if not neg_l:
+            neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
+        nl = neg_l[0] if idx is None else neg_l[0][idx]
+        # infeasible: a free lam below 0, a bound lam with a negative gradient; a piece's
+        # t = K lam - h on the wrong side of 0 (to the tolerances above)
+        bad = xp.concat([xp.where(free, lam < nl, g < ng), xp.where(pos, t < nt, t > st)])
+        if failed is not None:
+            bad |= failed[:, None]  # a failed factorisation is never trusted
+        return lam, bad
+
+    state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
+    res = block_pivoting(xp, solve, state0, max_iter=max_iter)
+    lam = xp.clamp_min(res.solution, 0.0)
+    return lam, lam > 0, (lam @ KT - h) > 0, res
+
+
 def solve_violation_fast(
     values: dict[str, torch.Tensor],
     *,
@@ -111,47 +156,11 @@ def solve_violation_fast(
     with torch.no_grad():
         device = values["b"].device
         xp = array_ops(values["b"], backend)
-        L, b, K, h = (xp.wrap(values[k]) for k in ("L", "b", "K", "h"))
-        B, n = b.shape
-        LtL = L.T @ L
-        Ltb = b @ L  # rows of L^T b
-        # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
-        K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
-        scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
-        scale_t = tol * (1.0 + xp.amax_abs(h))
-        neg_l: list[Any] = []  # -(lam's scale), from the first candidate
-        neg_g, neg_t = -scale_g, -scale_t
-        nLtb, nh, KT = -Ltb, -h, xp.contiguous(K.T)
-        LtL_flat = LtL.reshape(1, n * n)
-
-        def solve(state: Any, idx: Any):
-            free, pos = state[:, :n], state[:, n:]
-            if idx is None:
-                bb, nbb, hh, nhh, ng, st, nt = Ltb, nLtb, h, nh, neg_g, scale_t, neg_t
-            else:
-                bb, nbb, hh, nhh = Ltb[idx], nLtb[idx], h[idx], nh[idx]
-                ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
-            sf = xp.to_float(pos, b)
-            # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
-            M = xp.free_block(xp.addmm(LtL_flat, sf, K_outer), free)
-            rhs = xp.where(free, xp.addmm(nbb, sf * hh, K), 0.0)
-            lam, failed = xp.solve(M, rhs)
-            t = xp.addmm(nhh, lam, KT)
-            g = xp.addmm(xp.addmm(bb, lam, LtL), sf * t, K)
-            if not neg_l:
-                neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
-            nl = neg_l[0] if idx is None else neg_l[0][idx]
-            # infeasible: a free lam below 0, a bound lam with a negative gradient; a piece's
-            # t = K lam - h on the wrong side of 0 (to the tolerances above)
-            bad = xp.concat([xp.where(free, lam < nl, g < ng), xp.where(pos, t < nt, t > st)])
-            if failed is not None:
-                bad |= failed[:, None]  # a failed factorisation is never trusted
-            return lam, bad
-
-        state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
-        res = block_pivoting(xp, solve, state0, max_iter=max_iter)
-        lam_a = xp.clamp_min(res.solution, 0.0)
-        lam, free, pos = (xp.unwrap(a, device) for a in (lam_a, lam_a > 0, (lam_a @ KT - h) > 0))
+        with xp.threads():
+            arrays = (xp.wrap(values[k]) for k in ("L", "b", "K", "h"))
+            *sets, res = _pivot(xp, *arrays, tol, max_iter, warm_start, device)
+        lam, free, pos = (xp.unwrap(a, device) for a in sets)
+        n = lam.shape[1]
         bad_idx = None if res.converged.all() else unconverged(
             xp.unwrap(res.converged, device), "violation QP", max_iter, fallback)
         n_fb = 0 if bad_idx is None else int(bad_idx.numel())

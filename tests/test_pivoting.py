@@ -171,3 +171,19 @@ def test_block_pivoting_counts_sweeps_and_reports_unconverged():
     assert res.iterations == 5
     assert res.converged.tolist() == [True, False]
     assert len(calls) == 6 and calls[0] is None
+
+
+def test_numpy_kernel_runs_with_torchs_thread_count():
+    """NumPy's OpenBLAS would put every core on the kernel's small products (measured here:
+    2 cores busy, no faster); inside the kernel it uses ``torch.get_num_threads()`` threads and
+    the caller's setting is restored afterwards."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    xp = array_ops(torch.zeros(1), "numpy")
+    blas = threadpoolctl.ThreadpoolController().select(user_api="blas")
+    with blas.limit(limits=3):
+        outside = [lib["num_threads"] for lib in blas.info()]
+        with xp.threads():
+            inside = [lib["num_threads"] for lib in blas.info()]
+        after = [lib["num_threads"] for lib in blas.info()]
+    assert inside and all(n == torch.get_num_threads() for n in inside)
+    assert after == outside
