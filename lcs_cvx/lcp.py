@@ -41,6 +41,7 @@ __all__ = [
     "solve_lcp_fast",
     "solve_lcp_brute",
     "active_set_solve",
+    "free_set_matrix",
     "lcp_residual",
     "FallbackWarning",
 ]
@@ -84,6 +85,14 @@ def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor) -> torch.T
     return torch.minimum(lam, w).abs().amax(-1) / (1.0 + q.abs().amax(-1))
 
 
+def free_set_matrix(F: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+    """``(B, n, n)``: ``F`` (``(n, n)`` or ``(B, n, n)``) on the rows and columns of the free sets
+    ``free`` ``(B, n)``, the identity elsewhere -- the matrix of ``lam_I = -F_II^{-1} q_I`` with
+    ``lam_J = 0``. Differentiable in ``F``; the kernels' :meth:`ArrayOps.free_block`."""
+    n = F.shape[-1]
+    return array_ops(F, "torch").free_block(F.reshape(-1, n * n), free)
+
+
 def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
     """``lam`` with ``lam_J = 0`` and ``(F lam + q)_I = 0`` for the free sets ``free`` ``(B, n)``.
 
@@ -91,9 +100,8 @@ def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> to
     free set this is the implicit function of Lemma 1 (a non-strictly-complementary index is
     treated as not free, i.e. ``lam_i`` held at 0 -- a one-sided derivative).
     """
-    m = free.to(q.dtype)
-    M = F * (m[:, :, None] * m[:, None, :]) + torch.diag_embed(1.0 - m)
-    return torch.linalg.solve(M, -(m * q).unsqueeze(-1)).squeeze(-1)
+    rhs = torch.where(free, -q, 0.0).unsqueeze(-1)
+    return torch.linalg.solve(free_set_matrix(F, free), rhs).squeeze(-1)
 
 
 def _initial_free(q: Any) -> Any:

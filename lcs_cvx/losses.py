@@ -27,7 +27,7 @@ import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
 from .layers import lcp_layer, solve_layer, violation_layer
-from .lcp import active_set_solve, lcp_residual, solve_lcp_fast
+from .lcp import free_set_matrix, lcp_residual, solve_lcp_fast
 from .problems import convex_lcp_problem, violation_problem
 from .system import F_adjoint
 from .violation import solve_violation_fast, violation_kkt_residual
@@ -141,6 +141,48 @@ class _EnvelopeLoss(torch.autograd.Function):
                 gwT @ x if need[4] else None, gwT @ u if need[5] else None,
                 dG, dH, gwT.sum(1) if need[8] else None,
                 None, None, None, None, None, None, None, None, None)
+
+
+class _ImplicitLoss(torch.autograd.Function):
+    r"""Batch mean of ``1/2 ||e_t||^2``, ``e = C lam + r``, at the exact LCP solution ``lam``, with
+    Lemma 1's gradient in closed form.
+
+    Differentiable inputs are the model's parameters ``A, B, C, d, D, E, G, H, c``; the others
+    are the data, ``F``, ``r = A x + B u + d - x'`` and the solution with its free sets (degenerate
+    indices not free: held at zero, the one-sided derivative). On the free set ``I`` of a sample,
+    ``F_II lam_I = -q_I`` and ``lam_J = 0``; with ``g_e = e / B``, ``g_lam = C^T g_e`` and the
+    adjoint ``mu`` (``F_II^T mu_I = (g_lam)_I``, ``mu_J = 0``: one batched solve)::
+
+        dA = g_e^T x,  dB = g_e^T u,  dC = g_e^T lam,  dd = sum_t g_e,
+        dq = -mu:  dD = dq^T x,  dE = dq^T u,  dc = sum_t dq,  dF = dq^T lam,
+
+    and ``dG, dH`` from ``dF`` by :func:`lcs_cvx.system.F_adjoint`. The same numbers as autograd
+    through :func:`lcs_cvx.lcp.active_set_solve` (tested) without its graph.
+    """
+
+    @staticmethod
+    def forward(ctx, A, B, C, d, D, E, G, H, c, F, x, u, r, lam, free):  # noqa: D102
+        e = torch.addmm(r, lam, C.mT)
+        n = lam.shape[0]
+        total = 0.5 * torch.vdot(e.reshape(-1), e.reshape(-1))
+        if any(ctx.needs_input_grad[:9]):
+            ctx.save_for_backward(x, u, lam, free, F, C, G, e.mul_(1.0 / n))
+        return total / n
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        x, u, lam, free, F, C, G, ge = ctx.saved_tensors
+        ge = ge * grad
+        rhs = torch.where(free, ge @ C, 0.0).unsqueeze(-1)
+        gq = -torch.linalg.solve(free_set_matrix(F, free).mT, rhs).squeeze(-1)
+        geT, gqT = ge.mT, gq.mT
+        need = ctx.needs_input_grad
+        dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
+        return (geT @ x if need[0] else None, geT @ u if need[1] else None,
+                geT @ lam if need[2] else None, geT.sum(1) if need[3] else None,
+                gqT @ x if need[4] else None, gqT @ u if need[5] else None,
+                dG, dH, gqT.sum(1) if need[8] else None,
+                None, None, None, None, None, None)
 
 
 def _inputs(model: Any, x: Any, u: Any, x_next: Any):
@@ -294,13 +336,18 @@ def _prediction_error(model, x, u, x_next, lam: torch.Tensor) -> torch.Tensor:
 
 
 def _prediction_fast(model, x, u, x_next, warm_start: torch.Tensor | None):
-    """The fast path of :func:`prediction_loss` on validated tensors: ``(loss, solution, lam)``,
-    ``lam`` differentiable (Lemma 1) when grad is enabled. :func:`lcs_cvx.fit` calls it directly."""
-    F = model.F
-    q = x @ model.D.mT + u @ model.E.mT + model.c
-    sol = solve_lcp_fast(F, q, warm_start=warm_start)
-    lam = active_set_solve(F, q, sol.free) if torch.is_grad_enabled() else sol.lam
-    return _prediction_error(model, x, u, x_next, lam), sol, lam
+    """The fast path of :func:`prediction_loss` on validated tensors: ``(loss, solution, lam)``
+    (``lam`` detached; the loss carries Lemma 1's gradient, :class:`_ImplicitLoss`).
+    :func:`lcs_cvx.fit` calls it directly."""
+    m = model
+    with torch.no_grad():
+        F = m.F
+        q = x @ m.D.mT + u @ m.E.mT + m.c
+        r = x @ m.A.mT + u @ m.B.mT + m.d - x_next
+        sol = solve_lcp_fast(F, q, warm_start=warm_start)
+    loss = _ImplicitLoss.apply(m.A, m.B, m.C, m.d, m.D, m.E, m.G, m.H, m.c,
+                               F, x, u, r, sol.lam, sol.free)
+    return loss, sol, sol.lam
 
 
 def regularizer(model: Any, weight: float = 1e-5) -> torch.Tensor:
