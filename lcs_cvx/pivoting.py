@@ -170,7 +170,9 @@ class ArrayOps:
 
     def amax_abs(self, a: Any) -> Any:
         """``max_j |a_ij|`` as a ``(B, 1)`` column."""
-        return np.abs(a).max(axis=-1, keepdims=True) if self.np else a.abs().amax(-1, keepdim=True)
+        if self.np:  # NumPy reduces a short last axis slowly (~9 us for 200 x 4); its first, fast
+            return np.abs(np.ascontiguousarray(a.T)).max(axis=0)[:, None]
+        return a.abs().amax(-1, keepdim=True)
 
     def argmax(self, a: Any) -> Any:
         """Index of the largest entry of each row, ``(B,)``."""
