@@ -5,7 +5,8 @@ noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that 
 with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
 neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
 ``.backward()``, as in a training step (without the diagnostics of ``return_info``);
-throughput is ``batch / median(time)`` over ``repeats`` calls after a warm-up.
+throughput is ``batch / median(time)`` over ``repeats`` timed repeats after a warm-up, a repeat
+being the mean of as many calls as fill :data:`MIN_REPEAT_S` (one call of a reference path).
 Errors are the max-abs difference of ``lam`` and the relative difference of the loss,
 ``|loss - loss_fast| / (1 + |loss_fast|)``, against the fast path.
 
@@ -14,6 +15,7 @@ Measure with one torch thread (``torch.set_num_threads(1)``) in one process, sid
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 from collections.abc import Callable, Iterable
@@ -79,13 +81,23 @@ def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
     )
 
 
+#: One timed repeat lasts at least this long: a fast call (~1 ms) is repeated inside it and
+#: averaged, so the median over repeats is not one call's scheduling jitter.
+MIN_REPEAT_S = 0.05
+
+
 def _time(fn: Callable[[], None], repeats: int) -> float:
+    """Median over ``repeats`` of the mean time of one call, each repeat ``ceil(MIN_REPEAT_S /
+    t_warm-up)`` calls long (one call for the slow reference paths)."""
+    t0 = time.perf_counter()
     fn()  # warm-up (compiles the CVXPY problem / layer on first use)
+    calls = max(1, math.ceil(MIN_REPEAT_S / max(time.perf_counter() - t0, 1e-9)))
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
+        for _ in range(calls):
+            fn()
+        times.append((time.perf_counter() - t0) / calls)
     return statistics.median(times)
 
 

@@ -80,9 +80,10 @@ class ArrayOps:
 
     - ``"numpy"`` (CPU tensors, the default there): the kernels are a few hundred operations
       on arrays of a few hundred numbers per call, so they cost the per-call overhead of the
-      array library, which is several times lower for NumPy than for a torch dispatch. The
-      arrays share memory with the tensors (``Tensor.numpy()`` / ``torch.from_numpy``: no copy);
-      the batched factorisations are torch's LAPACK calls on the same memory.
+      array library: ~0.5 us for a NumPy elementwise operation against ~1.5-5 us for a torch
+      dispatch (products and reductions are closer). The arrays share memory with the tensors
+      (``Tensor.numpy()`` / ``torch.from_numpy``: no copy); the batched factorisations are
+      torch's LAPACK calls on the same memory.
     - ``"torch"`` (any device; used for CUDA tensors): the same kernel on torch tensors.
 
     Both give the same answer to round-off (tested on CPU, side by side).
