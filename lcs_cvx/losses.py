@@ -95,6 +95,21 @@ class LossInfo:
     active: torch.Tensor | None = None
 
 
+def _parameter_gradients(need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tuple:
+    """The gradients of ``A, B, C, d, D, E, G, H, c`` (None where ``need`` is False) of a loss
+    whose sensitivities to ``r = A x + B u + d - x' + C lam`` and to ``q = D x + E u + c + F lam``
+    (``lam`` held fixed) are ``g_r`` ``(B, n_x)`` and ``g_q`` ``(B, n)``: ``dA = g_r^T x``,
+    ``dC = g_r^T lam``, ``dd = sum_t g_r``, ``dD = g_q^T x``, ``dF = g_q^T lam``, ..., and ``dG, dH``
+    from ``dF`` (:func:`lcs_cvx.system.F_adjoint`). One small product per gradient, each
+    contiguous as the parameters are laid out."""
+    grT, gqT = g_r.mT, g_q.mT
+    dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
+    return (grT @ x if need[0] else None, grT @ u if need[1] else None,
+            grT @ lam if need[2] else None, grT.sum(1) if need[3] else None,
+            gqT @ x if need[4] else None, gqT @ u if need[5] else None,
+            dG, dH, gqT.sum(1) if need[8] else None)
+
+
 class _EnvelopeLoss(torch.autograd.Function):
     r"""Batch mean of (V)'s objective at a fixed optimum ``(lam, phi)``, with Lemma 3's gradients.
 
@@ -132,15 +147,8 @@ class _EnvelopeLoss(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
         x, u, lam, G, ge, gw = ctx.saved_tensors
-        geT, gwT = (ge * grad).mT, (gw * grad).mT
-        need = ctx.needs_input_grad
-        dG, dH = F_adjoint(gwT @ lam, G) if need[6] or need[7] else (None, None)
-        # one product per gradient (each comes out contiguous, as the parameters are laid out)
-        return (geT @ x if need[0] else None, geT @ u if need[1] else None,
-                geT @ lam if need[2] else None, geT.sum(1) if need[3] else None,
-                gwT @ x if need[4] else None, gwT @ u if need[5] else None,
-                dG, dH, gwT.sum(1) if need[8] else None,
-                None, None, None, None, None, None, None, None, None)
+        grads = _parameter_gradients(ctx.needs_input_grad, x, u, lam, G, ge * grad, gw * grad)
+        return grads + (None,) * 9
 
 
 class _ImplicitLoss(torch.autograd.Function):
@@ -175,14 +183,7 @@ class _ImplicitLoss(torch.autograd.Function):
         ge = ge * grad
         rhs = torch.where(free, ge @ C, 0.0).unsqueeze(-1)
         gq = -torch.linalg.solve(free_set_matrix(F, free).mT, rhs).squeeze(-1)
-        geT, gqT = ge.mT, gq.mT
-        need = ctx.needs_input_grad
-        dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
-        return (geT @ x if need[0] else None, geT @ u if need[1] else None,
-                geT @ lam if need[2] else None, geT.sum(1) if need[3] else None,
-                gqT @ x if need[4] else None, gqT @ u if need[5] else None,
-                dG, dH, gqT.sum(1) if need[8] else None,
-                None, None, None, None, None, None)
+        return _parameter_gradients(ctx.needs_input_grad, x, u, lam, G, ge, gq) + (None,) * 6
 
 
 def _inputs(model: Any, x: Any, u: Any, x_next: Any):

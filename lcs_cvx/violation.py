@@ -127,7 +127,7 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
 def solve_violation_fast(
     values: dict[str, torch.Tensor],
     *,
-    max_iter: int = 100,
+    max_iter: int = 1000,
     tol: float = PIVOT_TOL,
     fallback: bool = True,
     residual: bool = True,
@@ -139,7 +139,10 @@ def solve_violation_fast(
     Args:
         values: ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}`` as built by
             :meth:`lcs_cvx.problems.ViolationProblem.parameter_values`.
-        max_iter: pivoting sweeps before unconverged samples fall back to Clarabel.
+        max_iter: pivoting sweeps before unconverged samples fall back to Clarabel. Murty's
+            single pivots end on every sample, but nearly skew-symmetric ``F`` with a tiny
+            ``gamma`` needs hundreds of sweeps (``G = 0``, ``s = gamma = 1e-6``, ``n = 10``:
+            387), where Clarabel's answer is far off (KKT residual ~1 against 1e-15).
         tol: relative feasibility tolerance of a candidate.
         fallback: if False, raise :class:`lcs_cvx.SolverError` on non-convergence instead.
         residual: also compute the per-sample KKT residual (a few more batched products).
