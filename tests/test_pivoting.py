@@ -212,3 +212,17 @@ def test_violation_pivoting_outlasts_clarabel_on_nearly_skew_F():
     with pytest.warns(lcs_cvx.FallbackWarning):
         capped = solve_violation_fast(values, max_iter=100)
     assert capped.n_fallback > 0  # the former limit was too short for these samples
+
+
+def test_inaccurate_reference_answers_are_reported(monkeypatch):
+    """A fallback answer that is not a minimiser (here the reference is replaced by one that
+    answers lam = 0) is used, but said: a second FallbackWarning names its KKT residual."""
+    values = violation_values(4, "paper", batch=30)
+    decl = violation_problem(4)
+    monkeypatch.setattr(type(decl), "solve", lambda self, v: np.zeros(tuple(v["b"].shape)))
+    with pytest.warns(lcs_cvx.FallbackWarning) as record:
+        sol = solve_violation_fast(values, max_iter=0)
+    messages = [str(w.message) for w in record]
+    assert any("did not converge" in m for m in messages)
+    assert any("answers are inaccurate (worst relative KKT residual" in m for m in messages)
+    assert sol.n_fallback >= 1 and float(sol.residual.max()) > 1e-6
