@@ -164,7 +164,7 @@ def solve_lcp_fast(
     with torch.no_grad():
         F = F.detach()
         q = q.detach()
-        B, n = q.shape
+        n = q.shape[1]
         xp = array_ops(q, backend)
         with xp.threads():
             res = _pivot(xp, xp.wrap(F), xp.wrap(q), tol, max_iter, warm_start, q.device)

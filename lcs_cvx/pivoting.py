@@ -196,10 +196,6 @@ class ArrayOps:
         """:func:`spd_solve` on the kernel's arrays."""
         if not self.np:
             return spd_solve(M, rhs, spd)
-        if M.shape[-1] <= SMALL_N or not spd:  # spd_solve's small case, checked in NumPy
-            x, info = torch.linalg.solve_ex(torch.from_numpy(M), torch.from_numpy(rhs[:, :, None]))
-            info = info.numpy()
-            return x.numpy()[:, :, 0], (info != 0 if info.any() else None)
         x, failed = spd_solve(torch.from_numpy(M), torch.from_numpy(rhs), spd)
         return x.numpy(), None if failed is None else failed.numpy()
 

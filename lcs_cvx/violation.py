@@ -95,7 +95,7 @@ def violation_kkt_residual(values: dict[str, torch.Tensor], lam: torch.Tensor) -
 def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: int,
            warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, Any, PivotResult]:
     """Block pivoting on (V) in the kernel's arrays: ``(lam, free, pos, result)``."""
-    B, n = b.shape
+    n = b.shape[1]
     LtL = L.T @ L
     Ltb = b @ L  # rows of L^T b
     # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.

@@ -143,6 +143,8 @@ def test_array_ops_share_memory_and_round_trip(kernel):
     t = torch.arange(6, dtype=F64).reshape(2, 3)
     a = xp.wrap(t)
     assert isinstance(a, np.ndarray if kernel == "numpy" else torch.Tensor)
+    if kernel == "numpy":  # no copy: the array is the tensor's memory
+        assert np.shares_memory(a, t.numpy())
     back = xp.unwrap(a, t.device)
     assert torch.equal(back, t) and back.dtype == F64
     # the free-set matrix: M on the free rows and columns, the identity elsewhere
