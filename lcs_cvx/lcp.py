@@ -168,11 +168,11 @@ def solve_lcp_fast(
         xp = array_ops(q, backend)
         with xp.threads():
             res = _pivot(xp, xp.wrap(F), xp.wrap(q), tol, max_iter, warm_start, q.device)
-        solution = xp.unwrap(res.solution, q.device)
+        solution = xp.unwrap(res.solution)
         lam = solution.clamp(min=0.0)
-        free = xp.unwrap(res.free, q.device) & (solution > 0)
+        free = xp.unwrap(res.free) & (solution > 0)
         brute = n <= BRUTE_MAX
-        bad_idx = unconverged(xp.unwrap(res.converged, q.device), "LCP", max_iter, fallback,
+        bad_idx = unconverged(xp.unwrap(res.converged), "LCP", max_iter, fallback,
                               f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
         n_fb = 0 if bad_idx is None else int(bad_idx.numel())
         if bad_idx is not None and brute:

@@ -27,10 +27,11 @@ import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
 from .layers import lcp_layer, solve_layer, violation_layer
-from .lcp import free_set_matrix, lcp_residual, solve_lcp_fast
+from .lcp import lcp_residual, solve_lcp_fast
+from .pivoting import ArrayOps, array_ops
 from .problems import convex_lcp_problem, violation_problem
-from .system import F_adjoint
-from .violation import solve_violation_fast, violation_kkt_residual
+from .system import PARAMETER_NAMES, F_adjoint, F_matrix
+from .violation import solve_arrays, violation_kkt_residual
 
 __all__ = [
     "LossInfo",
@@ -105,17 +106,18 @@ def _parameter_gradients(need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tupl
     grT, gqT = g_r.mT, g_q.mT
     dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
     return (grT @ x if need[0] else None, grT @ u if need[1] else None,
-            grT @ lam if need[2] else None, grT.sum(1) if need[3] else None,
+            grT @ lam if need[2] else None, g_r.sum(0) if need[3] else None,
             gqT @ x if need[4] else None, gqT @ u if need[5] else None,
-            dG, dH, gqT.sum(1) if need[8] else None)
+            dG, dH, g_q.sum(0) if need[8] else None)
 
 
 class _EnvelopeLoss(torch.autograd.Function):
     r"""Batch mean of (V)'s objective at a fixed optimum ``(lam, phi)``, with Lemma 3's gradients.
 
-    Differentiable inputs are the model's parameters ``A, B, C, d, D, E, G, H, c``; the others
-    are the data, ``F`` and the residuals ``q = D x + E u + c``, ``r = A x + B u + d - x'``
-    (computed by the caller without a graph) and the optimum. Forward:
+    ``apply(xp, arrays, gamma, eps, *params)``: the differentiable inputs are the model's
+    parameters ``A, B, C, d, D, E, G, H, c`` (``params``); the value is computed from
+    ``arrays = (x, u, q, r, F, C, G, lam, phi)``, the kernel arrays of :func:`_fast_arrays` (no
+    copy of the parameters on CPU) and the optimum. Forward:
     ``mean_t 1/2 ||e_t||^2 + (lam_t^T phi_t + ||w_t||^2 / (2 gamma)) / eps`` with
     ``e = C lam + r`` and ``w = F lam + q - phi``. Backward, the envelope theorem (``lam`` and
     ``phi`` are optimal, so their variation does not contribute), with ``g_e = e / B`` and
@@ -132,34 +134,36 @@ class _EnvelopeLoss(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, A, B, C, d, D, E, G, H, c, F, x, u, q, r, lam, phi, gamma: float, eps: float):  # noqa: D102
-        e = torch.addmm(r, lam, C.mT)
-        w = torch.addmm(q, lam, F.mT).sub_(phi)  # the association of the closed form
+    def forward(ctx, xp, arrays, gamma: float, eps: float, *params):  # noqa: D102
+        x, u, q, r, F, C, G, lam, phi = arrays
+        e = r + lam @ C.mT
+        w = q + lam @ F.mT - phi  # the association of the closed form
         n = lam.shape[0]
-        total = 0.5 * torch.vdot(e.reshape(-1), e.reshape(-1)) + (
-            torch.vdot(lam.reshape(-1), phi.reshape(-1)) + 0.5 / gamma * torch.vdot(w.reshape(-1), w.reshape(-1))
-        ) / eps
-        if any(ctx.needs_input_grad[:9]):
-            # the residuals, already scaled by the gradient's 1/B and 1/(gamma eps B)
-            ctx.save_for_backward(x, u, lam, G, e.mul_(1.0 / n), w.mul_(1.0 / (gamma * eps * n)))
-        return total / n
+        total = 0.5 * xp.vdot(e, e) + (xp.vdot(lam, phi) + 0.5 / gamma * xp.vdot(w, w)) / eps
+        # the residuals, already scaled by the gradient's 1/B and 1/(gamma eps B)
+        ctx.saved = (xp, x, u, lam, G, e * (1.0 / n), w * (1.0 / (gamma * eps * n)))
+        return xp.unwrap(total / n)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
-        x, u, lam, G, ge, gw = ctx.saved_tensors
-        grads = _parameter_gradients(ctx.needs_input_grad, x, u, lam, G, ge * grad, gw * grad)
-        return grads + (None,) * 9
+        xp, x, u, lam, G, ge, gw = ctx.saved
+        s = xp.scalar(grad)
+        with xp.threads():
+            grads = _parameter_gradients(ctx.needs_input_grad[4:], x, u, lam, G, ge * s, gw * s)
+        return (None,) * 4 + _tensors(xp, grads)
 
 
 class _ImplicitLoss(torch.autograd.Function):
     r"""Batch mean of ``1/2 ||e_t||^2``, ``e = C lam + r``, at the exact LCP solution ``lam``, with
     Lemma 1's gradient in closed form.
 
-    Differentiable inputs are the model's parameters ``A, B, C, d, D, E, G, H, c``; the others
-    are the data, ``F``, ``r = A x + B u + d - x'`` and the solution with its free sets (degenerate
-    indices not free: held at zero, the one-sided derivative). On the free set ``I`` of a sample,
-    ``F_II lam_I = -q_I`` and ``lam_J = 0``; with ``g_e = e / B``, ``g_lam = C^T g_e`` and the
-    adjoint ``mu`` (``F_II^T mu_I = (g_lam)_I``, ``mu_J = 0``: one batched solve)::
+    ``apply(xp, arrays, *params)``: the differentiable inputs are the model's parameters
+    ``A, B, C, d, D, E, G, H, c`` (``params``); the value is computed from ``arrays = (x, u, r,
+    F, C, G, lam, free)``, the kernel arrays of :func:`_fast_arrays` and the solution with its
+    free sets (degenerate indices not free: held at zero, the one-sided derivative). On the free
+    set ``I`` of a sample, ``F_II lam_I = -q_I`` and ``lam_J = 0``; with ``g_e = e / B``,
+    ``g_lam = C^T g_e`` and the adjoint ``mu`` (``F_II^T mu_I = (g_lam)_I``, ``mu_J = 0``: one
+    batched solve)::
 
         dA = g_e^T x,  dB = g_e^T u,  dC = g_e^T lam,  dd = sum_t g_e,
         dq = -mu:  dD = dq^T x,  dE = dq^T u,  dc = sum_t dq,  dF = dq^T lam,
@@ -169,21 +173,42 @@ class _ImplicitLoss(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, A, B, C, d, D, E, G, H, c, F, x, u, r, lam, free):  # noqa: D102
-        e = torch.addmm(r, lam, C.mT)
+    def forward(ctx, xp, arrays, *params):  # noqa: D102
+        x, u, r, F, C, G, lam, free = arrays
+        e = r + lam @ C.mT
         n = lam.shape[0]
-        total = 0.5 * torch.vdot(e.reshape(-1), e.reshape(-1))
-        if any(ctx.needs_input_grad[:9]):
-            ctx.save_for_backward(x, u, lam, free, F, C, G, e.mul_(1.0 / n))
-        return total / n
+        total = 0.5 * xp.vdot(e, e)
+        ctx.saved = (xp, x, u, lam, free, F, C, G, e * (1.0 / n))
+        return xp.unwrap(total / n)
 
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
-        x, u, lam, free, F, C, G, ge = ctx.saved_tensors
-        ge = ge * grad
-        rhs = torch.where(free, ge @ C, 0.0).unsqueeze(-1)
-        gq = -torch.linalg.solve(free_set_matrix(F, free).mT, rhs).squeeze(-1)
-        return _parameter_gradients(ctx.needs_input_grad, x, u, lam, G, ge, gq) + (None,) * 6
+        xp, x, u, lam, free, F, C, G, ge = ctx.saved
+        n = F.shape[0]
+        with xp.threads():
+            ge = ge * xp.scalar(grad)
+            F_II = xp.free_block(F.reshape(1, n * n), free)
+            mu, _ = xp.solve(F_II.mT, xp.where(free, ge @ C, 0.0), spd=False)
+            grads = _parameter_gradients(ctx.needs_input_grad[2:], x, u, lam, G, ge, -mu)
+        return (None,) * 2 + _tensors(xp, grads)
+
+
+def _tensors(xp: ArrayOps, arrays: tuple) -> tuple:
+    """The kernel arrays as tensors (None kept)."""
+    return tuple(None if a is None else xp.unwrap(a) for a in arrays)
+
+
+def _fast_arrays(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor):
+    """What both fast losses start from, in the kernels' arrays (:func:`lcs_cvx.pivoting.array_ops`:
+    NumPy on the tensors' memory for CPU, no autograd): ``(xp, params, x, u, F, q, r)`` with
+    ``params`` the nine parameters by name, ``q = D x + E u + c`` and ``r = A x + B u + d - x'``."""
+    xp = array_ops(x)
+    p = {k: xp.wrap(getattr(model, k)) for k in PARAMETER_NAMES}
+    x, u, x_next = xp.wrap(x), xp.wrap(u), xp.wrap(x_next)
+    F = F_matrix(p["G"], p["H"], float(model.stiffness))
+    q = x @ p["D"].mT + u @ p["E"].mT + p["c"]  # the association of the closed form (Lemma 3's
+    r = x @ p["A"].mT + u @ p["B"].mT + p["d"] - x_next  # w = F lam + q - phi cancels: keep it)
+    return xp, p, x, u, F, q, r
 
 
 def _inputs(model: Any, x: Any, u: Any, x_next: Any):
@@ -270,19 +295,19 @@ def _violation_fast(model, x, u, x_next, gamma: float, eps: float,
                     warm_start: torch.Tensor | None, residual: bool):
     """The fast path of :func:`violation_loss` on validated tensors: ``(loss, solution, lam,
     phi)``. :func:`lcs_cvx.fit` calls it directly (its data are validated once)."""
-    m = model
+    m, device = model, model.device
     decl = violation_problem(m.n_lam)
-    with torch.no_grad():
-        F = m.F
-        q = x @ m.D.mT + u @ m.E.mT + m.c  # the association of the closed form (Lemma 3's
-        r = x @ m.A.mT + u @ m.B.mT + m.d - x_next  # w = F lam + q - phi cancels: keep it)
+    xp, p, x, u, F, q, r = _fast_arrays(m, x, u, x_next)
+    with xp.threads():
         # gamma < sigma_min(F + F^T) is checked there; F + F^T >= 2 s I by construction
-        values = decl.parameter_values(m.C, F, q, r, gamma, eps, 2.0 * float(m.stiffness))
-        sol = solve_violation_fast(values, residual=residual, warm_start=warm_start)
-        phi = decl.phi(sol.lam, F, q, gamma)
-    loss = _EnvelopeLoss.apply(m.A, m.B, m.C, m.d, m.D, m.E, m.G, m.H, m.c,
-                               F, x, u, q, r, sol.lam, phi, gamma, eps)
-    return loss, sol, sol.lam, phi
+        values = decl.parameter_values(p["C"], F, q, r, gamma, eps, 2.0 * float(m.stiffness))
+        sol = solve_arrays(xp, *(values[k] for k in decl.parameter_order), device=device,
+                           residual=residual, warm_start=warm_start)
+        lam = xp.wrap(sol.lam)
+        phi = decl.phi(lam, F, q, gamma)
+        loss = _EnvelopeLoss.apply(xp, (x, u, q, r, F, p["C"], p["G"], lam, phi), gamma, eps,
+                                   *(getattr(m, k) for k in PARAMETER_NAMES))
+    return loss, sol, sol.lam, xp.unwrap(phi)
 
 
 def prediction_loss(
@@ -341,13 +366,11 @@ def _prediction_fast(model, x, u, x_next, warm_start: torch.Tensor | None):
     (``lam`` detached; the loss carries Lemma 1's gradient, :class:`_ImplicitLoss`).
     :func:`lcs_cvx.fit` calls it directly."""
     m = model
-    with torch.no_grad():
-        F = m.F
-        q = x @ m.D.mT + u @ m.E.mT + m.c
-        r = x @ m.A.mT + u @ m.B.mT + m.d - x_next
-        sol = solve_lcp_fast(F, q, warm_start=warm_start)
-    loss = _ImplicitLoss.apply(m.A, m.B, m.C, m.d, m.D, m.E, m.G, m.H, m.c,
-                               F, x, u, r, sol.lam, sol.free)
+    xp, p, x, u, F, q, r = _fast_arrays(m, x, u, x_next)
+    with xp.threads():
+        sol = solve_lcp_fast(xp.unwrap(F), xp.unwrap(q), warm_start=warm_start)
+        arrays = (x, u, r, F, p["C"], p["G"], xp.wrap(sol.lam), xp.wrap(sol.free))
+        loss = _ImplicitLoss.apply(xp, arrays, *(getattr(m, k) for k in PARAMETER_NAMES))
     return loss, sol, sol.lam
 
 

@@ -29,7 +29,8 @@ r"""The two per-sample convex problems of the paper, each declared once.
   independent of ``n_x``.
 
 Each declaration object carries the CVXPY problem, its parameters and variables by name, and
-builds the parameter values from torch tensors (differentiably). The CVXPY problem is what the
+builds the parameter values from torch tensors (differentiably) or from the fast losses' NumPy
+arrays (:func:`lcs_cvx.pivoting.ops_of`). The CVXPY problem is what the
 ``cvxpylayers`` layers and the Clarabel reference solve; the same parameter values are what the
 fast batched kernels consume (:mod:`lcs_cvx.lcp`, :mod:`lcs_cvx.violation`). The value of
 (V) in the original (lam, phi) variables, from which gradients are taken, is
@@ -41,12 +42,14 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import cvxpy as cp
 import numpy as np
 import torch
 
 from ._checks import LCSInputError, SolverError, check_positive
+from .pivoting import ops_of
 
 __all__ = [
     "ConvexLCPProblem",
@@ -71,6 +74,11 @@ def sym_min_eig(F: torch.Tensor) -> torch.Tensor:
     Assumption 1 of the paper is ``sym_min_eig(F) > 0``. ``F`` is ``(n, n)`` or ``(B, n, n)``.
     """
     return torch.linalg.eigvalsh(F + F.mT)[..., 0]
+
+
+def _rows_solve_transposed(U: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Rows ``b_t`` of ``U^T b_t = g_t`` for an upper triangular ``U`` and ``g`` ``(B, n)``."""
+    return torch.linalg.solve_triangular(U.mT, g.mT, upper=False).mT
 
 
 def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
@@ -147,15 +155,16 @@ class ViolationProblem:
 
     def parameter_values(
         self,
-        C: torch.Tensor,
-        F: torch.Tensor,
-        q: torch.Tensor,
-        r: torch.Tensor,
+        C: Any,
+        F: Any,
+        q: Any,
+        r: Any,
         gamma: float,
         eps: float,
         sigma_min_bound: float = 0.0,
-    ) -> dict[str, torch.Tensor]:
-        """Parameter values of (V) (differentiable in every input).
+    ) -> dict[str, Any]:
+        """Parameter values of (V): tensors differentiable in every input from tensors, or
+        NumPy arrays from NumPy arrays.
 
         Args:
             C: ``(n_x, n)``; F: ``(n, n)``; q: ``(B, n)`` the LCP offset ``D x + E u + c``;
@@ -169,20 +178,21 @@ class ViolationProblem:
         Returns:
             ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}``.
         """
-        n = self.n_lam
-        eye = torch.eye(n, dtype=F.dtype, device=F.device)
+        xp = ops_of(F)
+        eye = xp.eye(self.n_lam, F)
         check_gamma(F, gamma, sigma_min_bound)
         H = eps * (C.mT @ C) + F + F.mT - gamma * eye
-        L = _upper_cholesky("eps C^T C + F + F^T - gamma I", H)
+        L = xp.via_torch(functools.partial(_upper_cholesky, "eps C^T C + F + F^T - gamma I"), H)
         g = eps * (r @ C) + q  # rows of eps C^T r + q
-        b = torch.linalg.solve_triangular(L.mT, g.mT, upper=False).mT
+        b = xp.via_torch(_rows_solve_transposed, L, g)
         scale = 1.0 / math.sqrt(gamma)
         return {"L": L, "b": b, "K": (gamma * eye - F) * scale, "h": q * scale}
 
     @staticmethod
-    def phi(lam: torch.Tensor, F: torch.Tensor, q: torch.Tensor, gamma: float) -> torch.Tensor:
-        """The exact minimiser over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``."""
-        return torch.clamp(lam @ F.mT + q - gamma * lam, min=0.0)
+    def phi(lam: Any, F: Any, q: Any, gamma: float) -> Any:
+        """The exact minimiser over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``
+        (tensors or NumPy arrays)."""
+        return ops_of(lam).clamp_min(lam @ F.mT + q - gamma * lam, 0.0)
 
     @staticmethod
     def objective(
@@ -221,7 +231,7 @@ class ViolationProblem:
         return np.maximum(out, 0.0)
 
 
-def check_gamma(F: torch.Tensor, gamma: float, sigma_min_bound: float = 0.0) -> None:
+def check_gamma(F: Any, gamma: float, sigma_min_bound: float = 0.0) -> None:
     """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers.
 
     ``gamma < sigma_min(F + F^T)`` iff ``F + F^T - gamma I`` is positive definite, so the check
@@ -233,7 +243,7 @@ def check_gamma(F: torch.Tensor, gamma: float, sigma_min_bound: float = 0.0) -> 
     check_positive("gamma", gamma)
     if gamma < sigma_min_bound:
         return
-    Fd = F.detach()
+    Fd = torch.as_tensor(F).detach()
     S = Fd + Fd.mT
     S.diagonal().sub_(gamma + 1e-12 * max(gamma, float(S.abs().amax())))
     if int(torch.linalg.cholesky_ex(S)[1]) != 0:

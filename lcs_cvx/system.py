@@ -18,9 +18,10 @@ from torch import nn
 
 from ._checks import LCSInputError, as_batch, as_matrix, check_positive
 from .lcp import active_set_solve, solve_lcp
+from .pivoting import ops_of
 from .problems import sym_min_eig
 
-__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES", "F_adjoint"]
+__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES", "F_matrix", "F_adjoint"]
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
@@ -41,6 +42,12 @@ def _shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
         "F": (n_lam, n_lam),
         "c": (n_lam,),
     }
+
+
+def F_matrix(G: Any, H: Any, stiffness: Any) -> Any:
+    """``F = G G^T + H - H^T + s I`` (Sec. 5) from ``G``, ``H`` ``(n, n)``: tensors
+    (differentiable) or NumPy arrays (the fast losses' kernel arrays)."""
+    return G @ G.mT + H - H.mT + stiffness * ops_of(G).eye(G.shape[-1], G)
 
 
 def F_adjoint(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -156,8 +163,7 @@ class LCS(nn.Module):
     @property
     def F(self) -> torch.Tensor:
         """``F = G G^T + H - H^T + s I`` ``(n_lam, n_lam)``."""
-        eye = torch.eye(self.n_lam, dtype=self.G.dtype, device=self.G.device)
-        return self.G @ self.G.mT + self.H - self.H.mT + self.stiffness * eye
+        return F_matrix(self.G, self.H, self.stiffness)
 
     @property
     def sigma_min(self) -> float:

@@ -35,7 +35,7 @@ from .pivoting import (
 )
 from .problems import violation_problem
 
-__all__ = ["ViolationSolution", "solve_violation_fast", "violation_kkt_residual"]
+__all__ = ["ViolationSolution", "solve_violation_fast", "solve_arrays", "violation_kkt_residual"]
 
 #: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
 #: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/gamma large), and
@@ -104,8 +104,9 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
     scale_t = tol * (1.0 + xp.amax_abs(h))
     neg_l: list[Any] = []  # -(lam's scale), from the first candidate
     neg_g, neg_t = -scale_g, -scale_t
-    nLtb, nh, KT = -Ltb, -h, xp.contiguous(K.T)
+    nLtb, nh = -Ltb, -h
     LtL_flat = LtL.reshape(1, n * n)
+    KT_LtL = xp.concat([K.T, LtL])  # (n, 2 n): lam @ KT_LtL is [K lam, L^T L lam] in one product
 
     def solve(state: Any, idx: Any):
         free, pos = state[:, :n], state[:, n:]
@@ -119,8 +120,9 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
         M = xp.free_block(xp.addmm(LtL_flat, sf, K_outer), free)
         rhs = xp.where(free, xp.addmm(nbb, sf * hh, K), 0.0)
         lam, failed = xp.solve(M, rhs)
-        t = xp.addmm(nhh, lam, KT)
-        g = xp.addmm(xp.addmm(bb, lam, LtL), sf * t, K)
+        prod = lam @ KT_LtL
+        t = prod[:, :n] + nhh
+        g = xp.addmm(prod[:, n:] + bb, sf * t, K)
         if not neg_l:
             neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
         nl = neg_l[0] if idx is None else neg_l[0][idx]
@@ -134,7 +136,7 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
     state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
     res = block_pivoting(xp, solve, state0, max_iter=max_iter)
     lam = xp.clamp_min(res.solution, 0.0)
-    return lam, lam > 0, (lam @ KT - h) > 0, res
+    return lam, lam > 0, (lam @ K.T - h) > 0, res
 
 
 def solve_violation_fast(
@@ -173,27 +175,38 @@ def solve_violation_fast(
         device = values["b"].device
         xp = array_ops(values["b"], backend)
         with xp.threads():
-            arrays = (xp.wrap(values[k]) for k in ("L", "b", "K", "h"))
-            *sets, res = _pivot(xp, *arrays, tol, max_iter, warm_start, device)
-        lam, free, pos = (xp.unwrap(a, device) for a in sets)
-        n = lam.shape[1]
-        bad_idx = None if res.converged.all() else unconverged(
-            xp.unwrap(res.converged, device), "violation QP", max_iter, fallback)
-        n_fb = 0 if bad_idx is None else int(bad_idx.numel())
-        L, b, K, h = (values[k].detach() for k in ("L", "b", "K", "h"))
-        if bad_idx is not None:
-            sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
-            ref = violation_problem(n).solve(sub)
-            lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
-            free[bad_idx] = lam[bad_idx] > 0
-            pos[bad_idx] = (lam[bad_idx] @ K.mT - h[bad_idx]) > 0
-            worst = float(violation_kkt_residual(sub, lam[bad_idx]).max())
-            if worst > REFERENCE_TOL:  # said, not hidden: the reference is an interior point
-                warnings.warn(
-                    f"violation QP: the Clarabel reference's answers are inaccurate (worst relative "
-                    f"KKT residual {worst:.2e} > {REFERENCE_TOL:g}); raise max_iter (now "
-                    f"{max_iter}) so that pivoting, which is exact, ends on these samples",
-                    FallbackWarning, stacklevel=2,
-                )
-        resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam) if residual else None
-        return ViolationSolution(lam, free, pos, res.iterations, n_fb, resid)
+            arrays = [xp.wrap(values[k]) for k in ("L", "b", "K", "h")]
+            return solve_arrays(xp, *arrays, max_iter=max_iter, tol=tol, fallback=fallback,
+                                residual=residual, warm_start=warm_start, device=device)
+
+
+def solve_arrays(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, *, device: torch.device,
+                 max_iter: int = 1000, tol: float = PIVOT_TOL, fallback: bool = True,
+                 residual: bool = True, warm_start: torch.Tensor | None = None) -> ViolationSolution:
+    """:func:`solve_violation_fast` on the kernel's arrays of ``L, b, K, h`` (the fast
+    violation loss builds them there, without a round trip through tensors); the caller holds
+    :meth:`ArrayOps.threads`."""
+    *sets, res = _pivot(xp, L, b, K, h, tol, max_iter, warm_start, device)
+    lam, free, pos = (xp.unwrap(a) for a in sets)
+    n = lam.shape[1]
+    bad_idx = None if res.converged.all() else unconverged(
+        xp.unwrap(res.converged), "violation QP", max_iter, fallback)
+    n_fb = 0 if bad_idx is None else int(bad_idx.numel())
+    if bad_idx is not None or residual:
+        L, b, K, h = (xp.unwrap(a) for a in (L, b, K, h))
+    if bad_idx is not None:
+        sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
+        ref = violation_problem(n).solve(sub)
+        lam[bad_idx] = torch.as_tensor(ref, dtype=b.dtype, device=b.device)
+        free[bad_idx] = lam[bad_idx] > 0
+        pos[bad_idx] = (lam[bad_idx] @ K.mT - h[bad_idx]) > 0
+        worst = float(violation_kkt_residual(sub, lam[bad_idx]).max())
+        if worst > REFERENCE_TOL:  # said, not hidden: the reference is an interior point
+            warnings.warn(
+                f"violation QP: the Clarabel reference's answers are inaccurate (worst relative "
+                f"KKT residual {worst:.2e} > {REFERENCE_TOL:g}); raise max_iter (now "
+                f"{max_iter}) so that pivoting, which is exact, ends on these samples",
+                FallbackWarning, stacklevel=3,
+            )
+    resid = violation_kkt_residual({"L": L, "b": b, "K": K, "h": h}, lam) if residual else None
+    return ViolationSolution(lam, free, pos, res.iterations, n_fb, resid)

@@ -145,12 +145,12 @@ def test_array_ops_share_memory_and_round_trip(kernel):
     assert isinstance(a, np.ndarray if kernel == "numpy" else torch.Tensor)
     if kernel == "numpy":  # no copy: the array is the tensor's memory
         assert np.shares_memory(a, t.numpy())
-    back = xp.unwrap(a, t.device)
+    back = xp.unwrap(a)
     assert torch.equal(back, t) and back.dtype == F64
     # the free-set matrix: M on the free rows and columns, the identity elsewhere
     M = xp.wrap(torch.arange(1.0, 10.0, dtype=F64).reshape(1, 9))
     free = xp.wrap(torch.tensor([[True, False, True]]))
-    got = xp.unwrap(xp.free_block(M, free), t.device)
+    got = xp.unwrap(xp.free_block(M, free))
     expected = torch.tensor([[[1.0, 0.0, 3.0], [0.0, 1.0, 0.0], [7.0, 0.0, 9.0]]], dtype=F64)
     assert torch.equal(got, expected)
 
