@@ -120,7 +120,7 @@ def _pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
         at = abs_tol if idx is None else abs_tol[idx]
         # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
         lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
-        w = xp.addmm(qq, lam, FT)
+        w = qq + lam @ FT
         bad = xp.where(free, lam < at, w < at)
         if failed is not None:
             bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted

@@ -96,7 +96,7 @@ class LossInfo:
     active: torch.Tensor | None = None
 
 
-def _parameter_gradients(need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tuple:
+def _parameter_gradients(xp: ArrayOps, need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tuple:
     """The gradients of ``A, B, C, d, D, E, G, H, c`` (None where ``need`` is False) of a loss
     whose sensitivities to ``r = A x + B u + d - x' + C lam`` and to ``q = D x + E u + c + F lam``
     (``lam`` held fixed) are ``g_r`` ``(B, n_x)`` and ``g_q`` ``(B, n)``: ``dA = g_r^T x``,
@@ -106,9 +106,9 @@ def _parameter_gradients(need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tupl
     grT, gqT = g_r.mT, g_q.mT
     dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
     return (grT @ x if need[0] else None, grT @ u if need[1] else None,
-            grT @ lam if need[2] else None, g_r.sum(0) if need[3] else None,
+            grT @ lam if need[2] else None, xp.colsum(g_r) if need[3] else None,
             gqT @ x if need[4] else None, gqT @ u if need[5] else None,
-            dG, dH, g_q.sum(0) if need[8] else None)
+            dG, dH, xp.colsum(g_q) if need[8] else None)
 
 
 class _EnvelopeLoss(torch.autograd.Function):
@@ -149,7 +149,7 @@ class _EnvelopeLoss(torch.autograd.Function):
         xp, x, u, lam, G, ge, gw = ctx.saved
         s = xp.scalar(grad)
         with xp.threads():
-            grads = _parameter_gradients(ctx.needs_input_grad[4:], x, u, lam, G, ge * s, gw * s)
+            grads = _parameter_gradients(xp, ctx.needs_input_grad[4:], x, u, lam, G, ge * s, gw * s)
         return (None,) * 4 + _tensors(xp, grads)
 
 
@@ -189,7 +189,7 @@ class _ImplicitLoss(torch.autograd.Function):
             ge = ge * xp.scalar(grad)
             F_II = xp.free_block(F.reshape(1, n * n), free)
             mu, _ = xp.solve(F_II.mT, xp.where(free, ge @ C, 0.0), spd=False)
-            grads = _parameter_gradients(ctx.needs_input_grad[2:], x, u, lam, G, ge, -mu)
+            grads = _parameter_gradients(xp, ctx.needs_input_grad[2:], x, u, lam, G, ge, -mu)
         return (None,) * 2 + _tensors(xp, grads)
 
 
@@ -200,15 +200,17 @@ def _tensors(xp: ArrayOps, arrays: tuple) -> tuple:
 
 def _fast_arrays(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor):
     """What both fast losses start from, in the kernels' arrays (:func:`lcs_cvx.pivoting.array_ops`:
-    NumPy on the tensors' memory for CPU, no autograd): ``(xp, params, x, u, F, q, r)`` with
-    ``params`` the nine parameters by name, ``q = D x + E u + c`` and ``r = A x + B u + d - x'``."""
+    NumPy on the tensors' memory for CPU, no autograd): ``(xp, params, p, x, u, F, q, r)`` with
+    ``params`` the nine parameter tensors in :data:`PARAMETER_NAMES` order, ``p`` their arrays
+    by name, ``q = D x + E u + c`` and ``r = A x + B u + d - x'``."""
     xp = array_ops(x)
-    p = {k: xp.wrap(getattr(model, k)) for k in PARAMETER_NAMES}
+    params = [getattr(model, k) for k in PARAMETER_NAMES]
+    p = {k: xp.wrap(t) for k, t in zip(PARAMETER_NAMES, params, strict=True)}
     x, u, x_next = xp.wrap(x), xp.wrap(u), xp.wrap(x_next)
     F = F_matrix(p["G"], p["H"], float(model.stiffness))
     q = x @ p["D"].mT + u @ p["E"].mT + p["c"]  # the association of the closed form (Lemma 3's
     r = x @ p["A"].mT + u @ p["B"].mT + p["d"] - x_next  # w = F lam + q - phi cancels: keep it)
-    return xp, p, x, u, F, q, r
+    return xp, params, p, x, u, F, q, r
 
 
 def _inputs(model: Any, x: Any, u: Any, x_next: Any):
@@ -295,18 +297,16 @@ def _violation_fast(model, x, u, x_next, gamma: float, eps: float,
                     warm_start: torch.Tensor | None, residual: bool):
     """The fast path of :func:`violation_loss` on validated tensors: ``(loss, solution, lam,
     phi)``. :func:`lcs_cvx.fit` calls it directly (its data are validated once)."""
-    m, device = model, model.device
-    decl = violation_problem(m.n_lam)
-    xp, p, x, u, F, q, r = _fast_arrays(m, x, u, x_next)
+    decl = violation_problem(model.n_lam)
+    xp, params, p, x, u, F, q, r = _fast_arrays(model, x, u, x_next)
     with xp.threads():
         # gamma < sigma_min(F + F^T) is checked there; F + F^T >= 2 s I by construction
-        values = decl.parameter_values(p["C"], F, q, r, gamma, eps, 2.0 * float(m.stiffness))
-        sol = solve_arrays(xp, *(values[k] for k in decl.parameter_order), device=device,
+        values = decl.parameter_values(p["C"], F, q, r, gamma, eps, 2.0 * float(model.stiffness))
+        sol = solve_arrays(xp, *(values[k] for k in decl.parameter_order), device=model.device,
                            residual=residual, warm_start=warm_start)
         lam = xp.wrap(sol.lam)
         phi = decl.phi(lam, F, q, gamma)
-        loss = _EnvelopeLoss.apply(xp, (x, u, q, r, F, p["C"], p["G"], lam, phi), gamma, eps,
-                                   *(getattr(m, k) for k in PARAMETER_NAMES))
+        loss = _EnvelopeLoss.apply(xp, (x, u, q, r, F, p["C"], p["G"], lam, phi), gamma, eps, *params)
     return loss, sol, sol.lam, xp.unwrap(phi)
 
 
@@ -365,12 +365,11 @@ def _prediction_fast(model, x, u, x_next, warm_start: torch.Tensor | None):
     """The fast path of :func:`prediction_loss` on validated tensors: ``(loss, solution, lam)``
     (``lam`` detached; the loss carries Lemma 1's gradient, :class:`_ImplicitLoss`).
     :func:`lcs_cvx.fit` calls it directly."""
-    m = model
-    xp, p, x, u, F, q, r = _fast_arrays(m, x, u, x_next)
+    xp, params, p, x, u, F, q, r = _fast_arrays(model, x, u, x_next)
     with xp.threads():
         sol = solve_lcp_fast(xp.unwrap(F), xp.unwrap(q), warm_start=warm_start)
         arrays = (x, u, r, F, p["C"], p["G"], xp.wrap(sol.lam), xp.wrap(sol.free))
-        loss = _ImplicitLoss.apply(xp, arrays, *(getattr(m, k) for k in PARAMETER_NAMES))
+        loss = _ImplicitLoss.apply(xp, arrays, *params)
     return loss, sol, sol.lam
 
 

@@ -117,12 +117,12 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
             ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
         sf = xp.to_float(pos, b)
         # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
-        M = xp.free_block(xp.addmm(LtL_flat, sf, K_outer), free)
-        rhs = xp.where(free, xp.addmm(nbb, sf * hh, K), 0.0)
+        M = xp.free_block(LtL_flat + sf @ K_outer, free)
+        rhs = xp.where(free, nbb + (sf * hh) @ K, 0.0)
         lam, failed = xp.solve(M, rhs)
         prod = lam @ KT_LtL
         t = prod[:, :n] + nhh
-        g = xp.addmm(prod[:, n:] + bb, sf * t, K)
+        g = prod[:, n:] + bb + (sf * t) @ K
         if not neg_l:
             neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
         nl = neg_l[0] if idx is None else neg_l[0][idx]

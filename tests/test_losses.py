@@ -27,6 +27,7 @@ import torch
 import lcs_cvx
 from lcs_cvx import LCSInputError, prediction_loss, regularizer, violation_loss
 from lcs_cvx.lcp import active_set_solve, solve_lcp_brute
+from lcs_cvx.pivoting import array_ops
 from lcs_cvx.problems import violation_problem
 from lcs_cvx.system import PARAMETER_NAMES
 from lcs_cvx.violation import violation_kkt_residual
@@ -779,6 +780,34 @@ def test_fast_paths_on_device(device):
             g = getattr(model_d, name).grad
             assert g.device.type == device
             assert rel_err(g.cpu(), g0[name]) <= 1e-9, name
+
+
+def test_fast_losses_in_torch_arrays_match_numpy(monkeypatch):
+    """The fast losses run in NumPy arrays on CPU and in torch tensors elsewhere (CUDA): forced
+    onto torch tensors on CPU, the same values, solutions and gradients (to round-off)."""
+    model, data = make_problem(n=40, n_lam=5, model="perturbed", seed=3)
+    cases = ((violation_loss, {"gamma": 1e-2, "eps": 1e-3}), (prediction_loss, {}))
+    ref = {fn.__name__: autograd(fn, model, data, **kw) for fn, kw in cases}
+    forced = []
+
+    def torch_ops(t, backend="auto"):
+        forced.append(t.device)
+        return array_ops(t, "torch")
+
+    monkeypatch.setattr(lcs_cvx.losses, "array_ops", torch_ops)
+    for fn, kw in cases:
+        value, info, g = autograd(fn, model, data, **kw)
+        assert forced.pop() == torch.device("cpu")
+        v0, info0, g0 = ref[fn.__name__]
+        assert value == pytest.approx(v0, rel=1e-12)
+        assert float((info.lam - info0.lam).abs().max()) <= 1e-12
+        if fn is violation_loss:  # round-off times 1/(eps gamma): against its terms' magnitude
+            scale = lemma3_gradients(model, data, info0.lam, info0.phi, magnitude=True, **kw)
+            for name in PARAMETER_NAMES:
+                assert float(((g[name] - g0[name]).abs() / scale[name]).max()) <= 1e-14, name
+        else:
+            for name in PARAMETER_NAMES:
+                assert rel_err(g[name], g0[name]) <= 1e-12, name
 
 
 # -- LossInfo -------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ skew-symmetric ones (Murty's rule and the shrinking work set), fallbacks and war
 
 from __future__ import annotations
 
+import os
 import warnings
 
 import numpy as np
@@ -178,15 +179,24 @@ def test_block_pivoting_counts_sweeps_and_reports_unconverged():
 def test_numpy_kernel_runs_with_torchs_thread_count():
     """NumPy's OpenBLAS would put every core on the kernel's small products (measured here:
     2 cores busy, no faster); inside the kernel it uses ``torch.get_num_threads()`` threads and
-    the caller's setting is restored afterwards."""
+    the caller's setting is restored afterwards. (Only NumPy's own BLAS, from its wheel, is
+    set: SciPy's and SCS's are not what the kernels call.)"""
     threadpoolctl = pytest.importorskip("threadpoolctl")
     xp = array_ops(torch.zeros(1), "numpy")
     blas = threadpoolctl.ThreadpoolController().select(user_api="blas")
+    home = os.path.dirname(os.path.abspath(np.__file__))
+
+    def numpys() -> list[int]:
+        info = blas.info()
+        own = [lib for lib in info if os.path.abspath(lib["filepath"]).startswith(home)]
+        return [lib["num_threads"] for lib in own or info]
+
     with blas.limit(limits=3):
-        outside = [lib["num_threads"] for lib in blas.info()]
+        outside = numpys()
         with xp.threads():
-            inside = [lib["num_threads"] for lib in blas.info()]
-        after = [lib["num_threads"] for lib in blas.info()]
+            inside = numpys()
+        after = numpys()
+    assert outside and all(n == 3 for n in outside)
     assert inside and all(n == torch.get_num_threads() for n in inside)
     assert after == outside
 
