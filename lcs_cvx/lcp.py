@@ -113,11 +113,11 @@ def _pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
     """Block pivoting on the LCP in the kernel's arrays."""
     n = q.shape[1]
     F_flat, FT = F.reshape(1, n * n), xp.contiguous(F.T)
-    abs_tol = -tol * (1.0 + xp.amax_abs(q))
+    data = xp.concat([q, -tol * (1.0 + xp.amax_abs(q))])  # one gather when the work set shrinks
 
     def solve(free: Any, idx: Any):
-        qq = q if idx is None else q[idx]
-        at = abs_tol if idx is None else abs_tol[idx]
+        d = data if idx is None else data[idx]
+        qq, at = d[:, :n], d[:, n:]
         # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
         lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
         w = qq + lam @ FT

