@@ -67,7 +67,8 @@ def violation_layer(n_lam: int) -> CvxpyLayer:
 def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], backend: str = "clarabel") -> torch.Tensor:
     """Run ``layer`` on parameter tensors (batched ones first dimension ``B``); returns ``lam``.
 
-    Differentiable (diffcp, dense mode). The result is on the device of ``values[0]``.
+    Differentiable (diffcp, dense mode). The result is on the device and of the dtype of
+    ``values[0]`` (diffcp computes in float64).
     """
     args = dict(_check_backend(backend))
     if torch.is_grad_enabled() and any(v.requires_grad for v in values):
@@ -75,4 +76,4 @@ def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], backend: str = "c
         args.update(mode="dense", n_jobs_backward=1)
     device = values[0].device
     (lam,) = layer(*(v.cpu() for v in values), solver_args=args)
-    return lam.to(device)
+    return lam.to(device=device, dtype=values[0].dtype)

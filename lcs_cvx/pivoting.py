@@ -131,8 +131,12 @@ class ArrayOps:
         return t.detach().numpy() if self.np else t.detach()  # NumPy: CPU tensors only
 
     def unwrap(self, a: Any) -> torch.Tensor:
-        """The tensor of the kernel's array ``a`` (no copy of a contiguous NumPy array)."""
-        return torch.from_numpy(np.ascontiguousarray(a)) if self.np else a
+        """The tensor of the kernel's array ``a`` (no copy of a contiguous NumPy array; a NumPy
+        scalar becomes a 0-dim tensor)."""
+        if not self.np:
+            return a
+        a = np.asarray(a)
+        return torch.from_numpy(a if a.flags.c_contiguous else np.ascontiguousarray(a))
 
     def via_torch(self, fn: Callable[..., Any], *arrays: Any) -> Any:
         """``fn(*arrays)`` for a torch function ``fn`` (a factorisation, a triangular solve):

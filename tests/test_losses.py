@@ -782,6 +782,21 @@ def test_fast_paths_on_device(device):
             assert rel_err(g.cpu(), g0[name]) <= 1e-9, name
 
 
+@pytest.mark.parametrize("solver", ["fast", "cvxpylayers"])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_losses_are_scalars_with_a_graph(solver, dtype):
+    """Each loss is a 0-dim tensor of the model's dtype that requires grad (the fast paths
+    compute it in NumPy arrays and hand back a tensor)."""
+    model, data = make_problem(n=10, seed=4)
+    model = model.to(dtype)
+    x, u, xn = (t.to(dtype) for t in (data.x, data.u, data.x_next))
+    for loss in (violation_loss(model, x, u, xn, gamma=1e-2, eps=1e-2, solver=solver),
+                 prediction_loss(model, x, u, xn, solver=solver)):
+        assert loss.shape == () and loss.dtype == dtype and loss.requires_grad
+        loss.backward()
+        assert all(getattr(model, k).grad.dtype == dtype for k in PARAMETER_NAMES)
+
+
 def test_fast_losses_in_torch_arrays_match_numpy(monkeypatch):
     """The fast losses run in NumPy arrays on CPU and in torch tensors elsewhere (CUDA): forced
     onto torch tensors on CPU, the same values, solutions and gradients (to round-off)."""
