@@ -301,9 +301,8 @@ def _violation_fast(model, x, u, x_next, gamma: float, eps: float,
     xp, params, p, x, u, F, q, r = _fast_arrays(model, x, u, x_next)
     with xp.threads():
         # gamma < sigma_min(F + F^T) is checked there; F + F^T >= 2 s I by construction
-        values = decl.parameter_values(p["C"], F, q, r, gamma, eps, 2.0 * float(model.stiffness))
-        sol = solve_arrays(xp, *(values[k] for k in decl.parameter_order), device=model.device,
-                           residual=residual, warm_start=warm_start)
+        normal = decl.normal_equations(p["C"], F, q, r, gamma, eps, 2.0 * float(model.stiffness))
+        sol = solve_arrays(xp, normal, device=model.device, residual=residual, warm_start=warm_start)
         lam = xp.wrap(sol.lam)
         phi = decl.phi(lam, F, q, gamma)
         loss = _EnvelopeLoss.apply(xp, (x, u, q, r, F, p["C"], p["G"], lam, phi), gamma, eps, *params)

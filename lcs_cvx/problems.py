@@ -154,6 +154,45 @@ class ViolationProblem:
     def parameter_order(self) -> list[str]:
         return ["L", "b", "K", "h"]
 
+    def normal_equations(
+        self,
+        C: Any,
+        F: Any,
+        q: Any,
+        r: Any,
+        gamma: float,
+        eps: float,
+        sigma_min_bound: float = 0.0,
+    ) -> dict[str, Any]:
+        """(V)'s data before the factorisation: the form the fast kernel consumes.
+
+        ``{"LtL": L^T L = eps C^T C + F + F^T - gamma I, "Ltb": rows of L^T b = eps C^T r + q,
+        "K", "h"}``, the quantities of the module docstring that define the parameter values
+        (:meth:`parameter_values` factors them). Tensors (differentiable) from tensors, NumPy
+        arrays from NumPy arrays. Arguments as in :meth:`parameter_values`; ``gamma`` is checked
+        here.
+        """
+        xp = ops_of(F)
+        eye = xp.eye(self.n_lam, F)
+        check_gamma(F, gamma, sigma_min_bound)
+        scale = 1.0 / math.sqrt(gamma)
+        return {
+            "LtL": eps * (C.mT @ C) + F + F.mT - gamma * eye,
+            "Ltb": eps * (r @ C) + q,  # rows of eps C^T r + q
+            "K": (gamma * eye - F) * scale,
+            "h": q * scale,
+        }
+
+    @staticmethod
+    def factor(normal: dict[str, Any]) -> dict[str, Any]:
+        """The parameter values ``{"L", "b", "K", "h"}`` from :meth:`normal_equations`: ``L``
+        the upper Cholesky factor of ``L^T L`` (a clear error if it is not positive definite),
+        ``b`` the rows of ``L^{-T} (L^T b)``."""
+        xp = ops_of(normal["LtL"])
+        L = xp.via_torch(functools.partial(_upper_cholesky, "eps C^T C + F + F^T - gamma I"), normal["LtL"])
+        b = xp.via_torch(_rows_solve_transposed, L, normal["Ltb"])
+        return {"L": L, "b": b, "K": normal["K"], "h": normal["h"]}
+
     def parameter_values(
         self,
         C: Any,
@@ -179,15 +218,7 @@ class ViolationProblem:
         Returns:
             ``{"L": (n, n), "b": (B, n), "K": (n, n), "h": (B, n)}``.
         """
-        xp = ops_of(F)
-        eye = xp.eye(self.n_lam, F)
-        check_gamma(F, gamma, sigma_min_bound)
-        H = eps * (C.mT @ C) + F + F.mT - gamma * eye
-        L = xp.via_torch(functools.partial(_upper_cholesky, "eps C^T C + F + F^T - gamma I"), H)
-        g = eps * (r @ C) + q  # rows of eps C^T r + q
-        b = xp.via_torch(_rows_solve_transposed, L, g)
-        scale = 1.0 / math.sqrt(gamma)
-        return {"L": L, "b": b, "K": (gamma * eye - F) * scale, "h": q * scale}
+        return self.factor(self.normal_equations(C, F, q, r, gamma, eps, sigma_min_bound))
 
     @staticmethod
     def phi(lam: Any, F: Any, q: Any, gamma: float) -> Any:

@@ -13,7 +13,11 @@ Cholesky solve of
 
     (L^T L + K^T diag(s) K)_II lam_I = -(L^T b - K^T (s * h))_I.
 
-Samples that do not converge are solved by the Clarabel reference on the same declaration.
+The kernel therefore consumes ``L^T L``, ``L^T b``, ``K`` and ``h``
+(:meth:`lcs_cvx.problems.ViolationProblem.normal_equations`): :func:`solve_violation_fast` forms
+them from the parameter values, the fast violation loss builds them directly (no factorisation
+and no triangular solve per call). Samples that do not converge are solved by the Clarabel
+reference on the same declaration.
 """
 
 from __future__ import annotations
@@ -92,12 +96,11 @@ def violation_kkt_residual(values: dict[str, torch.Tensor], lam: torch.Tensor) -
     return torch.minimum(lam, g / hdiag).abs().amax(-1) / (1.0 + lam.abs().amax(-1))
 
 
-def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: int,
+def _pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
            warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, Any, PivotResult]:
-    """Block pivoting on (V) in the kernel's arrays: ``(lam, free, pos, result)``."""
-    n = b.shape[1]
-    LtL = L.T @ L
-    Ltb = b @ L  # rows of L^T b
+    """Block pivoting on (V) in the kernel's arrays (:meth:`ViolationProblem.normal_equations`):
+    ``(lam, free, pos, result)``."""
+    n = Ltb.shape[1]
     # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
     K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
     scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
@@ -114,7 +117,7 @@ def _pivot(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, tol: float, max_iter: i
         free, pos = state[:, :n], state[:, n:]
         d = data if idx is None else data[idx]
         bb, nbb, hh, nhh, ng, st, nt = (d[:, part] for part in parts)
-        sf = xp.to_float(pos, b)
+        sf = xp.to_float(pos, Ltb)
         # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
         M = xp.free_block(LtL_flat + sf @ K_outer, free)
         rhs = xp.where(free, nbb + (sf * hh) @ K, 0.0)
@@ -174,25 +177,32 @@ def solve_violation_fast(
         device = values["b"].device
         xp = array_ops(values["b"], backend)
         with xp.threads():
-            arrays = [xp.wrap(values[k]) for k in ("L", "b", "K", "h")]
-            return solve_arrays(xp, *arrays, max_iter=max_iter, tol=tol, fallback=fallback,
-                                residual=residual, warm_start=warm_start, device=device)
+            L, b, K, h = (xp.wrap(values[k]) for k in ("L", "b", "K", "h"))
+            normal = {"LtL": L.T @ L, "Ltb": b @ L, "K": K, "h": h}
+            return solve_arrays(xp, normal, max_iter=max_iter, tol=tol, fallback=fallback,
+                                residual=residual, warm_start=warm_start, device=device,
+                                values={"L": L, "b": b, "K": K, "h": h})
 
 
-def solve_arrays(xp: ArrayOps, L: Any, b: Any, K: Any, h: Any, *, device: torch.device,
+def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device,
                  max_iter: int = 1000, tol: float = PIVOT_TOL, fallback: bool = True,
-                 residual: bool = True, warm_start: torch.Tensor | None = None) -> ViolationSolution:
-    """:func:`solve_violation_fast` on the kernel's arrays of ``L, b, K, h`` (the fast
-    violation loss builds them there, without a round trip through tensors); the caller holds
-    :meth:`ArrayOps.threads`."""
-    *sets, res = _pivot(xp, L, b, K, h, tol, max_iter, warm_start, device)
+                 residual: bool = True, warm_start: torch.Tensor | None = None,
+                 values: dict[str, Any] | None = None) -> ViolationSolution:
+    """:func:`solve_violation_fast` on the kernel's arrays of (V) in the form the kernel consumes,
+    ``normal = {"LtL", "Ltb", "K", "h"}`` (:meth:`ViolationProblem.normal_equations`; the fast
+    violation loss builds it there, without factorising). The parameter values ``{"L", "b",
+    "K", "h"}`` are needed only for a fallback or the residual: ``values``, or factored from
+    ``normal`` then. The caller holds :meth:`ArrayOps.threads`."""
+    *sets, res = _pivot(xp, normal["LtL"], normal["Ltb"], normal["K"], normal["h"], tol, max_iter,
+                        warm_start, device)
     lam, free, pos = (xp.unwrap(a) for a in sets)
     n = lam.shape[1]
     bad_idx = None if res.converged.all() else unconverged(
         xp.unwrap(res.converged), "violation QP", max_iter, fallback)
     n_fb = 0 if bad_idx is None else int(bad_idx.numel())
     if bad_idx is not None or residual:
-        L, b, K, h = (xp.unwrap(a) for a in (L, b, K, h))
+        values = violation_problem(n).factor(normal) if values is None else values
+        L, b, K, h = (xp.unwrap(values[k]) for k in ("L", "b", "K", "h"))
     if bad_idx is not None:
         sub = {"L": L, "K": K, "b": b[bad_idx], "h": h[bad_idx]}
         ref = violation_problem(n).solve(sub)

@@ -187,6 +187,29 @@ def test_violation_parameter_values_complete_the_square():
     assert all(float(t.grad.abs().max()) > 0 for t in leaves)
 
 
+def test_violation_normal_equations_and_numpy_parameter_values():
+    """The kernel's form ``{LtL, Ltb, K, h}`` is what the parameter values factor: ``L^T L =
+    LtL`` and ``L^T b = Ltb`` for ``factor(normal_equations(...))``; the same numbers from NumPy
+    arrays (the fast loss's arrays) as from tensors."""
+    n, n_x, B, gamma, eps = 4, 3, 5, 0.1, 1e-2
+    F = random_p_matrix(n, smin=0.5, seed=3)
+    C, q, r = randn(n_x, n, seed=1), randn(B, n, seed=2), randn(B, n_x, seed=3)
+    decl = violation_problem(n)
+    normal = decl.normal_equations(C, F, q, r, gamma, eps)
+    I = torch.eye(n, dtype=F64)
+    assert torch.allclose(normal["LtL"], eps * C.mT @ C + F + F.mT - gamma * I, rtol=1e-14, atol=1e-14)
+    assert torch.allclose(normal["Ltb"], eps * r @ C + q, rtol=1e-14, atol=1e-14)
+    v = decl.factor(normal)
+    assert torch.allclose(v["L"].mT @ v["L"], normal["LtL"], rtol=1e-12, atol=1e-12)
+    assert torch.allclose(v["b"] @ v["L"], normal["Ltb"], rtol=1e-12, atol=1e-12)
+    v_np = decl.parameter_values(*(t.numpy() for t in (C, F, q, r)), gamma, eps)
+    for k in ("L", "b", "K", "h"):
+        assert isinstance(v_np[k], np.ndarray)
+        assert np.allclose(v_np[k], v[k].numpy(), rtol=1e-13, atol=1e-13), k
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"gamma: expected 0 < gamma < sigma_min"):
+        decl.normal_equations(C.numpy(), F.numpy(), q.numpy(), r.numpy(), 10.0, eps)
+
+
 # -- (V): the (lam, phi) objective against the declared problem ----------------------------
 
 
