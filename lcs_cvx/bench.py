@@ -5,8 +5,9 @@ noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that 
 with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
 neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
 ``.backward()``, as in a training step (without the diagnostics of ``return_info``);
-throughput is ``batch / median(time)`` over ``repeats`` timed repeats after a warm-up, a repeat
-being the mean of as many calls as fill :data:`MIN_REPEAT_S` (one call of a reference path).
+throughput is ``batch / median(time)`` over ``repeats`` timed repeats after a warm-up of
+:data:`WARMUP_S`, a repeat being the mean of as many calls as fill :data:`MIN_REPEAT_S` (one call
+of a reference path).
 Errors are the max-abs difference of ``lam`` and the relative difference of the loss,
 ``|loss - loss_fast| / (1 + |loss_fast|)``, against the fast path.
 
@@ -85,13 +86,25 @@ def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
 #: averaged, so the median over repeats is not one call's scheduling jitter.
 MIN_REPEAT_S = 0.05
 
+#: Before the timed repeats a path is called for at least this long (once if one call takes
+#: longer): on this machine the first few hundred calls of a process ran 1.2-1.8x slower than
+#: the steady state, and the first row of a benchmark measured them.
+WARMUP_S = 0.5
+
 
 def _time(fn: Callable[[], None], repeats: int) -> float:
     """Median over ``repeats`` of the mean time of one call, each repeat ``ceil(MIN_REPEAT_S /
-    t_warm-up)`` calls long (one call for the slow reference paths)."""
-    t0 = time.perf_counter()
-    fn()  # warm-up (compiles the CVXPY problem / layer on first use)
-    calls = max(1, math.ceil(MIN_REPEAT_S / max(time.perf_counter() - t0, 1e-9)))
+    t_call)`` calls long (one call for the slow reference paths), after a warm-up: one call
+    (which compiles the CVXPY problem / layer on first use), then calls for :data:`WARMUP_S`,
+    whose mean is ``t_call``."""
+    fn()
+    t0, n = time.perf_counter(), 0
+    while True:
+        fn()
+        n += 1
+        if time.perf_counter() - t0 >= WARMUP_S:
+            break
+    calls = max(1, math.ceil(MIN_REPEAT_S * n / max(time.perf_counter() - t0, 1e-9)))
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()

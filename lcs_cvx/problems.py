@@ -154,16 +154,8 @@ class ViolationProblem:
     def parameter_order(self) -> list[str]:
         return ["L", "b", "K", "h"]
 
-    def normal_equations(
-        self,
-        C: Any,
-        F: Any,
-        q: Any,
-        r: Any,
-        gamma: float,
-        eps: float,
-        sigma_min_bound: float = 0.0,
-    ) -> dict[str, Any]:
+    def normal_equations(self, C: Any, F: Any, q: Any, r: Any, gamma: float, eps: float,
+                         sigma_min_bound: float = 0.0) -> dict[str, Any]:
         """(V)'s data before the factorisation: the form the fast kernel consumes.
 
         ``{"LtL": L^T L = eps C^T C + F + F^T - gamma I, "Ltb": rows of L^T b = eps C^T r + q,

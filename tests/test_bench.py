@@ -32,3 +32,26 @@ def test_lcp_bench_tiny():
     assert row[0] == "2" and row[1] == "50"
     assert float(row[2].replace(",", "")) > 0 and float(row[3].replace(",", "")) > 0
     assert float(row[5]) < 1e-6  # fast and Clarabel agree
+
+
+def test_time_warms_up_to_a_steady_state(monkeypatch):
+    """A fast path is called for WARMUP_S before it is timed (the first few hundred calls of a
+    process ran slower here), and a repeat averages as many calls as fill MIN_REPEAT_S."""
+    import time
+
+    from lcs_cvx import bench
+
+    monkeypatch.setattr(bench, "WARMUP_S", 0.05)
+    monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.01)
+    stamps = []
+
+    def fn():
+        stamps.append(time.perf_counter())
+        time.sleep(0.001)
+
+    t = bench._time(fn, repeats=2)
+    assert 0.001 <= t < 0.01
+    # one set-up call, >= 0.05 s of warm-up calls, then 2 repeats of ~0.01 s each
+    warm = [s for s in stamps if s - stamps[1] < 0.05]
+    assert len(warm) >= 10
+    assert len(stamps) - 1 - len(warm) >= 2 * 3
