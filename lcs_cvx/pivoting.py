@@ -51,11 +51,12 @@ class FallbackWarning(RuntimeWarning):
 SMALL_N = 6
 
 
-#: Above :data:`SMALL_N`, up to this much work (``batch * n * n``) the NumPy back-end solves
-#: with NumPy's batched LU rather than torch's Cholesky: NumPy's is cheaper to call, torch's
-#: faster per matrix (the two cross near 2,000-3,000 for n from 4 to 20, batch 1 to 400, one
-#: thread, measured).
-NUMPY_SOLVE_WORK = 2048
+#: Up to this much work (``batch * n * n``) the NumPy back-end solves with NumPy's batched LU
+#: rather than torch's LAPACK calls: NumPy's is cheaper to call, torch's faster per matrix.
+#: Measured (one thread): alone, the two cross between 1,000 and 10,000 for n from 4 to 20;
+#: inside the fast violation loss at n_lam = 4, batch 200 (3,200), NumPy's made the call
+#: 1.05-1.16x faster; at batch 50,000 torch's LCP kernel was 1.3x faster.
+NUMPY_SOLVE_WORK = 4096
 
 
 def spd_solve(M: torch.Tensor, rhs: torch.Tensor, spd: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -230,18 +231,16 @@ class ArrayOps:
     def solve(self, M: Any, rhs: Any, spd: bool = True) -> tuple[Any, Any | None]:
         """:func:`spd_solve` on the kernel's arrays.
 
-        NumPy: NumPy's batched LU (``numpy.linalg.solve``) where :func:`spd_solve` would factor
-        by LU too (``n <= SMALL_N``), or for a batch of at most :data:`NUMPY_SOLVE_WORK`
-        ``b * n * n``: ~5 us for one small matrix against ~17 us for torch's call, and inside a
-        kernel of NumPy operations a call into torch costs more than in a loop of its own (all
-        NumPy at n_lam = 4: 1.05-1.16x faster loss calls, side by side). Larger batches of
-        larger matrices, or a batch with an exactly singular matrix (NumPy raises for the whole
-        batch), go to :func:`spd_solve`, which says which one failed.
+        NumPy: a batch of at most :data:`NUMPY_SOLVE_WORK` ``b * n * n`` goes to NumPy's
+        batched LU (``numpy.linalg.solve``): ~5 us for one small matrix against ~17 us for
+        torch's call, and inside a kernel of NumPy operations a call into torch costs more than
+        in a loop of its own. A larger batch, or one with an exactly singular matrix (NumPy
+        raises for the whole batch), goes to :func:`spd_solve`, which says which one failed.
         """
         if not self.np:
             return spd_solve(M, rhs, spd)
         b, n = rhs.shape
-        if n <= SMALL_N or b * n * n <= NUMPY_SOLVE_WORK:
+        if b * n * n <= NUMPY_SOLVE_WORK:
             try:
                 return np.linalg.solve(M, rhs[..., None])[..., 0], None
             except np.linalg.LinAlgError:
