@@ -5,9 +5,9 @@ noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that 
 with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
 neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
 ``.backward()``, as in a training step (without the diagnostics of ``return_info``);
-throughput is ``batch / median(time)`` over ``repeats`` timed repeats after a warm-up of
-:data:`WARMUP_S`, a repeat being the mean of as many calls as fill :data:`MIN_REPEAT_S` (one call
-of a reference path).
+throughput is ``batch / median(time)`` over ``repeats`` timed repeats (more, to fill
+:data:`MIN_TIMED_S`) after a warm-up of :data:`WARMUP_S`, a repeat being the mean of as many calls
+as fill :data:`MIN_REPEAT_S` (one call of a reference path).
 Errors are the max-abs difference of ``lam`` and the relative difference of the loss,
 ``|loss - loss_fast| / (1 + |loss_fast|)``, against the fast path.
 
@@ -91,12 +91,17 @@ MIN_REPEAT_S = 0.05
 #: the steady state, and the first row of a benchmark measured them.
 WARMUP_S = 0.5
 
+#: A path is timed for at least this long, in more repeats than asked if they are short: this
+#: shared machine has slow phases (1.5x, ~1 s long) that a window of a few repeats of 50 ms
+#: can fall into entirely; the median over 3 s is the machine's usual speed.
+MIN_TIMED_S = 3.0
+
 
 def _time(fn: Callable[[], None], repeats: int) -> float:
-    """Median over ``repeats`` of the mean time of one call, each repeat ``ceil(MIN_REPEAT_S /
-    t_call)`` calls long (one call for the slow reference paths), after a warm-up: one call
-    (which compiles the CVXPY problem / layer on first use), then calls for :data:`WARMUP_S`,
-    whose mean is ``t_call``."""
+    """Median over at least ``repeats`` repeats (and :data:`MIN_TIMED_S`) of the mean time of
+    one call, each repeat ``ceil(MIN_REPEAT_S / t_call)`` calls long (one call for the slow
+    reference paths), after a warm-up: one call (which compiles the CVXPY problem / layer on
+    first use), then calls for :data:`WARMUP_S`, whose mean is ``t_call``."""
     fn()
     t0, n = time.perf_counter(), 0
     while True:
@@ -105,8 +110,9 @@ def _time(fn: Callable[[], None], repeats: int) -> float:
         if time.perf_counter() - t0 >= WARMUP_S:
             break
     calls = max(1, math.ceil(MIN_REPEAT_S * n / max(time.perf_counter() - t0, 1e-9)))
-    times = []
-    for _ in range(repeats):
+    times: list[float] = []
+    start = time.perf_counter()
+    while len(times) < repeats or time.perf_counter() - start < MIN_TIMED_S:
         t0 = time.perf_counter()
         for _ in range(calls):
             fn()

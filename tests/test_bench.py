@@ -2,10 +2,22 @@
 
 import math
 
+import pytest
+
 from lcs_cvx.bench import format_table, run_bench
 
 
-def test_bench_tiny_runs_and_paths_agree():
+@pytest.fixture
+def short_timing(monkeypatch):
+    """The benchmark's warm-up and minimum timed window off: these tests check what it computes,
+    not how fast."""
+    from lcs_cvx import bench
+
+    monkeypatch.setattr(bench, "WARMUP_S", 0.0)
+    monkeypatch.setattr(bench, "MIN_TIMED_S", 0.0)
+
+
+def test_bench_tiny_runs_and_paths_agree(short_timing):
     rows = run_bench([(3, 1, 2)], paths=("fast", "cvxpylayers"), batch=8, repeats=1)
     assert len(rows) == 4  # 2 losses x 2 paths
     for r in rows:
@@ -22,7 +34,7 @@ def test_bench_tiny_runs_and_paths_agree():
     assert "| fast |" in table and "| cvxpylayers |" in table
 
 
-def test_lcp_bench_tiny():
+def test_lcp_bench_tiny(short_timing):
     from lcs_cvx.bench import run_lcp_bench
 
     table = run_lcp_bench(n_lams=(2,), batches=(50,), repeats=1, n_reference=5)
@@ -43,6 +55,7 @@ def test_time_warms_up_to_a_steady_state(monkeypatch):
 
     monkeypatch.setattr(bench, "WARMUP_S", 0.05)
     monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.01)
+    monkeypatch.setattr(bench, "MIN_TIMED_S", 0.0)
     stamps = []
 
     def fn():
@@ -55,3 +68,16 @@ def test_time_warms_up_to_a_steady_state(monkeypatch):
     warm = [s for s in stamps if s - stamps[1] < 0.05]
     assert len(warm) >= 10
     assert len(stamps) - 1 - len(warm) >= 2 * 3
+
+
+def test_time_fills_the_minimum_timed_window(monkeypatch):
+    """Short repeats continue until MIN_TIMED_S is filled (slow phases of the machine are then a
+    minority of the repeats whose median is kept)."""
+    from lcs_cvx import bench
+
+    monkeypatch.setattr(bench, "WARMUP_S", 0.0)
+    monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.001)
+    monkeypatch.setattr(bench, "MIN_TIMED_S", 0.1)
+    calls = []
+    bench._time(lambda: calls.append(None), repeats=2)
+    assert len(calls) > 100  # ~0.1 s of calls, not 2 repeats of a few
