@@ -172,7 +172,7 @@ def solve_lcp_fast(
         lam = solution.clamp(min=0.0)
         free = xp.unwrap(res.free) & (solution > 0)
         brute = n <= BRUTE_MAX
-        bad_idx = unconverged(xp.unwrap(res.converged), "LCP", max_iter, fallback,
+        bad_idx = unconverged(xp, res.converged, "LCP", max_iter, fallback,
                               f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
         n_fb = 0 if bad_idx is None else int(bad_idx.numel())
         if bad_idx is not None and brute:

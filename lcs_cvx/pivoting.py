@@ -436,15 +436,16 @@ def block_pivoting(
     return PivotResult(solution=solution, free=free, converged=converged, iterations=sweeps)
 
 
-def unconverged(converged: torch.Tensor, what: str, max_iter: int, fallback: bool,
+def unconverged(xp: ArrayOps, converged: Any, what: str, max_iter: int, fallback: bool,
                 reference: str = "the Clarabel reference") -> torch.Tensor | None:
-    """Indices of the samples that did not converge (``converged`` ``(B,)`` bool tensor is False;
-    None if all did), after saying so: a :class:`FallbackWarning` if ``fallback`` (the caller
-    then solves them with ``reference``), else :class:`lcs_cvx.SolverError`."""
+    """Indices (a tensor) of the samples that did not converge (``converged``, the ``(B,)`` bool
+    kernel array of :class:`PivotResult`, is False; None if all did, checked in the kernel's
+    arrays), after saying so: a :class:`FallbackWarning` if ``fallback`` (the caller then solves
+    them with ``reference``), else :class:`lcs_cvx.SolverError`."""
     if bool(converged.all()):
         return None
-    idx = (~converged).nonzero().squeeze(1)
-    msg = (f"{what} pivoting did not converge on {idx.numel()} of {converged.numel()} "
+    idx = xp.unwrap(xp.flatnonzero(~converged))
+    msg = (f"{what} pivoting did not converge on {idx.numel()} of {converged.shape[0]} "
            f"samples in {max_iter} sweeps")
     if not fallback:
         raise SolverError(msg)

@@ -197,8 +197,7 @@ def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device,
                         warm_start, device)
     lam, free, pos = (xp.unwrap(a) for a in sets)
     n = lam.shape[1]
-    bad_idx = None if res.converged.all() else unconverged(
-        xp.unwrap(res.converged), "violation QP", max_iter, fallback)
+    bad_idx = unconverged(xp, res.converged, "violation QP", max_iter, fallback)
     n_fb = 0 if bad_idx is None else int(bad_idx.numel())
     if bad_idx is not None or residual:
         values = violation_problem(n).factor(normal) if values is None else values
