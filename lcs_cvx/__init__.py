@@ -4,9 +4,6 @@ from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
 from .data import Dataset as Dataset
 from .data import make_dataset as make_dataset
-from .fit import FitOptions as FitOptions
-from .fit import FitResult as FitResult
-from .fit import fit as fit
 from .hessian import violation_hessian as violation_hessian
 from .hessian import violation_hvp as violation_hvp
 from .io import load_metadata as load_metadata
@@ -25,5 +22,15 @@ from .problems import convex_lcp_problem as convex_lcp_problem
 from .problems import violation_problem as violation_problem
 from .system import LCS as LCS
 from .system import random_lcs as random_lcs
+from .train import RECIPES as RECIPES
+from .train import AdamOptions as AdamOptions
+from .train import FitOptions as FitOptions
+from .train import FitResult as FitResult
+from .train import ObjectiveOptions as ObjectiveOptions
+from .train import PolishOptions as PolishOptions
+from .train import PruneOptions as PruneOptions
+from .train import RefineOptions as RefineOptions
+from .train import RunOptions as RunOptions
+from .train import fit as fit
 
 __version__ = "0.1.0"

@@ -341,7 +341,6 @@ def _configure_fit(p: argparse.ArgumentParser) -> None:
 
 def run_fit(args: argparse.Namespace) -> int:
     """Learn an LCS from ``--data`` with :func:`lcs_cvx.fit` and write it to ``--out``."""
-    from dataclasses import asdict
 
     from . import LCS
     from . import fit as fit_lcs  # looked up at run time: tests replace lcs_cvx.fit
@@ -379,7 +378,7 @@ def run_fit(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
 
     metadata = {
-        "fit": _jsonable(asdict(result.settings)),
+        "fit": _jsonable(result.settings.flat()),
         "init": {"n_lam": args.n_lam, "stiffness": args.stiffness, "seed": seed},
         "data": {"train": args.data, "test": args.test, "n_train": len(train)},
     }

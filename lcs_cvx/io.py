@@ -282,3 +282,18 @@ def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
         raise LCSInputError(f"{where}: expected 'metadata' a JSON object, received {meta['metadata']!r}")
     meta.setdefault("metadata", {})
     return meta
+
+
+def atomic_write(path, write, *, name: str = "path") -> None:  # provisional, replaced on merge
+    import tempfile
+    path = os.fspath(path)
+    d = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=d, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

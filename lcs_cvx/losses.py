@@ -94,6 +94,7 @@ class LossInfo:
     n_degenerate: int = 0
     max_residual: float = 0.0
     active: torch.Tensor | None = None
+    loss: torch.Tensor | None = None
 
 
 def _parameter_gradients(xp: ArrayOps, need: tuple[bool, ...], x, u, lam, G, g_r, g_q) -> tuple:
@@ -377,3 +378,14 @@ def regularizer(model: Any, weight: float = 1e-5) -> torch.Tensor:
     if isinstance(weight, bool) or not isinstance(weight, (int, float)) or weight < 0:
         raise LCSInputError(f"weight: expected a number >= 0, received {weight!r}")
     return weight * (model.C**2).sum()
+
+
+def violation_fast(model, x, u, x_next, *, gamma: float, eps: float, warm_start=None,
+                   residual: bool = False) -> LossInfo:
+    loss, sol, lam, phi = _violation_fast(model, x, u, x_next, gamma, eps, warm_start, residual)
+    return LossInfo(lam, phi, sol.iterations, sol.n_fallback, 0, 0.0, sol.active, loss=loss)
+
+
+def prediction_fast(model, x, u, x_next, *, warm_start=None) -> LossInfo:
+    loss, sol, lam = _prediction_fast(model, x, u, x_next, warm_start)
+    return LossInfo(lam, sol.w, sol.iterations, sol.n_fallback, 0, 0.0, sol.free, loss=loss)

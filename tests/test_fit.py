@@ -14,7 +14,7 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
-from lcs_cvx.fit import FitOptions, extra_units, resolve_options
+from lcs_cvx.train import FitOptions, extra_units, resolve_options
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +73,7 @@ def test_history_records_and_settings(small):
     assert seen == result.history
     assert all(h["phase"] == "adam" and h["e_test"] > 0 and h["loss"] > 0 for h in result.history)
     assert result.settings == resolve_options(iterations=200, eval_every=50)
-    assert result.settings.lr == 1e-3 and result.settings.betas == (0.9, 0.9)
+    assert result.settings.adam.lr == 1e-3 and result.settings.adam.betas == (0.9, 0.9)
 
 
 def test_callback_stops_training(small):
@@ -124,14 +124,23 @@ def test_polish_lowers_the_prediction_loss(small):
 
 def test_recipes_and_option_resolution():
     paper = resolve_options("paper")
-    assert (paper.optimizer, paper.lr, paper.lr_schedule, paper.refine) == ("adam", 1e-3, "constant", None)
+    assert (paper.optimizer, paper.adam.lr, paper.adam.lr_schedule, paper.refine.method) == (
+        "adam", 1e-3, "constant", None)
     best = resolve_options("best", lr=2e-2)
-    assert best.lr == 2e-2 and best.eps_start == 1e-2 and best.refine == "gauss-newton"
-    assert best.extra_units == "auto" and best.prune_repair == 1
+    assert best.adam.lr == 2e-2 and best.adam.eps_start == 1e-2 and best.refine.method == "gauss-newton"
+    assert best.adam.extra_units == "auto" and best.prune.repair == 1
     assert [extra_units("auto", n) for n in (1, 4, 8, 20)] == [1, 2, 4, 4]
     gn = resolve_options(optimizer="gauss-newton")
-    assert gn.iterations == 50 and gn.batch_size == 5000
-    assert resolve_options(optimizer="gauss-newton", iterations=7).iterations == 7
+    assert gn.optimizer == "gauss-newton" and gn.adam.iterations == 0
+    assert gn.refine.iterations == 50 and gn.refine.batch_size == 5000 and gn.run.eval_every == 1
+    assert resolve_options(optimizer="gauss-newton", iterations=7).refine.iterations == 7
+    # the recipes are values: options=RECIPES[...] with overrides is the recipe with keywords
+    assert lcs_cvx.RECIPES["best"].replace(lr=2e-2) == best
+    assert lcs_cvx.RECIPES["paper"] == paper and paper.recipe == "paper"
+    # the flat keywords are a faithful view of the groups
+    for opts in (paper, best, gn, resolve_options(polish_iterations=5, restarts=2)):
+        flat = opts.flat()
+        assert resolve_options(flat.pop("recipe"), **flat) == opts
 
 
 @pytest.mark.parametrize(
@@ -176,7 +185,9 @@ def test_options_are_frozen():
     import dataclasses
 
     with pytest.raises(dataclasses.FrozenInstanceError):
-        FitOptions().lr = 1.0  # type: ignore[misc]
+        FitOptions().adam.lr = 1.0  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        FitOptions().adam = None  # type: ignore[misc]
 
 
 def test_checkpoint_mismatch_is_refused(small, tmp_path):
@@ -261,3 +272,53 @@ def test_divergence_is_reported_not_silent(small):
     _, train, _ = small
     with pytest.raises(lcs_cvx.SolverError, match=r"training diverged at iteration \d+: loss = .*not finite; lower lr"):
         lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=500, lr=1e200)
+
+
+def test_fit_takes_options_and_overrides(small):
+    """``fit(model, data, options, **overrides)`` is ``fit(model, data, recipe=..., **kw)``."""
+    _, train, test = small
+    kw = {"iterations": 300, "refine_iterations": 2, "progress": False}
+    a = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, recipe="best", **kw)
+    b = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, lcs_cvx.RECIPES["best"], test=test, **kw)
+    assert a.settings == b.settings
+    assert [h["e_test"] for h in a.history] == [h["e_test"] for h in b.history]
+    with pytest.raises(LCSInputError, match=r"options: expected an lcs_cvx.FitOptions .*received dict"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, {"lr": 1e-3}, progress=False)
+    with pytest.raises(LCSInputError, match=r"recipe: expected None when options are given"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, lcs_cvx.RECIPES["paper"], recipe="best", progress=False)
+    # a whole group as an override
+    c = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False,
+                    adam=lcs_cvx.AdamOptions(iterations=40, lr=5e-3), run=lcs_cvx.RunOptions(eval_every=20))
+    assert [h["iteration"] for h in c.history] == [20, 40] and c.settings.adam.lr == 5e-3
+
+
+def test_fallbacks_are_recorded(small, monkeypatch):
+    """Every record carries the samples the fast solver handed to the reference in its stretch
+    and their worst residual; the result sums them (here the solver is told it fell back)."""
+    import dataclasses
+
+    from lcs_cvx.train import phases
+
+    real = phases.violation_fast
+
+    def falls_back(*args, **kwargs):
+        return dataclasses.replace(real(*args, **kwargs), n_fallback=2, max_residual=3e-9)
+
+    monkeypatch.setattr(phases, "violation_fast", falls_back)
+    _, train, _ = small
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=30,
+                         eval_every=10)
+    assert [h["n_fallback"] for h in result.history] == [20, 20, 20]
+    assert all(h["max_residual"] == 3e-9 for h in result.history)
+    assert result.n_fallback == 60 and result.max_residual == 3e-9
+    clean = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, optimizer="gauss-newton",
+                        iterations=2)
+    assert clean.n_fallback == 0 and clean.max_residual == 0.0
+
+
+def test_old_checkpoint_format_is_refused(small, tmp_path):
+    _, train, _ = small
+    ckpt = tmp_path / "old.ckpt"
+    torch.save({"format": 2, "options": {}, "done": []}, ckpt)
+    with pytest.raises(LCSInputError, match=r"checkpoint: .* has format 2, expected 3 \(written by another version"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, checkpoint=ckpt, resume=True)

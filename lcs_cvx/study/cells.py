@@ -20,7 +20,6 @@ SHA-256 of its canonical JSON without the bookkeeping fields, so identical work 
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import os
@@ -130,8 +129,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         result = fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
                      seed=cell["seeds"]["fit"], **options)
         e_test = relative_error(result.model, test)
-    settings = dataclasses.asdict(result.settings)
-    settings["betas"] = list(settings["betas"])
+    settings = result.settings.flat()
     return {
         "e_test": e_test,
         "final_loss": result.history[-1]["loss"] if result.history else float("nan"),

@@ -20,7 +20,7 @@ paper's Fig. 1 (Sec. 5.1, panels (a)-(e)). Its keys::
     [system]  n_x, n_u, n_lam, stiffness = 0.5, g_scale = 1.0       (the ground truth, random_lcs)
     [data]    n_train, n_test = 1000, noise = 0.01, x_scale = 10.0, u_scale = 5.0
     [learner] stiffness = 1.0, init_scale = 0.1                     (lcs_cvx.LCS)
-    [fit]     any lcs_cvx.FitOptions field but loss, recipe and seed; a value may be a table
+    [fit]     any flat option of lcs_cvx.fit (lcs_cvx.train.FLAT_OPTIONS) but loss, recipe and seed; a value may be a table
               keyed by method ([fit.lr] prediction = 1e-3, violation = 5e-3). Sub-tables
               [fit.paper] / [fit.best] hold options used only under that recipe.
 
@@ -33,7 +33,6 @@ Every error is an :class:`lcs_cvx.LCSInputError` naming the file and the key.
 from __future__ import annotations
 
 import copy
-import dataclasses
 import hashlib
 import json
 import math
@@ -42,7 +41,8 @@ import tomllib
 from typing import Any
 
 from .._checks import LCSInputError
-from ..fit import LOSSES, RECIPES, FitOptions, resolve_options
+from ..train.options import LOSSES
+from ..train.recipes import FLAT_OPTIONS, RECIPES, resolve_options
 
 __all__ = ["load_config", "config_hash", "fit_options", "CONVENTIONS", "SWEEPABLE"]
 
@@ -51,7 +51,7 @@ KINDS = ("grid", "module")
 #: Options a config may not set: the method sets ``loss``, ``recipe`` is a top-level key and the
 #: seed of the minibatch order is derived per cell.
 _FIT_RESERVED = ("loss", "recipe", "seed")
-_FIT_KEYS = tuple(f.name for f in dataclasses.fields(FitOptions) if f.name not in _FIT_RESERVED)
+_FIT_KEYS = tuple(k for k in FLAT_OPTIONS if k not in _FIT_RESERVED)
 
 #: Recipe options the prediction loss cannot take, and what it gets instead: the second-order
 #: refinement is for the violation loss (Lemma 4), and pruning extra units needs the refinement.
@@ -246,7 +246,7 @@ def fit_options(config: dict[str, Any], method: str, value: Any = None) -> dict[
             if opts.get(k) is not None:
                 opts[k] = opts[k] * factor
     if method == "prediction":  # drop the recipe's violation-only parts (see _VIOLATION_ONLY)
-        recipe = RECIPES[config["recipe"]]
+        recipe = RECIPES[config["recipe"]].flat()
         opts.update({k: v for k, v in _VIOLATION_ONLY.items()
                      if k in _FIT_KEYS and recipe.get(k) and k not in opts})
     return {**opts, "loss": method}
@@ -276,10 +276,10 @@ def _check_fit(where: str, config: dict[str, Any]) -> None:
             swept = config["sweep"]["param"] == f"fit.{key}"
             raise _fail(where, "sweep.values" if swept else f"fit.{key}",
                         f"{str(exc).split(':', 1)[-1].strip()} (method {method!r})") from None
-        if method == "violation" and not settings.gamma < two_s:
+        if method == "violation" and not settings.objective.gamma < two_s:
             # sigma_min(F + F^T) of the learner is >= 2 s for every G, H (Sec. 5); Lemma 2
             raise _fail(where, "fit.gamma", f"expected gamma < 2 * learner.stiffness = {two_s:g} "
-                        f"(Lemma 2: gamma < sigma_min(F + F^T)), received {settings.gamma:g}")
+                        f"(Lemma 2: gamma < sigma_min(F + F^T)), received {settings.objective.gamma:g}")
 
 
 def load_config(path: str | os.PathLike) -> dict[str, Any]:

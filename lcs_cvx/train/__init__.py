@@ -1,0 +1,30 @@
+"""Training an LCS: :func:`fit` and its options.
+
+- :mod:`~lcs_cvx.train.options` -- :class:`FitOptions`, grouped by phase.
+- :mod:`~lcs_cvx.train.recipes` -- the flat keywords of :func:`fit` and the recipes.
+- :mod:`~lcs_cvx.train.state` -- :class:`TrainState`, one run's state (serialises itself).
+- :mod:`~lcs_cvx.train.phases` -- Adam, pruning, second-order refinement and polish, on one loop.
+- :mod:`~lcs_cvx.train.driver` -- :func:`fit`: restarts, checkpoints and resume, progress.
+"""
+
+from .driver import CHECKPOINT_FORMAT as CHECKPOINT_FORMAT
+from .driver import FitResult as FitResult
+from .driver import fit as fit
+from .options import AdamOptions as AdamOptions
+from .options import FitOptions as FitOptions
+from .options import ObjectiveOptions as ObjectiveOptions
+from .options import PolishOptions as PolishOptions
+from .options import PruneOptions as PruneOptions
+from .options import RefineOptions as RefineOptions
+from .options import RunOptions as RunOptions
+from .options import extra_units as extra_units
+from .recipes import FLAT_OPTIONS as FLAT_OPTIONS
+from .recipes import RECIPES as RECIPES
+from .recipes import resolve_options as resolve_options
+from .state import TrainState as TrainState
+
+__all__ = [
+    "fit", "FitResult", "FitOptions", "RECIPES", "FLAT_OPTIONS", "ObjectiveOptions", "AdamOptions",
+    "PruneOptions", "RefineOptions", "PolishOptions", "RunOptions", "TrainState", "extra_units",
+    "resolve_options", "CHECKPOINT_FORMAT",
+]

@@ -1,0 +1,273 @@
+r""":func:`fit`: learn an LCS from transitions by minimising ``L(theta) + omega ||C||_F^2``
+(paper eq. equ.loss), with restarts, checkpoints and resume.
+
+A run goes through the phases of :mod:`lcs_cvx.train.phases` (Adam, pruning, second-order
+refinement, polish; options in :mod:`lcs_cvx.train.options`). With ``restarts > 1`` the runs start
+from different initialisations (the first from ``model``), train on ``1 - holdout`` of the data,
+and the one with the lowest relative error on the held-out part is returned.
+
+Checkpoints hold every finished restart and the running one's :class:`TrainState`; they are
+written atomically, and ``resume=True`` continues a killed run to exactly the result of an
+uninterrupted one (wall times aside).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from .._checks import LCSInputError
+from ..data import Dataset
+from ..io import atomic_write
+from ..metrics import relative_error
+from ..system import LCS
+from .options import FitOptions
+from .phases import run_phases
+from .recipes import resolve_options, split_groups
+from .state import TrainState
+
+__all__ = ["FitResult", "fit", "CHECKPOINT_FORMAT"]
+
+#: 3: the run state of :class:`TrainState` and grouped options.
+CHECKPOINT_FORMAT = 3
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """What :func:`fit` returns.
+
+    Attributes:
+        model: the trained model (the same object as the ``model`` argument, updated in place).
+        history: one dict per record: ``iteration``, ``phase`` (``"adam"``, ``"gauss-newton"``,
+            ``"newton"`` or ``"polish"``), ``loss`` (mean regularised training loss since the last
+            record), ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s),
+            ``restart``, ``n_fallback`` (samples the fast solvers handed to the reference solver
+            since the last record) and ``max_residual`` (the worst relative KKT residual of those
+            reference answers; 0.0 when there were none -- pivoting's own answers are exact).
+        settings: the resolved :class:`FitOptions`.
+        restart_scores: held-out relative error of each restart (empty with one run).
+        wall_time: seconds, summed over resumed pieces.
+    """
+
+    model: LCS
+    history: list[dict[str, Any]]
+    settings: FitOptions
+    restart_scores: list[float] = field(default_factory=list)
+    wall_time: float = 0.0
+
+    @property
+    def n_fallback(self) -> int:
+        """Samples handed to the reference solver over the whole training."""
+        return sum(h.get("n_fallback", 0) for h in self.history)
+
+    @property
+    def max_residual(self) -> float:
+        """The worst relative KKT residual of the reference solver's answers (0.0: none)."""
+        return max((h.get("max_residual", 0.0) for h in self.history), default=0.0)
+
+
+def _check_data(name: str, data: Any, model: LCS) -> Dataset:
+    if not isinstance(data, Dataset):
+        raise LCSInputError(f"{name}: expected an lcs_cvx.Dataset, received {type(data).__name__}")
+    if data.n_x != model.n_x or data.n_u != model.n_u:
+        raise LCSInputError(
+            f"{name}: expected n_x={model.n_x}, n_u={model.n_u} (the model's), received "
+            f"n_x={data.n_x}, n_u={data.n_u}"
+        )
+    if len(data) == 0:
+        raise LCSInputError(f"{name}: expected at least one sample, received an empty dataset")
+    for field_name in ("x", "u", "x_next"):  # checked once here: the training loop does not
+        t = getattr(data, field_name)
+        if not t.is_floating_point() or not bool(torch.isfinite(t).all()):
+            raise LCSInputError(
+                f"{name}: expected finite real values in {field_name}, received "
+                f"{'dtype ' + str(t.dtype) if not t.is_floating_point() else 'NaN/inf entries'}"
+            )
+    if data.x.device == model.device and data.x.dtype == model.dtype:
+        return data
+    kw = {"device": model.device, "dtype": model.dtype}
+    return Dataset(data.x.to(**kw), data.u.to(**kw), data.x_next.to(**kw),
+                   None if data.lam is None else data.lam.to(**kw))
+
+
+def _options(options: FitOptions | None, recipe: str | None, overrides: dict[str, Any]) -> FitOptions:
+    if options is None:
+        groups = split_groups(overrides)
+        return resolve_options(recipe, **overrides).replace(**groups)
+    if not isinstance(options, FitOptions):
+        raise LCSInputError(
+            f"options: expected an lcs_cvx.FitOptions (e.g. lcs_cvx.RECIPES['best']), received "
+            f"{type(options).__name__}"
+        )
+    if recipe is not None:
+        raise LCSInputError(
+            f"recipe: expected None when options are given (they already hold one), received {recipe!r}"
+        )
+    return options.replace(**overrides)
+
+
+class _Checkpoint:
+    """The checkpoint file: finished restarts (``done``) and the running one's state."""
+
+    def __init__(self, path: str | None, options: FitOptions) -> None:
+        self.path, self.options, self.flat = path, dataclasses.asdict(options), options.flat()
+
+    def load(self) -> dict | None:
+        if self.path is None or not os.path.exists(self.path):
+            return None
+        try:
+            ckpt = torch.load(self.path, weights_only=True)
+        except Exception as exc:  # a corrupt file must not be silently overwritten
+            raise LCSInputError(f"checkpoint: could not read {self.path!r}: {exc}") from exc
+        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+            got = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
+            raise LCSInputError(
+                f"checkpoint: {self.path!r} has format {got!r}, expected {CHECKPOINT_FORMAT} "
+                "(written by another version of lcs_cvx); start afresh with resume=False"
+            )
+        if ckpt["options"] != self.options:  # named by the flat keywords where they differ
+            saved, mine = ckpt["flat"], self.flat
+            if saved == mine:
+                saved, mine = _dotted(ckpt["options"]), _dotted(self.options)
+            diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+            raise LCSInputError(
+                f"checkpoint: {self.path!r} was written with other options (differing: {diff}); "
+                "resume with the same options or start afresh with resume=False"
+            )
+        return ckpt
+
+    def save(self, restart: int, done: list[dict], run: dict | None, elapsed: float) -> None:
+        if self.path is None:
+            return
+        obj = {"format": CHECKPOINT_FORMAT, "options": self.options, "flat": self.flat,
+               "restart": restart,
+               "done": done, "run": run, "elapsed": elapsed}
+        atomic_write(self.path, lambda f: torch.save(obj, f), name="checkpoint")
+
+
+def _dotted(d: dict, prefix: str = "") -> dict:
+    """``{"adam": {"lr": 1e-3}}`` as ``{"adam.lr": 1e-3}``."""
+    out: dict = {}
+    for k, v in d.items():
+        out.update(_dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+def fit(
+    model: LCS,
+    train: Dataset,
+    options: FitOptions | None = None,
+    *,
+    test: Dataset | None = None,
+    recipe: str | None = None,
+    callbacks: Sequence[Callable[[dict, LCS], Any]] = (),
+    checkpoint: str | os.PathLike | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    **overrides: Any,
+) -> FitResult:
+    """Learn the LCS ``model`` from ``train`` (in place): minimise ``L(theta) + omega ||C||_F^2``.
+
+    Args:
+        model: an :class:`lcs_cvx.LCS`, the initialisation (float64 recommended).
+        train: :class:`lcs_cvx.Dataset` of transitions ``(x, u, x')``.
+        options: a :class:`FitOptions` (e.g. ``lcs_cvx.RECIPES["best"]``); default: ``recipe``'s.
+        test: optional dataset; its relative error (the paper's e_test) is recorded with every
+            history record and drives ``keep_best``.
+        recipe: ``"paper"``, ``"best"`` or None (plain defaults), when ``options`` is not given.
+        callbacks: ``cb(record, model)`` after every history record; a true return value stops
+            training (a checkpoint is written first).
+        checkpoint: path of the checkpoint file (written atomically; not a model file -- use
+            :func:`lcs_cvx.save_model` for that).
+        resume: continue from ``checkpoint`` if it exists (the options must be the same).
+        progress: a tqdm bar on stderr when it is a terminal.
+        **overrides: flat options (:data:`lcs_cvx.train.FLAT_OPTIONS`: ``loss``, ``optimizer``,
+            ``iterations``, ``lr``, ``gamma``, ``eps``, ``reg``, ``seed``, ...) or whole groups
+            (``adam=AdamOptions(...)``), applied on top of ``options`` or ``recipe``.
+
+    Returns:
+        :class:`FitResult`.
+
+    Example:
+        >>> import lcs_cvx
+        >>> truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+        >>> data = lcs_cvx.make_dataset(truth, 500, seed=1)
+        >>> model = lcs_cvx.LCS(2, 1, 2, seed=2)
+        >>> result = lcs_cvx.fit(model, data, optimizer="gauss-newton", iterations=5, progress=False)
+        >>> len(result.history), result.n_fallback
+        (5, 0)
+    """
+    if not isinstance(model, LCS):
+        raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    opts = _options(options, recipe, overrides)
+    train = _check_data("train", train, model)
+    test = _check_data("test", test, model) if test is not None else None
+    store = _Checkpoint(os.fspath(checkpoint) if checkpoint is not None else None, opts)
+    ckpt = store.load() if resume else None
+    r = opts.run
+
+    fit_data, holdout = train, None
+    if r.restarts > 1:
+        fit_data, holdout = train.split(1.0 - r.holdout, seed=r.seed)
+    initial = copy.deepcopy(model.state_dict())
+    done: list[dict] = [] if ckpt is None else ckpt["done"]
+    t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
+    bar = None
+    if progress and sys.stderr.isatty():
+        from tqdm.auto import tqdm
+
+        total = r.restarts * (opts.adam.iterations + opts.polish.iterations
+                              + (opts.refine.iterations if opts.refine.method else 0))
+        bar = tqdm(total=total, desc="fit", unit="it", dynamic_ncols=True)
+    t_start = time.perf_counter()
+
+    def elapsed() -> float:
+        return t_offset + time.perf_counter() - t_start
+
+    history: list[dict] = [h for d in done for h in d["history"]]
+    stopped = False
+    try:
+        for restart in range(len(done), r.restarts):
+            if restart == 0:
+                model.load_state_dict(initial)
+            else:
+                fresh = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness),
+                            seed=r.seed * 7919 + restart, dtype=model.dtype).to(model.device)
+                model.load_state_dict(fresh.state_dict())
+            state = TrainState(model, fit_data, test, opts, restart)
+            if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
+                state.load_state_dict(ckpt["run"])
+                if bar is not None:
+                    bar.update(state.iteration)
+
+            def save(state: TrainState = state, restart: int = restart) -> None:
+                store.save(restart, done, state.state_dict(), elapsed())
+
+            stopped = run_phases(state, callbacks=callbacks, save=save, elapsed=elapsed, bar=bar)
+            if r.keep_best:
+                state.restore_best()
+            score = relative_error(model, holdout) if holdout is not None else math.nan
+            done.append({"score": score, "history": state.history,
+                         "params": {k: v.detach().clone() for k, v in model.state_dict().items()}})
+            history.extend(state.history)
+            if stopped:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    scores = [d["score"] for d in done] if r.restarts > 1 else []
+    if done:  # the chosen run (also when a resumed checkpoint had finished them all)
+        best = min(range(len(done)), key=lambda i: done[i]["score"]) if r.restarts > 1 else -1
+        model.load_state_dict(done[best]["params"])
+    if not stopped:
+        store.save(r.restarts, done, None, elapsed())
+    return FitResult(model, history, opts, scores, elapsed())

@@ -1,0 +1,325 @@
+r"""The options of :func:`lcs_cvx.fit`, one frozen dataclass per training phase.
+
+A run minimises ``L(theta) + omega ||C||_F^2`` (paper eq. equ.loss) in up to four phases, in this
+order; each phase has its own options:
+
+- :class:`ObjectiveOptions` -- which loss (eq. equ.contactnet or equ.prednet) and its constants.
+- :class:`AdamOptions` -- minibatch Adam (the paper's protocol, Sec. 5), with optional schedules
+  (cosine learning rate, continuation in ``eps``), re-initialisation of saturated units and extra
+  units that the pruning phase removes again.
+- :class:`PruneOptions` -- pruning the extra units back to the model's ``n_lam``
+  (:func:`lcs_cvx.units.prune`).
+- :class:`RefineOptions` -- Levenberg--Marquardt steps (Gauss--Newton or Newton, Lemma 4,
+  :mod:`lcs_cvx.second_order`) on large batches.
+- :class:`PolishOptions` -- a final Adam polish on the prediction loss (eq. equ.prednet).
+- :class:`RunOptions` -- what is not a phase: restarts, seed, records, checkpoints.
+
+:class:`FitOptions` holds one of each. Most users pass flat keywords to :func:`lcs_cvx.fit`
+(``iterations=``, ``lr=``, ``optimizer=``, ...); :mod:`lcs_cvx.train.recipes` maps them onto the
+groups and holds the recipes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from .._checks import LCSInputError
+
+__all__ = [
+    "ObjectiveOptions", "AdamOptions", "PruneOptions", "RefineOptions", "PolishOptions",
+    "RunOptions", "FitOptions", "extra_units",
+]
+
+LOSSES = ("violation", "prediction")
+OPTIMIZERS = ("adam", "gauss-newton", "newton")
+METHODS = (None, "gauss-newton", "newton")
+SCHEDULES = ("constant", "cosine")
+#: the recipes (:data:`lcs_cvx.train.RECIPES`)
+RECIPE_NAMES = ("paper", "best")
+
+
+# -- validation of one field ----------------------------------------------------------------
+def option_error(name: str, expected: str, value: Any) -> LCSInputError:
+    return LCSInputError(f"{name}: expected {expected}, received {value!r}")
+
+
+def _number(value: Any) -> bool:
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+
+
+def _positive(obj: Any, *names: str) -> None:
+    for name in names:
+        if not (_number(v := getattr(obj, name)) and v > 0):
+            raise option_error(name, "a finite number > 0", v)
+
+
+def _nonnegative(obj: Any, *names: str) -> None:
+    for name in names:
+        if not (_number(v := getattr(obj, name)) and v >= 0):
+            raise option_error(name, "a finite number >= 0", v)
+
+
+def _count(obj: Any, low: int, *names: str) -> None:
+    for name in names:
+        v = getattr(obj, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < low:
+            raise option_error(name, f"an integer >= {low}", v)
+
+
+def _choice(obj: Any, name: str, allowed: tuple) -> None:
+    if getattr(obj, name) not in allowed:
+        raise option_error(name, f"one of {allowed}", getattr(obj, name))
+
+
+# -- the groups -----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ObjectiveOptions:
+    """The training objective ``L(theta) + reg ||C||_F^2``.
+
+    Attributes:
+        loss: ``"violation"`` (``L_eps``, eq. equ.contactnet) or ``"prediction"`` (eq. equ.prednet).
+        gamma, eps: the violation loss's constants (Lemma 2: ``0 < gamma < sigma_min(F + F^T)``).
+        reg: ``omega`` of the regulariser ``omega ||C||_F^2`` (paper Sec. 5: 1e-5).
+    """
+
+    loss: str = "violation"
+    gamma: float = 1e-2
+    eps: float = 1e-4
+    reg: float = 1e-5
+
+    def __post_init__(self) -> None:
+        _choice(self, "loss", LOSSES)
+        _positive(self, "gamma", "eps")
+        _nonnegative(self, "reg")
+
+
+@dataclass(frozen=True)
+class AdamOptions:
+    """Minibatch Adam on the objective (paper Sec. 5: batch 200, lr 1e-3, betas (0.9, 0.9)).
+
+    Attributes:
+        iterations: Adam steps (0: no Adam phase).
+        batch_size: minibatch size; minibatches follow a fresh random permutation every epoch.
+        lr, betas, adam_eps: Adam's learning rate, betas and epsilon.
+        lr_schedule: ``"constant"`` or ``"cosine"`` (from ``lr`` down to ``lr * lr_floor``).
+        lr_floor: the cosine schedule's final fraction of ``lr``.
+        eps_start: if set, the violation loss's ``eps`` decays geometrically from it to
+            ``ObjectiveOptions.eps`` over the first ``eps_fraction`` of the iterations.
+        eps_fraction: see ``eps_start``.
+        reinit_saturated: every ``reinit_every`` steps of the continuation, re-draw the
+            hyperplane of every unit active on >= 98 % of a sample of the data (no gradient
+            reaches the boundary of such a unit).
+        reinit_every: see ``reinit_saturated``.
+        extra_units: Adam trains ``n_lam + extra_units`` units (``"auto"``: :func:`extra_units`),
+            which the pruning phase removes again -- the escape from the permutation trap
+            (two units on one mode boundary, another boundary unmodelled).
+    """
+
+    iterations: int = 10_000
+    batch_size: int = 200
+    lr: float = 1e-3
+    betas: tuple[float, float] = (0.9, 0.9)
+    adam_eps: float = 1e-6
+    lr_schedule: str = "constant"
+    lr_floor: float = 0.01
+    eps_start: float | None = None
+    eps_fraction: float = 0.6
+    reinit_saturated: bool = False
+    reinit_every: int = 500
+    extra_units: int | str = 0
+
+    def __post_init__(self) -> None:
+        _choice(self, "lr_schedule", SCHEDULES)
+        _positive(self, "lr", "adam_eps", "lr_floor", "eps_fraction")
+        _count(self, 0, "iterations")
+        _count(self, 1, "batch_size", "reinit_every")
+        e = self.extra_units
+        if e != "auto" and (isinstance(e, bool) or not isinstance(e, int) or e < 0):
+            raise option_error("extra_units", "an integer >= 0 or 'auto'", e)
+        b = self.betas
+        if not (isinstance(b, (tuple, list)) and len(b) == 2 and all(_number(x) and 0 <= x < 1 for x in b)):
+            raise option_error("betas", "two numbers in [0, 1)", b)
+        object.__setattr__(self, "betas", tuple(b))
+        if self.eps_start is not None and not (_number(self.eps_start) and self.eps_start > 0):
+            raise option_error("eps_start", "None or a finite number > 0", self.eps_start)
+
+
+@dataclass(frozen=True)
+class PruneOptions:
+    """Pruning the extra units of the Adam phase (:func:`lcs_cvx.units.prune`).
+
+    Attributes:
+        repair: Gauss--Newton steps on the pruning's samples after each removal (0: none).
+        batch_size: the samples that score the candidate removals.
+    """
+
+    repair: int = 1
+    batch_size: int = 1000
+
+    def __post_init__(self) -> None:
+        _count(self, 0, "repair")
+        _count(self, 1, "batch_size")
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Levenberg--Marquardt steps on the violation loss (:mod:`lcs_cvx.second_order`, Lemma 4).
+
+    Attributes:
+        method: ``None`` (no refinement), ``"gauss-newton"`` or ``"newton"``.
+        iterations: steps.
+        batch_size: samples per step (capped at the data size).
+        damping: the initial damping ``mu``.
+        record_every: steps between history records.
+    """
+
+    method: str | None = None
+    iterations: int = 20
+    batch_size: int = 5000
+    damping: float = 1e-3
+    record_every: int = 1
+
+    def __post_init__(self) -> None:
+        _choice(self, "method", METHODS)
+        _count(self, 0, "iterations")
+        _count(self, 1, "batch_size", "record_every")
+        _nonnegative(self, "damping")
+
+
+@dataclass(frozen=True)
+class PolishOptions:
+    """A final Adam polish on the prediction loss (eq. equ.prednet), constant learning rate.
+
+    Attributes:
+        iterations: steps (0: no polish).
+        lr: the learning rate.
+        batch_size: minibatch size.
+    """
+
+    iterations: int = 0
+    lr: float = 1e-4
+    batch_size: int = 200
+
+    def __post_init__(self) -> None:
+        _count(self, 0, "iterations")
+        _count(self, 1, "batch_size")
+        _positive(self, "lr")
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """What is not a phase.
+
+    Attributes:
+        restarts: independent runs (the first from the given model, the others from fresh
+            initialisations); the one with the lowest relative error on a held-out ``holdout``
+            fraction of the data is returned.
+        holdout: see ``restarts`` (only used when ``restarts > 1``).
+        seed: seed of minibatches, restarts' initialisations and re-initialisations.
+        eval_every: Adam and polish steps between history records.
+        checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
+            second-order step are always followed by one).
+        keep_best: return the iterate with the lowest e_test on ``test`` instead of the last.
+    """
+
+    restarts: int = 1
+    holdout: float = 0.1
+    seed: int = 0
+    eval_every: int = 100
+    checkpoint_every: int = 500
+    keep_best: bool = False
+
+    def __post_init__(self) -> None:
+        _count(self, 1, "restarts", "eval_every", "checkpoint_every")
+        if not (_number(self.holdout) and 0 < self.holdout < 1):
+            raise option_error("holdout", "a fraction in (0, 1)", self.holdout)
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise option_error("seed", "an integer", self.seed)
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Every option of :func:`lcs_cvx.fit`, grouped by phase (frozen).
+
+    Example:
+        >>> import lcs_cvx
+        >>> opts = lcs_cvx.RECIPES["paper"].replace(iterations=2000, lr=5e-3)
+        >>> opts.adam.iterations, opts.adam.lr, opts.objective.loss
+        (2000, 0.005, 'violation')
+    """
+
+    objective: ObjectiveOptions = field(default_factory=ObjectiveOptions)
+    adam: AdamOptions = field(default_factory=AdamOptions)
+    prune: PruneOptions = field(default_factory=PruneOptions)
+    refine: RefineOptions = field(default_factory=RefineOptions)
+    polish: PolishOptions = field(default_factory=PolishOptions)
+    run: RunOptions = field(default_factory=RunOptions)
+    #: the recipe these options came from (``"paper"``, ``"best"``) or None.
+    recipe: str | None = None
+
+    def __post_init__(self) -> None:
+        for name, cls in GROUPS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise option_error(name, f"an lcs_cvx.{cls.__name__}", getattr(self, name))
+        if self.recipe is not None and self.recipe not in RECIPE_NAMES:
+            raise option_error("recipe", f"one of {(None, *RECIPE_NAMES)}", self.recipe)
+        a = self.adam
+        if a.eps_start is not None and a.eps_start < self.objective.eps:
+            raise option_error("eps_start", f"None or a number >= eps = {self.objective.eps!r}", a.eps_start)
+        if a.extra_units != 0 and self.refine.method is None:
+            raise LCSInputError(
+                "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
+                f"with refine set, received optimizer={self.optimizer!r}, refine={self.refine.method!r}"
+            )
+        if self.objective.loss == "prediction" and self.refine.method is not None:
+            raise LCSInputError(
+                "optimizer: the second-order methods are for the violation loss (Lemma 4); "
+                f"received loss='prediction' with optimizer={self.optimizer!r}, "
+                f"refine={self.refine.method!r}"
+            )
+
+    @property
+    def optimizer(self) -> str:
+        """``"adam"``, or the second-order method when there is no Adam phase."""
+        if self.adam.iterations == 0 and self.refine.method is not None:
+            return self.refine.method
+        return "adam"
+
+    def flat(self) -> dict[str, Any]:
+        """These options as the flat keywords of :func:`lcs_cvx.fit`
+        (:data:`lcs_cvx.train.FLAT_OPTIONS`), with ``recipe``."""
+        from .recipes import to_flat
+
+        return to_flat(self)
+
+    def replace(self, **overrides: Any) -> FitOptions:
+        """A copy with ``overrides`` applied: flat keywords (:data:`lcs_cvx.train.FLAT_OPTIONS`)
+        or whole groups (``adam=AdamOptions(...)``)."""
+        from .recipes import from_flat, known, split_groups
+
+        groups = split_groups(overrides)
+        base = dataclasses.replace(self, **groups) if groups else self
+        if not overrides:
+            return base
+        flat = base.flat()
+        recipe = flat.pop("recipe")
+        return from_flat({**flat, **known(overrides)}, recipe)
+
+
+GROUPS = {"objective": ObjectiveOptions, "adam": AdamOptions, "prune": PruneOptions,
+           "refine": RefineOptions, "polish": PolishOptions, "run": RunOptions}
+
+
+def extra_units(option: int | str, n_lam: int) -> int:
+    """The extra units the Adam phase trains: ``option``, or for ``"auto"``
+    ``min(4, ceil(n_lam / 2))``.
+
+    Measured on the training comparison (studies/configs/train_best.toml, 10 seeds each): four
+    extra units took n_lam = 8 from one stuck seed in ten (2 extra) to none and n_lam = 20 from a
+    mean e_test of ~3e-4 to ~1e-4; at n_lam = 4 they left one seed of ten stuck at 7e-4 after
+    pruning (two of the six non-saturated units shared one boundary), which 2 extra units solve.
+    """
+    return min(4, math.ceil(n_lam / 2)) if option == "auto" else int(option)

@@ -1,0 +1,271 @@
+r"""The phases of a training run, each one step at a time; :func:`run_phases` is their one loop.
+
+A phase says how many steps it makes (:meth:`Phase.length`), makes one (:meth:`Phase.step`,
+which returns an :class:`~lcs_cvx.train.state.Outcome`), and how often its steps are recorded and
+checkpointed. Recording, checkpoints, callbacks and the progress bar live in :func:`run_phases`
+alone.
+
+- :class:`AdamPhase` -- minibatch Adam on ``L(theta) + omega ||C||_F^2`` (eq. equ.loss) with the
+  schedules of :class:`~lcs_cvx.train.options.AdamOptions`.
+- :class:`PrunePhase` -- one step: the grown model cut back to ``n_lam`` units
+  (:func:`lcs_cvx.units.prune`), a few Gauss--Newton steps after each removal.
+- :class:`RefinePhase` -- Levenberg--Marquardt steps (:mod:`lcs_cvx.second_order`, Lemma 4).
+- :class:`PolishPhase` -- Adam on the prediction loss (eq. equ.prednet).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+from .._checks import SolverError
+from ..losses import prediction_fast, regularizer, violation_fast
+from ..second_order import gauss_newton_step, newton_step
+from ..system import LCS
+from ..units import prune
+from .options import FitOptions
+from .state import Outcome, TrainState
+
+__all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "phases", "run_phases"]
+
+
+def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteration: int,
+               lr: float) -> float:
+    """One Adam step on ``value``; a clear error once the loss or ``F`` is no longer finite
+    (``F = G G^T + ...`` overflows first when the parameters blow up)."""
+    adam.zero_grad()
+    value.backward()
+    adam.step()
+    loss = float(value.detach())
+    with torch.no_grad():
+        finite_F = bool(torch.isfinite(model.F).all())
+    if not (math.isfinite(loss) and finite_F):
+        raise SolverError(
+            f"training diverged at iteration {iteration}: loss = {loss}, "
+            f"F {'finite' if finite_F else 'not finite'}; lower lr (now {lr:g})"
+        )
+    return loss
+
+
+class Phase:
+    """A phase of a run. ``key`` names its step counter in :attr:`TrainState.steps`."""
+
+    key: str = ""
+    #: steps between history records (None: the phase is not recorded) and between checkpoints
+    record_every: int | None = None
+    checkpoint_every: int = 1
+    #: whether its steps count on the progress bar
+    counted: bool = True
+
+    def __init__(self, options: FitOptions) -> None:
+        self.options = options
+
+    def name(self, state: TrainState) -> str:
+        """The ``phase`` of its history records."""
+        return self.key
+
+    def length(self, state: TrainState) -> int:
+        raise NotImplementedError
+
+    def step(self, state: TrainState) -> Outcome:
+        raise NotImplementedError
+
+
+class AdamPhase(Phase):
+    """Minibatch Adam with the learning-rate and ``eps`` schedules, re-initialisation of
+    saturated units, and the fast solver warm-started from each sample's last active sets."""
+
+    key = "adam"
+
+    def __init__(self, options: FitOptions) -> None:
+        super().__init__(options)
+        self.record_every = options.run.eval_every
+        self.checkpoint_every = options.run.checkpoint_every
+
+    def length(self, state: TrainState) -> int:
+        return self.options.adam.iterations
+
+    def eps_at(self, it: int) -> float:
+        """Continuation: ``eps`` decays geometrically from ``eps_start`` over ``eps_fraction``."""
+        a, eps = self.options.adam, self.options.objective.eps
+        if a.eps_start is None:
+            return eps
+        frac = min(1.0, it / max(1.0, a.eps_fraction * a.iterations))
+        return a.eps_start * (eps / a.eps_start) ** frac
+
+    def lr_at(self, it: int) -> float:
+        a = self.options.adam
+        if a.lr_schedule == "constant":
+            return a.lr
+        c = 0.5 * (1.0 + math.cos(math.pi * it / max(1, a.iterations)))
+        return a.lr * (a.lr_floor + (1.0 - a.lr_floor) * c)
+
+    def step(self, state: TrainState) -> Outcome:
+        a, obj = self.options.adam, self.options.objective
+        it = state.steps["adam"]
+        eps, lr = self.eps_at(it), self.lr_at(it)
+        for group in state.adam.param_groups:
+            group["lr"] = lr
+        if a.reinit_saturated and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations:
+            reinit_saturated(state)
+        idx = state.next_batch(min(a.batch_size, len(state.train)))
+        x, u, x_next = state.batch(idx)
+        warm = state.warm_start(idx)
+        if obj.loss == "violation":
+            info = violation_fast(state.work, x, u, x_next, gamma=obj.gamma, eps=eps, warm_start=warm)
+        else:
+            info = prediction_fast(state.work, x, u, x_next, warm_start=warm)
+        state.remember(idx, info.active)
+        value = info.loss + regularizer(state.work, obj.reg)
+        loss = _adam_step(state.adam, state.work, value, state.iteration + 1, lr)
+        return Outcome(loss, eps, lr, info.n_fallback, info.max_residual)
+
+
+def reinit_saturated(state: TrainState) -> None:
+    """Re-draw the hyperplane ``(D_i, E_i, c_i)`` and ``C[:, i]`` of the units active on >= 98 %
+    of a sample of the data (no gradient reaches their boundary) and zero their Adam moments."""
+    m = state.work
+    idx = state.perm[: min(2000, len(state.perm))]
+    with torch.no_grad():
+        lam = m.solve_lcp(state.train.x[idx], state.train.u[idx])
+        lam = lam.lam if hasattr(lam, "lam") else lam
+        sat = ((lam > 0).to(torch.float64).mean(0) >= 0.98).nonzero().squeeze(1)
+        if sat.numel() == 0:
+            return
+        for name, rows in (("D", True), ("E", True), ("c", True), ("C", False)):
+            p = getattr(m, name)
+            shape = (sat.numel(),) + tuple(p.shape[1:]) if rows else (p.shape[0], sat.numel())
+            new = 0.1 * torch.randn(shape, generator=state.generator, dtype=torch.float64).to(p.dtype)
+            if rows:
+                p[sat] = new
+            else:
+                p[:, sat] = new
+            moments = state.adam.state.get(p)
+            for key in ("exp_avg", "exp_avg_sq") if moments else ():
+                if rows:
+                    moments[key][sat] = 0.0
+                else:
+                    moments[key][:, sat] = 0.0
+
+
+class PrunePhase(Phase):
+    """One step: the grown model pruned back to the user's ``n_lam`` units (deletion or
+    elimination, scored after a least-squares refit; :func:`lcs_cvx.units.prune`), then loaded
+    into the user's model. Not recorded; checkpointed after."""
+
+    key = "prune"
+    counted = False
+
+    def length(self, state: TrainState) -> int:
+        return int(state.work is not state.model)
+
+    def step(self, state: TrainState) -> Outcome:
+        o = self.options
+        x, u, x_next = state.batch(state.next_batch(min(o.prune.batch_size, len(state.train))))
+
+        def repair(kept: LCS) -> None:  # Gauss--Newton steps after each removal
+            mu = o.refine.damping
+            for _ in range(o.prune.repair):
+                mu = gauss_newton_step(kept, x, u, x_next, gamma=o.objective.gamma,
+                                       eps=o.objective.eps, reg=o.objective.reg, damping=mu).damping
+
+        pruned = prune(state.work, state.model.n_lam, x, u, x_next, reg=o.objective.reg,
+                       repair=repair if o.prune.repair else None)
+        state.model.load_state_dict(pruned.state_dict())
+        state.work = state.model
+        return Outcome(None, o.objective.eps, None)
+
+
+class RefinePhase(Phase):
+    """Levenberg--Marquardt steps on large batches: Gauss--Newton with the solution's
+    sensitivity, or damped Newton with Lemma 4's Hessian. Checkpointed after every step."""
+
+    key = "refine"
+
+    def __init__(self, options: FitOptions) -> None:
+        super().__init__(options)
+        self.record_every = options.refine.record_every
+
+    def name(self, state: TrainState) -> str:
+        return str(self.options.refine.method)
+
+    def length(self, state: TrainState) -> int:
+        r = self.options.refine
+        return r.iterations if r.method is not None else 0
+
+    def step(self, state: TrainState) -> Outcome:
+        r, obj = self.options.refine, self.options.objective
+        step = gauss_newton_step if r.method == "gauss-newton" else newton_step
+        x, u, x_next = state.batch(state.next_batch(min(r.batch_size, len(state.train))))
+        res = step(state.model, x, u, x_next, gamma=obj.gamma, eps=obj.eps, reg=obj.reg,
+                   damping=state.damping)
+        state.damping = res.damping
+        return Outcome(res.loss, obj.eps, None, getattr(res, "n_fallback", 0),
+                       getattr(res, "max_residual", 0.0))
+
+
+class PolishPhase(Phase):
+    """Adam on the prediction loss (eq. equ.prednet) of the final model, constant learning rate."""
+
+    key = "polish"
+
+    def __init__(self, options: FitOptions) -> None:
+        super().__init__(options)
+        self.record_every = options.run.eval_every
+        self.checkpoint_every = options.run.checkpoint_every
+
+    def length(self, state: TrainState) -> int:
+        return self.options.polish.iterations
+
+    def step(self, state: TrainState) -> Outcome:
+        p, obj = self.options.polish, self.options.objective
+        idx = state.next_batch(min(p.batch_size, len(state.train)))
+        info = prediction_fast(state.model, *state.batch(idx))
+        value = info.loss + regularizer(state.model, obj.reg)
+        loss = _adam_step(state.polish_adam, state.model, value, state.iteration + 1, p.lr)
+        return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.max_residual)
+
+
+def phases(options: FitOptions) -> list[Phase]:
+    """The phases of a run, in order."""
+    return [AdamPhase(options), PrunePhase(options), RefinePhase(options), PolishPhase(options)]
+
+
+def run_phases(
+    state: TrainState,
+    *,
+    callbacks: Sequence[Callable[[dict, LCS], Any]],
+    save: Callable[[], None],
+    elapsed: Callable[[], float],
+    bar: Any = None,
+) -> bool:
+    """Run ``state``'s phases to the end, or until a callback asks to stop (then True).
+
+    The one loop: after each step it accumulates the step's outcome, advances the progress bar,
+    closes a history record every ``record_every`` steps of the phase (and at its last step) and
+    hands it to the callbacks, and writes a checkpoint (``save``) every ``checkpoint_every``
+    steps, when a callback stops the run, and at the end."""
+    for phase in phases(state.options):
+        n = phase.length(state)
+        while state.steps[phase.key] < n:
+            out = phase.step(state)
+            state.steps[phase.key] += 1
+            k = state.steps[phase.key]
+            state.add(out)
+            if bar is not None and phase.counted:
+                bar.update(1)
+            if phase.record_every is not None and (k % phase.record_every == 0 or k == n):
+                rec = state.record(phase.name(state), out.eps, out.lr, elapsed())
+                if bar is not None:
+                    bar.set_postfix(loss=f"{rec['loss']:.3e}", e_test="-" if rec["e_test"] is None
+                                    else f"{rec['e_test']:.2e}")
+                if any(bool(cb(rec, state.model)) for cb in callbacks):
+                    save()
+                    return True
+            if k % phase.checkpoint_every == 0 or phase.record_every is None:
+                save()
+    save()
+    return False

@@ -1,0 +1,170 @@
+"""The state of one training run: everything needed to continue it exactly.
+
+:class:`TrainState` holds the model being trained (the user's, or a grown copy with extra units
+until the pruning phase), the optimisers, the random generator and the epoch permutation, the
+steps done per phase, the history and the accumulators of the current record, and the fast
+solver's last active sets per training sample (warm starts). :meth:`TrainState.state_dict` and
+:meth:`TrainState.load_state_dict` are the one place that (de)serialises it: tensors and plain
+types only, loadable with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ..data import Dataset
+from ..metrics import relative_error
+from ..system import LCS, PARAMETER_NAMES
+from ..units import grow
+from .options import FitOptions, extra_units
+
+__all__ = ["TrainState", "Outcome", "PHASES"]
+
+#: The phases, in the order a run goes through them.
+PHASES = ("adam", "prune", "refine", "polish")
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What one step of a phase reports: its regularised loss (None: nothing to record), the
+    ``eps`` and learning rate it used, and the samples its solver handed to the reference
+    (``n_fallback``) with the worst relative KKT residual among them."""
+
+    loss: float | None
+    eps: float
+    lr: float | None
+    n_fallback: int = 0
+    max_residual: float = 0.0
+
+
+class TrainState:
+    """One run of :func:`lcs_cvx.fit` (one restart)."""
+
+    def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
+                 restart: int) -> None:
+        self.model, self.train, self.test, self.options, self.restart = (
+            model, train, test, options, restart)
+        a = options.adam
+        self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
+        # the model Adam trains: the user's, or a larger one the pruning phase cuts back
+        self.n_extra = extra_units(a.extra_units, model.n_lam)
+        self.work = grow(model, self.n_extra, self.generator) if self.n_extra else model
+        self.adam = torch.optim.Adam(self.work.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
+        self.polish_adam = torch.optim.Adam(model.parameters(), lr=options.polish.lr,
+                                            betas=a.betas, eps=a.adam_eps)
+        self.perm = torch.randperm(len(train), generator=self.generator)
+        self.pos = 0
+        self.steps = dict.fromkeys(PHASES, 0)
+        self.history: list[dict[str, Any]] = []
+        self.damping = options.refine.damping
+        self.best: tuple[float, dict[str, torch.Tensor]] | None = None
+        self._reset_stretch()
+        # the fast solver's final active sets per training sample: the warm start of the
+        # sample's next visit; the loss does not depend on them, the solver's work does
+        self.active: torch.Tensor | None = None
+        self.seen = torch.zeros(len(train), dtype=torch.bool)
+
+    @property
+    def iteration(self) -> int:
+        """Optimiser steps done in this run (Adam, second-order and polish steps)."""
+        return self.steps["adam"] + self.steps["refine"] + self.steps["polish"]
+
+    # -- data
+    def next_batch(self, size: int) -> torch.Tensor:
+        """The indices of the next minibatch: a fresh permutation every epoch."""
+        if self.pos + size > len(self.perm):
+            self.perm = torch.randperm(len(self.train), generator=self.generator)
+            self.pos = 0
+        idx = self.perm[self.pos : self.pos + size]
+        self.pos += size
+        return idx
+
+    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        d = self.train
+        return d.x[idx], d.u[idx], d.x_next[idx]
+
+    def warm_start(self, idx: torch.Tensor) -> torch.Tensor | None:
+        """The active sets of the samples ``idx`` from their last visit (None unless all were seen)."""
+        return self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
+
+    def remember(self, idx: torch.Tensor, active: torch.Tensor) -> None:
+        if self.active is None:
+            self.active = torch.zeros(len(self.train), active.shape[1], dtype=torch.bool)
+        self.active[idx] = active.to(self.active.device)
+        self.seen[idx] = True
+
+    # -- records
+    def _reset_stretch(self) -> None:
+        self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual = 0.0, 0, 0, 0.0
+
+    def add(self, out: Outcome) -> None:
+        """Accumulate one step's outcome into the current record."""
+        if out.loss is not None:
+            self.acc_loss += out.loss
+            self.acc_n += 1
+        self.acc_fallback += out.n_fallback
+        self.acc_residual = max(self.acc_residual, out.max_residual)
+
+    def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict[str, Any]:
+        """Close the current stretch of steps as one history record (and track the best iterate
+        when ``keep_best``)."""
+        e_test = relative_error(self.work, self.test) if self.test is not None else None
+        rec = {
+            "iteration": self.iteration, "phase": phase,
+            "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
+            "e_test": e_test, "wall_time": elapsed, "restart": self.restart,
+            "n_fallback": self.acc_fallback, "max_residual": self.acc_residual,
+        }
+        self._reset_stretch()
+        self.history.append(rec)
+        tracked = self.work is self.model  # not while a grown model is trained
+        if (self.options.run.keep_best and tracked and e_test is not None
+                and (self.best is None or e_test < self.best[0])):
+            self.best = (e_test, {k: getattr(self.model, k).detach().clone() for k in PARAMETER_NAMES})
+        return rec
+
+    def restore_best(self) -> None:
+        """Load the best iterate (``keep_best``) into the model."""
+        if self.best is not None:
+            with torch.no_grad():
+                for k, v in self.best[1].items():
+                    getattr(self.model, k).copy_(v)
+
+    # -- serialisation (the one place)
+    def state_dict(self) -> dict[str, Any]:
+        grown = self.work is not self.model
+
+        def params(m: LCS) -> dict[str, torch.Tensor]:
+            return {k: v.detach().clone() for k, v in m.state_dict().items()}
+
+        return {
+            "model": params(self.model), "work": params(self.work) if grown else None,
+            # after the pruning, the Adam moments belong to the discarded grown model
+            "adam": self.adam.state_dict() if grown or self.n_extra == 0 else None,
+            "polish_adam": self.polish_adam.state_dict(),
+            "generator": self.generator.get_state(), "perm": self.perm, "pos": self.pos,
+            "steps": dict(self.steps), "history": self.history, "damping": self.damping,
+            "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
+            "stretch": [self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual],
+            "active": self.active, "seen": self.seen,
+        }
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.model.load_state_dict(st["model"])
+        if st["work"] is not None:
+            self.work.load_state_dict(st["work"])
+        else:
+            self.work = self.model  # pruned already
+        if st["adam"] is not None:
+            self.adam.load_state_dict(st["adam"])
+        self.polish_adam.load_state_dict(st["polish_adam"])
+        self.generator.set_state(st["generator"])
+        self.perm, self.pos = st["perm"], st["pos"]
+        self.steps, self.history, self.damping = dict(st["steps"]), st["history"], st["damping"]
+        self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
+        self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual = st["stretch"]
+        self.active, self.seen = st["active"], st["seen"]
+
