@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -146,12 +146,17 @@ class _Settings:
     dtype: torch.dtype = F64
     extra: dict = field(default_factory=lambda: {"polish": True})
 
+    def flat(self) -> dict:  # FitOptions.flat(): the settings as fit's keywords
+        return asdict(self)
+
 
 @dataclass
 class _Result:
     model: LCS
     history: list
     settings: _Settings
+    n_fallback: int = 0
+    max_residual: float = 0.0
 
 
 class _FakeFit:
@@ -331,3 +336,23 @@ def test_fit_end_to_end(tmp_path, capsys):
     assert meta["fit"]["iterations"] == 300 and meta["fit"]["seed"] == 3
     assert main(["predict", "--model", str(out), "--data", str(test)]) == 0
     assert float(_facts(capsys.readouterr().out)["e_test"]) == pytest.approx(e_test, rel=1e-5)
+
+
+def test_fit_reports_fallbacks_in_one_line(files, tmp_path, capsys, monkeypatch):
+    """A training run whose solver handed samples to the reference says so in its output (the
+    solver is told it fell back on every step); a clean run prints no such line."""
+    import dataclasses
+
+    from lcs_cvx.train import phases
+
+    argv = ["fit", "--data", str(files["data"]), "--n-lam", "2", "--out", str(tmp_path / "m.npz"),
+            "--iterations", "20"]
+    assert main(argv) == 0
+    assert "fallbacks" not in _facts(capsys.readouterr().out)
+    real = phases.violation_fast
+    monkeypatch.setattr(phases, "violation_fast", lambda *a, **k: dataclasses.replace(
+        real(*a, **k), n_fallback=1, max_residual=2e-8))
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert facts["fallbacks"] == ("20 training samples were solved by the reference solver "
+                                  "(worst relative KKT residual 2.00e-08)")
