@@ -85,7 +85,7 @@ def test_bad_argument_exits_2_naming_it(capsys, argv, named):
 
 
 def test_demo_fails_when_the_check_fails(capsys, monkeypatch):
-    monkeypatch.setattr("lcs_cvx.cli.CHECK_TOL", -1.0)  # no difference can pass
+    monkeypatch.setattr("lcs_cvx.cli.demo.CHECK_TOL", -1.0)  # no difference can pass
     assert main(["demo", "--n", "50", "--n-lam", "2", "--learn-n-lam", "0"]) == 1
     assert "check failed" in capsys.readouterr().err
 

@@ -1,0 +1,5 @@
+"""``python -m lcs_cvx.cli``."""
+
+from . import main
+
+raise SystemExit(main())

@@ -1,0 +1,41 @@
+"""``lcs-cvx bench``: loss + gradient throughput of every solver path, side by side."""
+
+from __future__ import annotations
+
+import argparse
+
+from ._args import positive_int, sizes
+
+
+def configure_bench(p: argparse.ArgumentParser) -> None:
+    from ..bench import LOSSES, PATHS
+
+    p.add_argument("--sizes", type=sizes, default=None,
+                   help="'n_x,n_u,n_lam;...' (default: the five sizes of the solver comparison)")
+    p.add_argument("--paths", nargs="+", choices=PATHS, default=list(PATHS),
+                   help="solver paths (default: all)")
+    p.add_argument("--losses", nargs="+", choices=LOSSES, default=list(LOSSES))
+    p.add_argument("--batch", type=positive_int, default=200, help="batch size (default: 200)")
+    p.add_argument("--repeats", type=positive_int, default=5, help="timed calls; the median is kept")
+    p.add_argument("--out", default=None, help="also write the markdown table to this file")
+    p.add_argument("--lcp", action="store_true",
+                   help="instead: batched LCP solve rate vs Clarabel (n_lam 4, 10, 20; batch 200, 50,000)")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    """Loss + gradient throughput of each solver path, side by side, with ratios to diffcp-Clarabel."""
+    from ..bench import DEFAULT_SIZES, format_table, run_lcp_bench
+    from ..bench import run_bench as _run
+
+    if args.lcp:
+        table = run_lcp_bench(repeats=args.repeats)
+    else:
+        rows = _run(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
+                    repeats=args.repeats, progress=lambda line: print(line, flush=True))
+        table = format_table(rows)
+    print(table)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write(table + "\n")
+    return 0

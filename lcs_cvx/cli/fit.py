@@ -1,0 +1,148 @@
+"""``lcs-cvx fit`` and ``lcs-cvx predict``: learn an LCS from a data file and save it; evaluate
+a saved model on a data file."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from .. import LCSInputError, count_modes
+from ._args import (
+    check_dims,
+    check_target,
+    jsonable,
+    load_data,
+    positive_float,
+    positive_int,
+    relative_error_for,
+    require,
+    reraise_for,
+    seed,
+)
+
+
+def configure_fit(p: argparse.ArgumentParser) -> None:
+    # required, but checked by run_fit: every command parses with no arguments (test_cli)
+    p.add_argument("--data", help="training set, an .npz with x, u, x_next (required)")
+    p.add_argument("--n-lam", type=positive_int,
+                   help="number of complementarity variables of the learned LCS (required)")
+    p.add_argument("--out", help="model file to write, with lcs_cvx.save_model (required)")
+    p.add_argument("--test", default=None, help="test set (.npz); its e_test is printed")
+    p.add_argument("--stiffness", type=positive_float, default=1.0,
+                   help="s in F = G G^T + H - H^T + s I of the learned LCS (default: 1.0)")
+    # None = not given: lcs_cvx.fit's own defaults and recipes decide
+    p.add_argument("--loss", choices=("violation", "prediction"), default=None)
+    p.add_argument("--optimizer", choices=("adam", "gauss-newton", "newton"), default=None)
+    p.add_argument("--recipe", choices=("paper", "best"), default=None)
+    p.add_argument("--iterations", type=positive_int, default=None)
+    p.add_argument("--lr", type=positive_float, default=None, help="learning rate")
+    p.add_argument("--batch-size", type=positive_int, default=None)
+    p.add_argument("--gamma", type=positive_float, default=None,
+                   help="gamma of the violation loss, 0 < gamma < sigma_min(F + F^T)")
+    p.add_argument("--eps", type=positive_float, default=None, help="epsilon of the violation loss")
+    p.add_argument("--seed", type=seed, default=None,
+                   help="seed of the initialisation (default: 0) and of the training")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file written during training")
+    p.add_argument("--resume", action="store_true", default=None,
+                   help="continue from --checkpoint")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    """Learn an LCS from ``--data`` with :func:`lcs_cvx.fit` and write it to ``--out``."""
+
+    from .. import LCS
+    from .. import fit as fit_lcs  # looked up at run time: tests replace lcs_cvx.fit
+    from ..io import save_model
+
+    require(args, "data", "n_lam", "out")
+    train = load_data("data", args.data)
+    test = None
+    if args.test is not None:
+        test = load_data("test", args.test)
+        check_dims("test", args.test, test, train.n_x, train.n_u, f"as in {args.data!r}")
+    check_target("out", args.out)  # fail before training, not after
+    check_target("checkpoint", args.checkpoint)
+    if args.resume and args.checkpoint is None:
+        raise LCSInputError("resume: expected --checkpoint PATH to resume from, received none")
+    seed = 0 if args.seed is None else args.seed
+    model = LCS(train.n_x, train.n_u, args.n_lam, stiffness=args.stiffness, seed=seed)
+    # passed on to lcs_cvx.fit only when given: fit's defaults and recipes decide the rest
+    passed = ("loss", "optimizer", "recipe", "iterations", "lr", "batch_size", "gamma", "eps",
+              "seed", "checkpoint", "resume")
+    options = {k: getattr(args, k) for k in passed if getattr(args, k) is not None}
+    print(
+        f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
+        + (f", test {len(test)} samples" if test is not None else "")
+    )
+    print(f"model: n_lam={args.n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
+
+    t0 = time.perf_counter()
+    try:
+        result = fit_lcs(model, train, test=test, progress=True, **options)
+    except LCSInputError as exc:  # fit names the training set "train"; here it is --data
+        if str(exc).startswith("train: "):
+            raise reraise_for("data", LCSInputError(str(exc).removeprefix("train: "))) from None
+        raise
+    wall = time.perf_counter() - t0
+
+    metadata = {
+        "fit": jsonable(result.settings.flat()),
+        "init": {"n_lam": args.n_lam, "stiffness": args.stiffness, "seed": seed},
+        "data": {"train": args.data, "test": args.test, "n_train": len(train)},
+    }
+    try:
+        save_model(result.model, args.out, metadata=metadata)
+    except LCSInputError as exc:
+        raise reraise_for("out", exc) from None
+    if result.n_fallback:
+        print(f"fallbacks: {result.n_fallback} training samples were solved by the reference "
+              f"solver (worst relative KKT residual {result.max_residual:.2e})")
+    if test is not None:
+        print(f"e_test: {relative_error_for('test', result.model, test):.6g}")
+    print(f"train relative error: {relative_error_for('data', result.model, train):.6g}")
+    print(f"wall time: {wall:.2f} s")
+    print(f"saved: {args.out}")
+    return 0
+
+
+def configure_predict(p: argparse.ArgumentParser) -> None:
+    # required, but checked by run_predict: every command parses with no arguments (test_cli)
+    p.add_argument("--model", help="model file written by lcs-cvx fit / save_model (required)")
+    p.add_argument("--data", help="data set, an .npz with x, u, x_next (required)")
+    p.add_argument("--out", default=None,
+                   help="also write the predictions (arrays x_next_pred, lam) to this .npz")
+    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    """e_test and the number of hybrid modes of a saved model on a data set."""
+    from ..io import _atomic_savez, load_model
+
+    require(args, "model", "data")
+    check_target("out", args.out)
+    try:
+        model = load_model(args.model)
+    except LCSInputError as exc:
+        raise reraise_for("model", exc) from None
+    data = load_data("data", args.data)
+    check_dims("data", args.data, data, model.n_x, model.n_u, f"the model's, {args.model!r}")
+    model.requires_grad_(False)
+    x, u = data.x.to(model.dtype), data.u.to(model.dtype)
+    print(f"model: n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam} ({args.model})")
+    print(f"data: {len(data)} samples ({args.data})")
+    print(f"e_test: {relative_error_for('data', model, data):.6g}")
+    print(f"modes: {count_modes(model, x, u)}")
+    if args.out is not None:
+        with torch.no_grad():
+            lam = model.solve_lcp(x, u)
+            x_next = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
+        arrays = {"x_next_pred": x_next.cpu().numpy(), "lam": lam.cpu().numpy()}
+        try:
+            _atomic_savez(args.out, arrays, name="out")
+        except LCSInputError as exc:
+            raise reraise_for("out", exc) from None
+        print(f"predictions: {args.out}")
+    return 0
