@@ -228,6 +228,7 @@ def test_config_errors_name_the_section_and_the_key():
     assert cfg["data"]["n_test"] == 200 and cfg["data"]["val_every"] == 10  # given and default
     for bad, match in (({"physics": {"mass": 1.0}}, r"\[physics\]: unknown key 'mass'"),
                        ({"lcs": {"losses": ["hinge"]}}, r"lcs\.losses: expected 'violation'"),
+                       ({"lcs": {"seeds": [0, 0]}}, r"lcs\.seeds: expected a non-empty list of distinct"),
                        ({"mlp": {"depth": 2}}, r"mlp\.depth: unknown key"),
                        ({"plots": {}}, r"plots: unknown key")):
         with pytest.raises(ValueError, match=match):

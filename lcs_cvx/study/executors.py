@@ -135,8 +135,9 @@ def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int,
 
 @contextmanager
 def in_process(cells: list[dict[str, Any]], fn: CellFn = run_cell) -> Iterator[Iterator[Outcome]]:
-    """Run ``fn`` on each of ``cells`` in this process, in order (no pool to start); an
-    exception of a cell is its outcome, as on the other executors."""
+    """Run ``fn`` on each of ``cells`` in this process, in order (no pool to start), with the
+    caller's torch threads (set one for results equal to the workers'); an exception of a cell
+    is its outcome, as on the other executors."""
 
     def outcomes() -> Iterator[Outcome]:
         for c in cells:

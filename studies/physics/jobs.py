@@ -102,7 +102,8 @@ def run_jobs(jobs: list[dict[str, Any]], out_dir: str, study: str, workers: int,
 
     keys = [j["key"] for j in jobs]
     if len(set(keys)) != len(keys):
-        raise ValueError("jobs: two jobs have the same key (the same function and arguments)")
+        raise ValueError("jobs: expected distinct jobs, received two with the same function and "
+                         "arguments (the same key)")
     with Store(out_dir) as store:
         done = store.jobs(keys)
         todo = [j for j in jobs if j["key"] not in done]

@@ -81,6 +81,11 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"config: {unknown[0]}: unknown key; expected sections {list(CONFIG_SECTIONS)}")
     lcs = _section(config, "lcs", _LCS_DEFAULTS)
+    for key in ("n_lam", "seeds", "losses"):  # each value is one job: a repeat would be one too
+        v = lcs[key]
+        if not isinstance(v, list) or not v or len(set(v)) != len(v):
+            raise ValueError(f"config: lcs.{key}: expected a non-empty list of distinct values, "
+                             f"received {v!r}")
     for loss in lcs["losses"]:
         if loss not in ("violation", "prediction"):
             raise ValueError(f"config: lcs.losses: expected 'violation' or 'prediction', received {loss!r}")
