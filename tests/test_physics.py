@@ -1,6 +1,8 @@
-"""The physics study (studies/physics/): the MuJoCo cart-pole data generator, the normalisation
-folded into an LCS in physical units, the contact-agreement metric, a smoke run of the whole
-study and of the MPC, and user data in: Dataset.load / Dataset.from_csv on good and bad files."""
+"""The physics study (studies/physics/): the MuJoCo cart-pole data generator (plant.py), the
+normalisation folded into an LCS in physical units, the contact-agreement metric, the training
+jobs (jobs.py: keys, the store, a failing job), a smoke run of the whole study (study.py,
+report.py, the command line of cartpole_walls.py), resumed from the store, and of the MPC, and
+user data in: Dataset.load / Dataset.from_csv on good and bad files."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+import lcs_cvx
 from lcs_cvx import LCS, Dataset, LCSInputError, load_model
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -30,7 +33,7 @@ F64 = torch.float64
 # -- the generator -----------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def transitions():
-    from studies.physics.cartpole_walls import sample_transitions
+    from studies.physics.plant import sample_transitions
 
     return sample_transitions(1500, seed=0)
 
@@ -59,7 +62,7 @@ def test_generator_shapes_finite_and_contact_fraction(transitions):
 
 @needs_mujoco
 def test_generator_seeds_and_wide_inputs(transitions):
-    from studies.physics.cartpole_walls import Sampling, sample_transitions
+    from studies.physics.plant import Sampling, sample_transitions
 
     again = sample_transitions(1500, seed=0)
     assert np.array_equal(again.x_next, transitions.x_next)
@@ -75,7 +78,7 @@ def test_generator_seeds_and_wide_inputs(transitions):
 
 @needs_mujoco
 def test_wall_pushes_only_a_pole_that_touches_it():
-    from studies.physics.cartpole_walls import CartPoleWalls
+    from studies.physics.plant import CartPoleWalls
 
     sim = CartPoleWalls()
     sim.reset([0.0, 0.0, 0.0, 0.0])  # upright and still: nothing touches in one period
@@ -110,7 +113,8 @@ def test_normalised_lcs_folds_into_the_same_lcs_in_physical_units():
     z, v = sc.encode(x, u)
     with torch.no_grad():
         y = normalised.step(torch.from_numpy(z), torch.from_numpy(v)).numpy()
-        lam_n = normalised.solve_lcp(torch.from_numpy(z), torch.from_numpy(v)).numpy()
+        lam_n = lcs_cvx.solve_lcp(normalised.F, normalised.lcp_offset(torch.from_numpy(z),
+                                                                     torch.from_numpy(v))).lam.numpy()
     np.testing.assert_allclose(physical.predict(x, u), sc.decode(x, y), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(physical.lam(x, u), lam_n, rtol=1e-9, atol=1e-10)
     assert 0 < (lam_n > 0).mean() < 1  # the test exercises active and inactive units
@@ -159,15 +163,27 @@ def test_one_step_and_rollout_errors_of_a_perfect_model(transitions):
 
 
 # -- the study, end to end -----------------------------------------------------------------------
-@needs_mujoco
-def test_smoke_study_runs_end_to_end(tmp_path):
-    from studies.physics.cartpole_walls import run_study
-
+def _smoke_config() -> dict:
     with open(os.path.join(ROOT, "studies", "configs", "physics_cartpole_smoke.toml"), "rb") as f:
-        config = tomllib.load(f)
+        return tomllib.load(f)
+
+
+def _without_timing(metrics: dict) -> dict:
+    """metrics.json less what a second run may change: times, the jobs run, the code state."""
+    out = {k: v for k, v in metrics.items() if k not in ("timing_s", "jobs", "code")}
+    out["metrics"] = {s: [{k: v for k, v in r.items() if k != "train_s"} for r in rows]
+                      for s, rows in metrics["metrics"].items()}
+    return out
+
+
+@needs_mujoco
+def test_smoke_study_runs_end_to_end_and_resumes_from_the_store(tmp_path):
+    from studies.physics.study import run_study
+
+    config = _smoke_config()
     assert config["kind"] == "module" and config["module"] == "studies.physics.cartpole_walls"
     run_study(config, str(tmp_path), workers=1)
-    for name in ("report.md", "metrics.json", "rollouts.png", "error_vs_horizon.png"):
+    for name in ("report.md", "metrics.json", "rollouts.png", "error_vs_horizon.png", "studies.sqlite"):
         assert (tmp_path / name).stat().st_size > 0
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     rows = metrics["metrics"]["test"]
@@ -181,6 +197,81 @@ def test_smoke_study_runs_end_to_end(tmp_path):
     # the exported model maps physical units: it reproduces the study's one-step error
     model = load_model(tmp_path / "models" / "lcs_violation_nlam2.npz")
     assert model.n_x == 4 and model.n_u == 1 and model.n_lam == 2
+    assert metrics["jobs"] == {"total": 3, "run_now": 3}
+    # a second run reads the three training jobs from the store: the same numbers, nothing trained
+    first = (tmp_path / "models" / "lcs_violation_nlam2.npz").read_bytes()
+    run_study(config, str(tmp_path), workers=1)
+    again = json.loads((tmp_path / "metrics.json").read_text())
+    assert again["jobs"] == {"total": 3, "run_now": 0}
+    assert _without_timing(again) == _without_timing(metrics)
+    assert [r["train_s"] for r in again["metrics"]["test"][:2]] == [r["train_s"] for r in rows[:2]]
+    assert (tmp_path / "models" / "lcs_violation_nlam2.npz").read_bytes() == first
+    assert "3 of 3 jobs read from the study database" in (tmp_path / "report.md").read_text()
+
+
+def test_the_command_line_module_re_exports_the_split_modules():
+    from studies.physics import cartpole_walls, plant, study
+
+    assert cartpole_walls.run_study is study.run_study
+    assert cartpole_walls.parse_config is study.parse_config
+    for name in ("Physics", "Sampling", "Transitions", "CartPoleWalls", "mjcf", "sample_transitions"):
+        assert getattr(cartpole_walls, name) is getattr(plant, name)
+    with pytest.raises(SystemExit):
+        cartpole_walls.main(["--config", "c.toml"])  # --out is required
+
+
+def test_config_errors_name_the_section_and_the_key():
+    from studies.physics.study import parse_config
+
+    cfg = parse_config(_smoke_config())
+    assert cfg["lcs"]["violation"]["iterations"] == 20 and cfg["lcs"]["violation"]["recipe"] == "best"
+    assert cfg["data"]["n_test"] == 200 and cfg["data"]["val_every"] == 10  # given and default
+    for bad, match in (({"physics": {"mass": 1.0}}, r"\[physics\]: unknown key 'mass'"),
+                       ({"lcs": {"losses": ["hinge"]}}, r"lcs\.losses: expected 'violation'"),
+                       ({"lcs": {"seeds": [0, 0]}}, r"lcs\.seeds: expected a non-empty list of distinct"),
+                       ({"mlp": {"depth": 2}}, r"mlp\.depth: unknown key"),
+                       ({"plots": {}}, r"plots: unknown key")):
+        with pytest.raises(ValueError, match=match):
+            parse_config({**_smoke_config(), **bad})
+
+
+# -- the training jobs ---------------------------------------------------------------------------
+def _tiny_mlp_args(seed: int = 0) -> dict:
+    g = np.random.default_rng(seed)
+    z, v, y = g.normal(size=(40, 2)), g.normal(size=(40, 1)), g.normal(size=(40, 2))
+    return {"z": z, "v": v, "y": y, "z_val": z, "v_val": v, "y_val": y, "hidden": [4],
+            "iterations": 3, "batch_size": 8, "lr": 1e-2, "weight_decay": 0.0, "seed": seed}
+
+
+def test_job_keys_follow_the_function_and_every_argument():
+    from studies.physics.jobs import job_key, make_job
+
+    args = _tiny_mlp_args()
+    key = make_job("fit_mlp", args)["key"]
+    assert key == job_key("fit_mlp", {**args})  # reproducible
+    assert key == job_key("fit_mlp", {**args, "hidden": (4,)})  # a tuple is its list
+    assert key != job_key("fit_lcs", args)
+    assert key != job_key("fit_mlp", {**args, "seed": 1})
+    changed = args["z"].copy()
+    changed[3, 1] += 1e-12
+    assert key != job_key("fit_mlp", {**args, "z": changed})  # arrays by their bytes
+    assert key != job_key("fit_mlp", {**args, "z": args["z"].astype(np.float32)})
+    with pytest.raises(ValueError, match=r"function: expected one of \('fit_lcs', 'fit_mlp'\), received 'fit_svm'"):
+        make_job("fit_svm", args)
+
+
+def test_a_failing_job_stops_the_run_and_keeps_the_finished_ones(tmp_path):
+    from lcs_cvx.study import Store
+    from studies.physics.jobs import JobError, make_job, run_jobs
+
+    good = make_job("fit_mlp", _tiny_mlp_args())
+    bad = make_job("fit_mlp", {k: v for k, v in _tiny_mlp_args(1).items() if k != "lr"})
+    with pytest.raises(JobError, match=r"(?s)job fit_mlp failed; 1 finished jobs are in .*KeyError: 'lr'"):
+        run_jobs([good, bad], str(tmp_path), "t", workers=1)
+    with Store(tmp_path) as store:
+        assert list(store.jobs([good["key"], bad["key"]])) == [good["key"]]
+    results, run_now = run_jobs([good], str(tmp_path), "t", workers=1)
+    assert run_now == 0 and results[0]["hidden"] == [4]
 
 
 @needs_mujoco

@@ -1,16 +1,24 @@
 """The study runner (lcs_cvx.study, `lcs-cvx study`): every smoke config of Fig. 1 runs on a
 process pool, finished cells are skipped, an interrupted run resumes without duplicates, a Dask
-LocalCluster gives the same numbers, the report writes figures and tables with the authors'
-numbers, and config errors name the file and the key."""
+LocalCluster and a real `dask scheduler` + `dask worker` on loopback give the same numbers, the
+store keeps a module study's job results exactly, the report writes figures and tables with the
+authors' numbers, and config errors name the file and the key."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import signal
+import socket
 import sqlite3
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -19,7 +27,8 @@ from lcs_cvx.cli import main
 from lcs_cvx.study import Store, cell_seeds, expand, load_config, run_config
 from lcs_cvx.study.cells import REFERENCE, run_cell, setup_cell
 
-CONFIGS = Path(__file__).resolve().parents[1] / "studies" / "configs"
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "studies" / "configs"
 SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
 PANELS = {"fig1a_n_lam_smoke": "a", "fig1b_n_x_smoke": "b", "fig1c_stiffness_smoke": "c",
           "fig1d_gamma_smoke": "d", "fig1e_eps_smoke": "e"}
@@ -181,6 +190,101 @@ def test_dask_local_cluster_gives_the_process_pool_results(pool_out, tmp_path):
         assert r["final_loss"] == pytest.approx(pool_rows[key]["final_loss"], rel=1e-12)
 
 
+#: Bounds of the real-Dask test (s): the processes' start, the run, their shutdown.
+DASK_START_S, DASK_RUN_S, DASK_STOP_S = 60.0, 120.0, 10.0
+
+
+def _free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    """End the processes this test started (each leads its own process group: the worker's
+    nanny and its child go with it): SIGTERM, then SIGKILL after DASK_STOP_S."""
+    for p in procs:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGTERM)
+    deadline = time.monotonic() + DASK_STOP_S
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait(timeout=DASK_STOP_S)
+
+
+def test_a_dask_scheduler_and_worker_processes_give_the_local_results(pool_out, tmp_path):
+    """`dask scheduler` and `dask worker` (the console scripts beside this Python) as separate
+    processes on 127.0.0.1; the fig1a smoke study through `lcs-cvx study run --scheduler`."""
+    distributed = pytest.importorskip("dask.distributed")
+    dask_bin = Path(sys.executable).parent / "dask"
+    if not dask_bin.is_file():
+        pytest.skip(f"no dask console script beside {sys.executable}")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    # the workers import this checkout's lcs_cvx; no thread oversubscription
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    common = {"cwd": tmp_path, "env": env, "start_new_session": True,
+              "stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    procs: list[subprocess.Popen] = []
+    try:
+        procs.append(subprocess.Popen(
+            [str(dask_bin), "scheduler", "--host", "127.0.0.1", "--port", str(port),
+             "--no-dashboard", "--idle-timeout", "300s"], **common))
+        procs.append(subprocess.Popen(
+            [str(dask_bin), "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
+             "--nthreads", "1", "--no-dashboard", "--death-timeout", "30",
+             "--local-directory", str(tmp_path / "worker")], **common))
+        deadline = time.monotonic() + DASK_START_S
+        while True:  # the scheduler takes a few seconds to listen
+            try:
+                client = distributed.Client(address, timeout=5)
+                break
+            except (OSError, TimeoutError):
+                assert time.monotonic() < deadline, "the dask scheduler did not start"
+                assert procs[0].poll() is None, f"dask scheduler exited ({procs[0].returncode})"
+                time.sleep(0.5)
+        try:
+            client.wait_for_workers(1, timeout=max(1.0, deadline - time.monotonic()))
+            [worker_pid] = client.run(os.getpid).values()
+        finally:
+            client.close()
+
+        out = tmp_path / "out"
+        argv = ["study", "run", str(CONFIGS / "fig1a_n_lam_smoke.toml"), "--out", str(out),
+                "--scheduler", address]
+        outcome: dict[str, int | BaseException] = {}
+
+        def run() -> None:
+            try:
+                outcome["rc"] = main(argv)
+            except BaseException as exc:  # reported below, in the test's thread
+                outcome["error"] = exc
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        thread.join(DASK_RUN_S)
+        assert not thread.is_alive(), f"the study did not finish on {address} in {DASK_RUN_S} s"
+    finally:
+        _stop(procs)
+    assert "error" not in outcome, outcome.get("error")
+    assert outcome["rc"] == 0
+    dask_rows = {r["key"]: r for r in _rows(out)}
+    pool_rows = {r["key"]: r for r in _rows(pool_out, "fig1a_n_lam_smoke")}
+    assert len(dask_rows) == len(expand(load_config(CONFIGS / "fig1a_n_lam_smoke.toml")))
+    assert dask_rows.keys() == pool_rows.keys()  # complete: every cell, none failed
+    with Store(out) as store:
+        assert store.failures(next(iter(dask_rows.values()))["config_hash"]) == []
+    for key, r in dask_rows.items():
+        assert r["host"].endswith(f":{worker_pid}")  # ran in the dask worker process
+        assert abs(r["e_test"] - pool_rows[key]["e_test"]) <= 1e-12
+        assert r["final_loss"] == pytest.approx(pool_rows[key]["final_loss"], rel=1e-12)
+        assert r["settings_json"] == pool_rows[key]["settings_json"]
+
+
 def test_report_writes_figures_and_tables_with_the_anchors(pool_out, capsys):
     assert main(["study", "report", str(pool_out)]) == 0
     written = capsys.readouterr().out
@@ -322,6 +426,58 @@ def test_module_kind_calls_the_modules_run_study(tmp_path, capsys):
     assert main(["study", "run", str(bad)]) == 2
     assert "module: cannot import 'no_such_module_x'" in capsys.readouterr().err
 
+
+
+def test_module_kind_gets_the_scheduler_if_its_run_study_takes_one(tmp_path, capsys, monkeypatch):
+    (tmp_path / "mod_with_scheduler.py").write_text(
+        "CALLS = []\n"
+        "def run_study(config, out_dir, workers, scheduler=None):\n"
+        "    CALLS.append((config['name'], workers, scheduler))\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    path = _write(tmp_path, 'name = "m"\nkind = "module"\nmodule = "mod_with_scheduler"\n', "m.toml")
+    argv = ["study", "run", str(path), "--workers", "2", "--out", str(tmp_path / "out")]
+    assert main([*argv, "--scheduler", "tcp://127.0.0.1:1"]) == 0
+    assert main(argv) == 0
+    import mod_with_scheduler
+
+    assert mod_with_scheduler.CALLS == [("m", 2, "tcp://127.0.0.1:1"), ("m", 2, None)]
+    # a run_study without the keyword: refused, not silently run on local processes
+    old = _write(tmp_path, 'name = "p"\nkind = "module"\nmodule = "test_study"\n', "p.toml")
+    MODULE_CALLS.clear()
+    assert main(["study", "run", str(old), "--scheduler", "local", "--out", str(tmp_path / "o2")]) == 2
+    assert "takes no scheduler argument" in capsys.readouterr().err and MODULE_CALLS == []
+
+
+def test_job_results_round_trip_exactly_through_the_store(tmp_path):
+    g = np.random.default_rng(0)
+    result = {"matrices": {"A": g.normal(size=(3, 3)), "F": np.eye(2, dtype=np.float32)},
+              "mask": g.random(5) > 0.5, "ints": np.arange(4, dtype=np.int64).reshape(2, 2),
+              "val_error": math.inf, "nan": math.nan, "third": 1 / 3, "scalar": np.float64(0.1),
+              "settings": {"z": 1, "a": (0.9, 0.9), "recipe": None}, "history": [{"loss": 1e-300}]}
+    with Store(tmp_path) as store:
+        assert store.add_job("k1", "s", "fit_lcs", result) is True
+        assert store.add_job("k1", "s", "fit_lcs", {"other": 1}) is False  # never written twice
+        assert store.jobs(["k2"]) == {}
+        with pytest.raises(TypeError, match=r"result: cannot store a value of type set"):
+            store.add_job("k3", "s", "fit_lcs", {"bad": {1, 2}})
+        assert store.jobs(["k3"]) == {}
+    with Store(tmp_path) as store:  # reopened: what was committed
+        back = store.jobs(["k1", "k2"])["k1"]
+    for name, a in result["matrices"].items():
+        assert back["matrices"][name].dtype == a.dtype and np.array_equal(back["matrices"][name], a)
+    assert back["mask"].dtype == bool and np.array_equal(back["mask"], result["mask"])
+    assert back["ints"].shape == (2, 2) and np.array_equal(back["ints"], result["ints"])
+    assert back["val_error"] == math.inf and math.isnan(back["nan"]) and back["third"] == 1 / 3
+    assert back["scalar"] == 0.1 and type(back["scalar"]) is float
+    assert list(back["settings"]) == ["z", "a", "recipe"] and back["settings"]["a"] == [0.9, 0.9]
+    assert back["history"] == [{"loss": 1e-300}]
+
+
+def test_a_database_without_the_jobs_table_gains_it(tmp_path):
+    with Store(tmp_path) as store:
+        store.conn.execute("DROP TABLE jobs")
+    with Store(tmp_path) as store:
+        assert store.add_job("k", "s", "fit_mlp", {"x": 1}) and store.jobs(["k"]) == {"k": {"x": 1}}
 
 
 def test_setup_cell_is_the_work_run_cell_measures():

@@ -25,7 +25,9 @@ paper's Fig. 1 (Sec. 5.1, panels (a)-(e)). Its keys::
               [fit.paper] / [fit.best] hold options used only under that recipe.
 
 A *module* study (``kind = "module"``, ``module = "dotted.path"``) is run by that module's
-``run_study(config: dict, out_dir: str, workers: int) -> None``; its other keys are the module's.
+``run_study(config: dict, out_dir: str, workers: int) -> None`` (called with a ``scheduler=``
+keyword as well when ``lcs-cvx study run`` is given ``--scheduler``); its other keys are the
+module's.
 
 Every error is an :class:`lcs_cvx.LCSInputError` naming the file and the key.
 """

@@ -1,7 +1,10 @@
 """Where the cells run: a local process pool (default) or a Dask distributed cluster.
 
 Both yield ``(cell, result_or_exception)`` as cells finish; results come back to the client,
-which alone writes the database. Workers run :func:`lcs_cvx.study.cells.run_cell`, which sets one
+which alone writes the database. Workers run ``fn(cell)``: by default
+:func:`lcs_cvx.study.cells.run_cell` (a grid cell); a ``kind = "module"`` study passes its own
+job function (a module-level function, imported by the workers, e.g.
+``studies.physics.jobs.run_job``) and its jobs (dicts with a unique ``"key"``). Workers run one
 torch thread, so a cell's result does not depend on where it ran.
 
 - :func:`process_pool`: ``concurrent.futures.ProcessPoolExecutor`` with the ``forkserver`` start
@@ -9,7 +12,10 @@ torch thread, so a cell's result does not depend on where it ran.
   in the initializer, and workers that end when the client process is gone.
 - :func:`dask_cluster`: ``address="local"`` starts a ``LocalCluster`` on this machine
   (``n_workers=workers``, one thread each, processes); any other address (``tcp://host:8786``)
-  connects to an existing scheduler. The workers need ``lcs_cvx`` installed.
+  connects to an existing scheduler. The workers need ``lcs_cvx`` installed and, for a module
+  study, its package importable (started from the repository root with ``PYTHONPATH=.``).
+- :func:`in_process`: the cells one after another in this process (a module study's
+  ``workers = 1``).
 """
 
 from __future__ import annotations
@@ -19,15 +25,17 @@ import multiprocessing as mp
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 from .cells import run_cell
 
-__all__ = ["process_pool", "dask_cluster"]
+__all__ = ["process_pool", "dask_cluster", "in_process"]
 
 Outcome = tuple[dict[str, Any], Any]
+#: The work of one cell: a module-level function (workers import it by name).
+CellFn = Callable[[dict[str, Any]], Any]
 
 
 def _init_worker(client: int) -> None:
@@ -60,15 +68,17 @@ def _context() -> mp.context.BaseContext:
 
 
 @contextmanager
-def process_pool(cells: list[dict[str, Any]], workers: int) -> Iterator[Iterator[Outcome]]:
-    """Run ``cells`` on ``workers`` local processes; the iterator yields outcomes as they finish.
+def process_pool(cells: list[dict[str, Any]], workers: int,
+                 fn: CellFn = run_cell) -> Iterator[Iterator[Outcome]]:
+    """Run ``fn`` on each of ``cells`` on ``workers`` local processes; the iterator yields
+    outcomes as they finish.
 
     Leaving the ``with`` block early (an exception, Ctrl-C) cancels the cells not yet started.
     """
     pool = cf.ProcessPoolExecutor(max_workers=max(1, min(workers, len(cells))),
                                   mp_context=_context(), initializer=_init_worker,
                                   initargs=(os.getpid(),))
-    futures = {pool.submit(run_cell, c): c for c in cells}
+    futures = {pool.submit(fn, c): c for c in cells}
 
     def outcomes() -> Iterator[Outcome]:
         for fut in cf.as_completed(futures):
@@ -86,8 +96,10 @@ def process_pool(cells: list[dict[str, Any]], workers: int) -> Iterator[Iterator
 
 
 @contextmanager
-def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int) -> Iterator[Iterator[Outcome]]:
-    """Run ``cells`` on a Dask cluster (``address`` ``"local"`` or ``tcp://host:port``)."""
+def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int,
+                 fn: CellFn = run_cell) -> Iterator[Iterator[Outcome]]:
+    """Run ``fn`` on each of ``cells`` on a Dask cluster (``address`` ``"local"`` or
+    ``tcp://host:port``); the iterator yields outcomes as they finish."""
     from dask.distributed import Client, LocalCluster, as_completed
 
     from .._checks import LCSInputError
@@ -105,7 +117,7 @@ def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int) -> Ite
     futures: dict[str, tuple[Any, dict[str, Any]]] = {}
     try:
         for c in cells:
-            fut = client.submit(run_cell, c, key=f"cell-{c['key'][:32]}", pure=False)
+            fut = client.submit(fn, c, key=f"cell-{c['key'][:32]}", pure=False)
             futures[fut.key] = (fut, c)
 
         def outcomes() -> Iterator[Outcome]:
@@ -119,3 +131,20 @@ def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int) -> Ite
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+@contextmanager
+def in_process(cells: list[dict[str, Any]], fn: CellFn = run_cell) -> Iterator[Iterator[Outcome]]:
+    """Run ``fn`` on each of ``cells`` in this process, in order (no pool to start), with the
+    caller's torch threads (set one for results equal to the workers'); an exception of a cell
+    is its outcome, as on the other executors."""
+
+    def outcomes() -> Iterator[Outcome]:
+        for c in cells:
+            try:
+                result = fn(c)
+            except Exception as exc:  # the cell's outcome, as a worker would report it
+                result = exc
+            yield c, result
+
+    yield outcomes()

@@ -4,11 +4,16 @@ The client process expands the grid (:func:`lcs_cvx.study.cells.expand`), reads 
 the database already holds, sends the others to an executor and writes every result to the
 database the moment it arrives. Running a config again therefore resumes where it stopped and
 redoes nothing finished. A failed cell is logged in ``failures`` and retried on the next run.
+
+A ``kind = "module"`` config is handed to its module's ``run_study(config, out_dir, workers)``
+(with ``scheduler=`` when one is given), which may use the same executors and store
+(``studies/physics/jobs.py`` does).
 """
 
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import sys
 import time
@@ -109,7 +114,7 @@ class _Progress:
             self.bar.close()
 
 
-def _run_module(config: dict[str, Any], out: str, workers: int) -> None:
+def _run_module(config: dict[str, Any], out: str, workers: int, scheduler: str | None) -> None:
     where = config["path"]
     if os.getcwd() not in sys.path:  # `studies.physics.x` from the repository root, also when
         sys.path.append(os.getcwd())  # run by the console script (whose sys.path[0] is its bin/)
@@ -121,7 +126,14 @@ def _run_module(config: dict[str, Any], out: str, workers: int) -> None:
     if not callable(run_study):
         raise LCSInputError(f"{where}: module: {config['module']!r} has no function "
                             "run_study(config, out_dir, workers)")
-    run_study({k: v for k, v in config.items() if k != "path"}, out, workers)
+    body = {k: v for k, v in config.items() if k != "path"}
+    if scheduler is None:
+        run_study(body, out, workers)
+        return
+    if "scheduler" not in inspect.signature(run_study).parameters:
+        raise LCSInputError(f"scheduler: {config['module']}.run_study runs its own executor (it "
+                            "takes no scheduler argument); drop --scheduler")
+    run_study(body, out, workers, scheduler=scheduler)
 
 
 def run_config(
@@ -139,7 +151,8 @@ def run_config(
     Args:
         workers: local processes (process pool or ``scheduler="local"``); default: CPU count.
         scheduler: None (process pool), ``"local"`` (a Dask LocalCluster) or a Dask scheduler
-            address ``tcp://host:port``.
+            address ``tcp://host:port``; passed on to a module study whose ``run_study`` takes a
+            ``scheduler`` keyword.
         only: run only cells matching ``{"value": 4.0, "trial": 0, "method": "violation"}``.
         max_cells: run at most this many unfinished cells (the rest on a later run).
         progress: a bar (terminal) or periodic lines on stderr.
@@ -151,11 +164,8 @@ def run_config(
     workers = workers or os.cpu_count() or 1
     out = os.fspath(out)
     if config["kind"] == "module":
-        if scheduler is not None:
-            raise LCSInputError("scheduler: a kind = \"module\" study runs its own executor "
-                                "(run_study(config, out_dir, workers)); drop --scheduler")
         os.makedirs(out, exist_ok=True)
-        _run_module(config, out, workers)
+        _run_module(config, out, workers, scheduler)
         return None
 
     t0 = time.perf_counter()

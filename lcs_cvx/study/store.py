@@ -10,10 +10,16 @@ Tables (schema version 2)::
     curves   (cell_id PK -> cells.id, data: zlib-compressed JSON of the cell's fit history, the
               records of ``lcs_cvx.FitResult.history``; read with :meth:`Store.curve`)
     failures (id PK, key, config_hash, study, value_index, trial, method, error, at)
+    jobs     (key PK, study, function, result: zlib-compressed JSON, finished) -- the finished
+              jobs of a ``kind = "module"`` study (:meth:`Store.add_job`, :meth:`Store.jobs`);
+              numpy arrays in a result are stored exactly (dtype, shape, raw bytes in base64)
 
 Every finished cell is one transaction (its row and its curve), committed at once; the database
 is in WAL mode with ``synchronous = FULL``, so a Ctrl-C or a killed process loses at most the cell
 in flight, and a finished cell is never lost or written twice (``key`` is unique).
+
+The ``jobs`` table came after version 2 without changing the others: opening a database that
+lacks it adds it, empty.
 
 Schema version 1 stored one row per curve record (~100 bytes each, 100 records a cell at the
 paper's 10,000 iterations: 6.7 MB for Fig. 1(a), (d), (e)); a version-1 database is converted
@@ -22,6 +28,7 @@ in place when it is opened (one transaction, then ``VACUUM``), ~2.5x smaller.
 
 from __future__ import annotations
 
+import base64
 import json
 import math
 import os
@@ -29,6 +36,8 @@ import sqlite3
 import time
 import zlib
 from typing import Any
+
+import numpy as np
 
 __all__ = ["DB_NAME", "Store"]
 
@@ -55,7 +64,12 @@ CREATE TABLE IF NOT EXISTS curves (
 CREATE TABLE IF NOT EXISTS failures (
     id INTEGER PRIMARY KEY, key TEXT NOT NULL, config_hash TEXT NOT NULL, study TEXT NOT NULL,
     value_index INTEGER, trial INTEGER, method TEXT, error TEXT NOT NULL, at TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS jobs (
+    key TEXT PRIMARY KEY, study TEXT NOT NULL, function TEXT NOT NULL, result BLOB NOT NULL,
+    finished TEXT NOT NULL);
 """
+#: Marks an encoded numpy array in a job result (see :func:`_encode`).
+_ARRAY_TAG = "__ndarray__"
 
 
 def _now() -> str:
@@ -70,6 +84,26 @@ def _real(v: Any) -> float | None:
 def _pack(records: list[list[Any]]) -> bytes:
     """A curve as ``zlib(JSON [[iteration, phase, loss, ...], ...])`` (fields: CURVE_FIELDS)."""
     return zlib.compress(json.dumps(records, separators=(",", ":")).encode(), 9)
+
+
+def _encode(o: Any) -> Any:
+    """``json.dumps`` default of a job result: a numpy array as ``{"__ndarray__": dtype, "shape",
+    "data": base64 of its bytes}`` (exact), a numpy scalar as the Python number."""
+    if isinstance(o, np.ndarray):
+        if o.dtype.hasobject:
+            raise TypeError(f"result: cannot store a numpy array of dtype object (shape {o.shape})")
+        return {_ARRAY_TAG: o.dtype.str, "shape": list(o.shape),
+                "data": base64.b64encode(np.ascontiguousarray(o).tobytes()).decode()}
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"result: cannot store a value of type {type(o).__name__}")
+
+
+def _decode(d: dict[str, Any]) -> Any:
+    if _ARRAY_TAG not in d:
+        return d
+    a = np.frombuffer(base64.b64decode(d["data"]), dtype=np.dtype(d[_ARRAY_TAG]))
+    return a.reshape(d["shape"]).copy()
 
 
 def _migrate_v1(conn: sqlite3.Connection) -> bool:
@@ -170,6 +204,19 @@ class Store:
                  cell["trial"], cell["method"], error, _now()),
             )
 
+    def add_job(self, key: str, study: str, function: str, result: dict[str, Any]) -> bool:
+        """Write one finished job of a module study (one transaction); False if it was there.
+
+        ``result`` is JSON-able besides numpy arrays and scalars (stored exactly); tuples come
+        back as lists, dict keys keep their order, and floats round-trip exactly (``inf`` and
+        ``nan`` included).
+        """
+        blob = zlib.compress(json.dumps(result, default=_encode).encode(), 6)
+        with self.conn:
+            cur = self.conn.execute("INSERT OR IGNORE INTO jobs VALUES (?, ?, ?, ?, ?)",
+                                    (key, study, function, blob, _now()))
+        return cur.rowcount == 1
+
     # -- reading ------------------------------------------------------------------------
     def finished_keys(self) -> set[str]:
         return {k for (k,) in self.conn.execute("SELECT key FROM cells")}
@@ -198,6 +245,16 @@ class Store:
         if row is None:
             return []
         return [dict(zip(CURVE_FIELDS, r, strict=True)) for r in json.loads(zlib.decompress(row[0]))]
+
+    def jobs(self, keys: list[str]) -> dict[str, dict[str, Any]]:
+        """The finished jobs among ``keys``: ``{key: result}`` as :meth:`add_job` wrote them."""
+        out: dict[str, dict[str, Any]] = {}
+        for i in range(0, len(keys), 500):
+            chunk = keys[i : i + 500]
+            q = f"SELECT key, result FROM jobs WHERE key IN ({','.join('?' * len(chunk))})"
+            for key, blob in self.conn.execute(q, chunk):
+                out[key] = json.loads(zlib.decompress(blob), object_hook=_decode)
+        return out
 
     def failures(self, config_hash: str) -> list[dict[str, Any]]:
         cols = ("key", "value_index", "trial", "method", "error", "at")

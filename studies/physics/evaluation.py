@@ -1,6 +1,6 @@
-r"""Metrics, figures and the markdown report of the physics study.
+r"""Metrics, figures and the results table of the physics study.
 
-Every model is evaluated in physical units on :class:`~studies.physics.cartpole_walls.Transitions`
+Every model is evaluated in physical units on :class:`~studies.physics.plant.Transitions`
 through ``predict(x, u, contact)`` (``contact`` is used by the mode oracle only).
 
 - One-step relative error, the paper's ``e_test`` (Sec. 5) on a subset ``S`` of the samples:

@@ -147,7 +147,7 @@ class LCSMPC:
 
 def simulate(controller: Any, x0: np.ndarray, steps: int, physics: Any = None) -> dict[str, np.ndarray]:
     """Closed loop in MuJoCo: ``controller(x) -> u`` every control period (None: u = 0)."""
-    from .cartpole_walls import CartPoleWalls, Physics
+    from .plant import CartPoleWalls, Physics
 
     sim = CartPoleWalls(physics or Physics())
     sim.reset(x0)
@@ -189,7 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--u-max", type=float, default=MPCSettings.u_max)
     ap.add_argument("--seconds", type=float, default=4.0)
     args = ap.parse_args(argv)
-    from .cartpole_walls import Physics
+    from .plant import Physics
 
     physics = Physics()
     steps = int(round(args.seconds / physics.control_period))
