@@ -285,8 +285,7 @@ def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
     except lcs_cvx.SolverError as exc:  # a diverged run: reported, never selected
         return {"matrices": None, "val_error": math.inf, "history": [], "settings": None,
                 "wall_time": time.perf_counter() - t0, "error": str(exc)}
-    settings = {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in vars(result.settings).items()}
+    settings = result.settings.flat()
     return {
         "matrices": result.model.to_matrices(),
         "val_error": lcs_cvx.relative_error(result.model, test),
