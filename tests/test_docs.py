@@ -1,0 +1,316 @@
+"""The documentation is tested: its code runs, its shown output is what the code prints, the
+API reference covers the public API and the site builds with ``mkdocs build --strict``.
+
+Code blocks: every fenced ```` ```python ```` block of ``README.md`` and of each
+``docs/tutorials/*.md`` page runs; the blocks of one page run in order, in one namespace, in a
+fresh temporary working directory (which has a ``studies`` link to the repository's
+``studies/``, as a user's checkout has). Markers, each on the line right before a fence:
+
+- ``<!-- skip-test -->`` before a ```` ```python ```` block: the block is not run (for code that
+  needs more than seconds; shell commands belong in ```` ```bash ```` blocks, which never run).
+- A ```` ```text ```` block right after a python block (blank lines between allowed) is the
+  output the block prints; it must match exactly (trailing spaces aside; ``...`` matches any
+  text, as in doctest's ELLIPSIS).
+- ``<!-- output: approximate -->`` before that ```` ```text ```` block: the words must match
+  exactly and every number to within a factor of ``APPROX_FACTOR`` (numbers below
+  ``APPROX_TINY`` in magnitude on both sides, round-off, match each other) -- for measured
+  errors of trained models, which move with the platform's arithmetic.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import doctest
+import inspect
+import io
+import math
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs" / "tutorials").glob("*.md"))]
+REFERENCE = ROOT / "docs" / "reference"
+
+SKIP = "<!-- skip-test -->"
+APPROX = "<!-- output: approximate -->"
+APPROX_FACTOR = 10.0
+APPROX_TINY = 1e-9
+
+#: Modules documented as a whole in the API reference (besides every top-level name).
+DOCUMENTED_MODULES = (
+    "lcs_cvx.units",
+    "lcs_cvx.second_order",
+    "lcs_cvx.hessian",
+    "lcs_cvx.problems",
+    "lcs_cvx.layers",
+    "lcs_cvx.io",
+    "lcs_cvx.train",
+)
+
+#: Words that narrate how the software was made rather than what it does.
+PROCESS_WORDS = re.compile(
+    r"\bsession|slow phase|\btoday|this issue|the issue's|commit [0-9a-f]{7}|#1[0-9]",
+    re.IGNORECASE,
+)
+
+
+# -- extracting the blocks ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Block:
+    """One ```` ```python ```` block of a page and the output it is documented to print."""
+
+    path: Path
+    line: int  # 1-based line of the opening fence
+    code: str
+    skip: bool
+    expected: str | None
+    approximate: bool
+
+    @property
+    def where(self) -> str:
+        return f"{self.path.relative_to(ROOT)}:{self.line}"
+
+
+def _fence(lines: list[str], start: int) -> tuple[str, int]:
+    """The body of the fence opening at ``lines[start]`` and the index of its closing line."""
+    end = start + 1
+    while end < len(lines) and lines[end].strip() != "```":
+        end += 1
+    if end == len(lines):
+        raise AssertionError(f"unclosed code fence opened at line {start + 1}")
+    return "\n".join(lines[start + 1 : end]) + "\n", end
+
+
+def _previous(lines: list[str], i: int) -> str:
+    """The nearest non-blank line before ``lines[i]`` ('' if none)."""
+    j = i - 1
+    while j >= 0 and not lines[j].strip():
+        j -= 1
+    return lines[j].strip() if j >= 0 else ""
+
+
+def extract_blocks(path: Path) -> list[Block]:
+    """Every ```` ```python ```` block of ``path``, with its markers and documented output."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    blocks: list[Block] = []
+    i = 0
+    while i < len(lines):
+        fence = lines[i].strip()
+        if not fence.startswith("```") or fence == "```":
+            i += 1
+            continue
+        body, end = _fence(lines, i)
+        if fence != "```python":
+            i = end + 1
+            continue
+        skip = _previous(lines, i) == SKIP
+        # the documented output: the next fence, if it is ```text (an optional marker before it)
+        j = end + 1
+        while j < len(lines) and not lines[j].strip():
+            j += 1
+        approximate = j < len(lines) and lines[j].strip() == APPROX
+        if approximate:
+            j += 1
+            while j < len(lines) and not lines[j].strip():
+                j += 1
+        expected = None
+        if j < len(lines) and lines[j].strip() == "```text":
+            expected, out_end = _fence(lines, j)
+            end = out_end
+        elif approximate:
+            raise AssertionError(f"{path.name}:{j + 1}: {APPROX} must precede a ```text block")
+        blocks.append(Block(path, i + 1, body, skip, expected, approximate))
+        i = end + 1
+    return blocks
+
+
+# -- comparing output ---------------------------------------------------------------------------
+_NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
+
+
+def _close(want: str, got: str) -> bool:
+    a, b = float(want), float(got)
+    if abs(a) < APPROX_TINY and abs(b) < APPROX_TINY:
+        return True
+    if a == 0.0 or b == 0.0 or (a > 0) != (b > 0):
+        return False
+    return abs(math.log(abs(a) / abs(b))) <= math.log(APPROX_FACTOR)
+
+
+def output_matches(want: str, got: str, approximate: bool) -> bool:
+    """``got`` (what a block printed) against ``want`` (the documented output)."""
+    want_lines = [line.rstrip() for line in want.strip("\n").splitlines()]
+    got_lines = [line.rstrip() for line in got.strip("\n").splitlines()]
+    if not approximate:
+        checker = doctest.OutputChecker()
+        return checker.check_output("\n".join(want_lines) + "\n", "\n".join(got_lines) + "\n",
+                                    doctest.ELLIPSIS)
+    if len(want_lines) != len(got_lines):
+        return False
+    for w, g in zip(want_lines, got_lines, strict=True):
+        if _NUMBER.split(w) != _NUMBER.split(g):
+            return False
+        w_nums, g_nums = _NUMBER.findall(w), _NUMBER.findall(g)
+        if len(w_nums) != len(g_nums) or not all(map(_close, w_nums, g_nums)):
+            return False
+    return True
+
+
+# -- running a page -----------------------------------------------------------------------------
+@pytest.fixture
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def run_page(path: Path, workdir: Path) -> list[tuple[Block, str]]:
+    """Run the blocks of ``path`` in ``workdir``, in one namespace; return what each printed."""
+    (workdir / "studies").symlink_to(ROOT / "studies", target_is_directory=True)
+    namespace: dict = {"__name__": "__docs__"}
+    printed = []
+    cwd = os.getcwd()
+    os.chdir(workdir)
+    try:
+        for block in extract_blocks(path):
+            if block.skip:
+                continue
+            out = io.StringIO()
+            try:
+                with contextlib.redirect_stdout(out):
+                    exec(compile(block.code, block.where, "exec"), namespace)
+            except Exception as exc:
+                raise AssertionError(
+                    f"the block at {block.where} raised {type(exc).__name__}: {exc}\n"
+                    f"it had printed:\n{out.getvalue()}"
+                ) from exc
+            printed.append((block, out.getvalue()))
+    finally:
+        os.chdir(cwd)
+    return printed
+
+
+@pytest.mark.parametrize("path", PAGES, ids=[p.name for p in PAGES])
+def test_page_code_runs_and_prints_what_is_shown(path, tmp_path, one_thread):
+    blocks = extract_blocks(path)
+    assert blocks, f"{path.name}: no ```python block found"
+    for block, got in run_page(path, tmp_path):
+        if block.expected is not None:
+            assert output_matches(block.expected, got, block.approximate), (
+                f"the block at {block.where} printed\n{got}\ninstead of the documented\n"
+                f"{block.expected}"
+            )
+
+
+def test_skipped_blocks_are_few():
+    blocks = [b for p in PAGES for b in extract_blocks(p)]
+    skipped = [b.where for b in blocks if b.skip]
+    assert len(skipped) <= 2, f"too many blocks opt out of the test: {skipped}"
+
+
+# -- the markers and comparisons themselves -----------------------------------------------------
+def test_extract_blocks_reads_markers(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text(
+        "text\n\n```python\nprint(1)\n```\n\n```text\n1\n```\n\n<!-- skip-test -->\n```python\n"
+        "raise SystemExit\n```\n\n```bash\nls\n```\n\n```python\nprint(2.0)\n```\n"
+        "<!-- output: approximate -->\n```text\n2.5\n```\n"
+    )
+    b = extract_blocks(page)
+    assert [(x.line, x.skip, x.expected, x.approximate) for x in b] == [
+        (3, False, "1\n", False), (12, True, None, False), (20, False, "2.5\n", True),
+    ]
+
+
+def test_output_comparison():
+    assert output_matches("a 1\n", "a 1  \n", False)
+    assert not output_matches("a 1\n", "a 2\n", False)
+    assert output_matches("e_test ...\n", "e_test 3.2e-07\n", False)
+    assert output_matches("e_test 4.0e-08 (n=3)\n", "e_test 9.1e-08 (n=3)\n", True)
+    assert not output_matches("e_test 4.0e-08\n", "e_test 4.0e-06\n", True)
+    assert not output_matches("e_test 4.0e-08\n", "e_tst 4.0e-08\n", True)
+    assert output_matches("residual 2e-16\n", "residual 0.0\n", True)
+    assert not output_matches("residual 2e-16\n", "residual -1.0\n", True)
+
+
+# -- the reference and the site -----------------------------------------------------------------
+def reference_targets() -> set[str]:
+    """The ``::: dotted.name`` targets of the API reference pages."""
+    pattern = re.compile(r"^::: ([\w.]+)\s*$")
+    return {
+        m.group(1)
+        for page in REFERENCE.glob("*.md")
+        for line in page.read_text(encoding="utf-8").splitlines()
+        if (m := pattern.match(line))
+    }
+
+
+def _exists(module: str) -> bool:
+    """``module`` (dotted) is a module or package of this checkout."""
+    path = ROOT.joinpath(*module.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def test_reference_covers_the_public_api():
+    import lcs_cvx
+    import lcs_cvx.study
+
+    def public(module) -> set[str]:
+        return {
+            f"{module.__name__}.{name}"
+            for name, value in vars(module).items()
+            if not name.startswith("_") and not inspect.ismodule(value)
+        }
+
+    wanted = public(lcs_cvx) | public(lcs_cvx.study)
+    wanted |= {m for m in DOCUMENTED_MODULES if _exists(m)}
+    missing = sorted(wanted - reference_targets())
+    assert not missing, f"names without a '::: name' line in docs/reference/: {missing}"
+
+
+def test_site_builds_strict(tmp_path):
+    pytest.importorskip("mkdocs")
+    pytest.importorskip("mkdocstrings")
+    pytest.importorskip("material")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NO_MKDOCS_2_WARNING": "1"}
+    run = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert (tmp_path / "site" / "reference" / "systems" / "index.html").is_file()
+
+
+# -- what the documents say -----------------------------------------------------------------------
+def _documents() -> list[Path]:
+    return [ROOT / "README.md", ROOT / "studies" / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+
+
+def test_documents_do_not_narrate_their_making():
+    hits = [
+        f"{path.relative_to(ROOT)}:{n}: {line.strip()}"
+        for path in _documents()
+        for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+        if PROCESS_WORDS.search(line)
+    ]
+    assert not hits, "process wording in the documents:\n" + "\n".join(hits)
+
+
+def test_readme_quick_start_and_commands():
+    from lcs_cvx.cli import COMMANDS
+
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 250
+    quick = text.split("## Quick start", 1)[1].split("\n## ", 1)[0]
+    commands = re.findall(r"^\s*(make \w+)\s*$", quick, flags=re.MULTILINE)
+    assert commands == ["make demo", "make test"], commands
+    for cmd in COMMANDS:
+        assert f"`lcs-cvx {cmd.name}" in text, f"README: the CLI table lacks lcs-cvx {cmd.name}"
