@@ -21,10 +21,12 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from . import (
     Dataset,
+    FallbackWarning,
     LCSInputError,
     SolverError,
     count_modes,
@@ -33,7 +35,6 @@ from . import (
     relative_error,
     solve_lcp,
 )
-from .lcp import FallbackWarning
 
 __all__ = ["Command", "COMMANDS", "build_parser", "main"]
 
@@ -115,12 +116,12 @@ def _demo_learning(args: argparse.Namespace) -> None:
     from . import LCS, fit, relative_error
 
     n_lam = args.learn_n_lam
-    truth = random_lcs(args.n_x, args.n_u, n_lam, args.stiffness, args.seed + 1)
+    truth = random_lcs(args.n_x, args.n_u, n_lam, stiffness=args.stiffness, seed=args.seed + 1)
     train = make_dataset(truth, args.learn_n, noise=TRAIN_NOISE, seed=args.seed + 2)
     test = make_dataset(truth, 1000, seed=args.seed + 3)
     print(
         f"learning: a random LCS n_x={args.n_x}, n_u={args.n_u}, n_lam={n_lam} "
-        f"({count_modes(truth, train.x, train.u)} modes in {len(train)} noisy samples)"
+        f"({count_modes(truth, train)} modes in {len(train)} noisy samples)"
     )
     runs = (
         ("violation", {"recipe": "best", "refine_iterations": 5}),
@@ -140,7 +141,7 @@ def _demo_learning(args: argparse.Namespace) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     """Random paper-style LCS, a training set of ``--n`` samples, the fast LCP solve timed and
     checked against the Clarabel reference on a random subset."""
-    system = random_lcs(args.n_x, args.n_u, args.n_lam, args.stiffness, args.seed)
+    system = random_lcs(args.n_x, args.n_u, args.n_lam, stiffness=args.stiffness, seed=args.seed)
     print(
         f"LCS: n_x={system.n_x}, n_u={system.n_u}, n_lam={system.n_lam} "
         f"(stiffness {args.stiffness:g}, seed {args.seed})"
@@ -150,7 +151,7 @@ def run_demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     data = make_dataset(system, args.n, noise=TRAIN_NOISE, seed=args.seed)
     print(f"data: {len(data)} samples, noise {TRAIN_NOISE:g} ({time.perf_counter() - t0:.2f} s)")
-    print(f"hybrid modes: {count_modes(system, data.x, data.u)} distinct active sets in the data")
+    print(f"hybrid modes: {count_modes(system, data)} distinct active sets in the data")
 
     with torch.no_grad():
         F = system.F
@@ -223,18 +224,22 @@ def _configure_bench(p: argparse.ArgumentParser) -> None:
 def run_bench(args: argparse.Namespace) -> int:
     """Loss + gradient throughput of each solver path, side by side, with ratios to diffcp-Clarabel."""
     from .bench import DEFAULT_SIZES, format_table, run_lcp_bench
-    from .bench import run_bench as _run
+    from .bench import run_bench as bench_rows
 
     if args.lcp:
         table = run_lcp_bench(repeats=args.repeats)
     else:
-        rows = _run(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
-                    repeats=args.repeats, progress=lambda line: print(line, flush=True))
+        rows = bench_rows(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
+                          repeats=args.repeats, progress=lambda line: print(line, flush=True))
         table = format_table(rows)
     print(table)
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+        from .io import atomic_write
+
+        try:
+            atomic_write(args.out, lambda f: f.write((table + "\n").encode()), name="out")
+        except LCSInputError as exc:
+            raise _reraise_for("out", exc) from None
     return 0
 
 
@@ -406,7 +411,7 @@ def _configure_predict(p: argparse.ArgumentParser) -> None:
 
 def run_predict(args: argparse.Namespace) -> int:
     """e_test and the number of hybrid modes of a saved model on a data set."""
-    from .io import _atomic_savez, load_model
+    from .io import atomic_write, load_model
 
     _require(args, "model", "data")
     _check_target("out", args.out)
@@ -421,14 +426,14 @@ def run_predict(args: argparse.Namespace) -> int:
     print(f"model: n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam} ({args.model})")
     print(f"data: {len(data)} samples ({args.data})")
     print(f"e_test: {_relative_error('data', model, data):.6g}")
-    print(f"modes: {count_modes(model, x, u)}")
+    print(f"modes: {count_modes(model, data)}")
     if args.out is not None:
         with torch.no_grad():
-            lam = model.solve_lcp(x, u)
+            lam = model.solve_lcp(x, u).lam
             x_next = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
         arrays = {"x_next_pred": x_next.cpu().numpy(), "lam": lam.cpu().numpy()}
         try:
-            _atomic_savez(args.out, arrays, name="out")
+            atomic_write(args.out, lambda f: np.savez(f, **arrays), name="out")
         except LCSInputError as exc:
             raise _reraise_for("out", exc) from None
         print(f"predictions: {args.out}")

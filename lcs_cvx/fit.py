@@ -50,7 +50,8 @@ import torch
 
 from ._checks import LCSInputError, SolverError
 from .data import Dataset
-from .losses import _prediction_fast, _violation_fast, regularizer
+from .io import atomic_write
+from .losses import prediction_fast, regularizer, violation_fast
 from .metrics import relative_error
 from .second_order import gauss_newton_step, newton_step
 from .system import LCS, PARAMETER_NAMES
@@ -264,9 +265,7 @@ def resolve_options(recipe: str | None = None, **options: Any) -> FitOptions:
 
 # -- checkpoints -------------------------------------------------------------------------------
 def _atomic_save(obj: dict, path: str) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    atomic_write(path, lambda f: torch.save(obj, f), name="checkpoint")
 
 
 def _load_checkpoint(path: str, opts: FitOptions) -> dict | None:
@@ -389,11 +388,10 @@ class _Run:
         warm = self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
         # the losses' fast paths directly: the data were validated once, by fit
         if o.loss == "violation":
-            value, sol, _, _ = _violation_fast(m, x, u, xn, o.gamma, eps, warm, residual=False)
-            active = sol.active
+            info = violation_fast(m, x, u, xn, gamma=o.gamma, eps=eps, warm_start=warm)
         else:
-            value, sol, _ = _prediction_fast(m, x, u, xn, warm)
-            active = sol.free
+            info = prediction_fast(m, x, u, xn, warm_start=warm)
+        value, active = info.loss, info.active
         if self.active is None:
             self.active = torch.zeros(len(d), active.shape[1], dtype=torch.bool)
         self.active[idx] = active.to(self.active.device)
@@ -420,7 +418,7 @@ class _Run:
         m = self.work
         idx = self.perm[: min(2000, len(self.perm))]
         with torch.no_grad():
-            active = (m.solve_lcp(self.train.x[idx], self.train.u[idx]) > 0).to(torch.float64)
+            active = (m.solve_lcp(self.train.x[idx], self.train.u[idx]).lam > 0).to(torch.float64)
             sat = (active.mean(0) >= 0.98).nonzero().squeeze(1)
             if sat.numel() == 0:
                 return
@@ -536,7 +534,7 @@ def _run(run: _Run, *, callbacks, checkpoint: str | None, ckpt_extra: Callable[[
     while run.polished < o.polish_iterations:
         idx = run.next_batch(min(o.batch_size, len(run.train)))
         d = run.train
-        value = _prediction_fast(run.model, d.x[idx], d.u[idx], d.x_next[idx], None)[0]
+        value = prediction_fast(run.model, d.x[idx], d.u[idx], d.x_next[idx]).loss
         value = value + regularizer(run.model, o.reg)
         _adam_step(run, run.polish_adam, run.model, value,
                    run.iteration + run.second + run.polished + 1, o.polish_lr)

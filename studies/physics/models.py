@@ -124,7 +124,7 @@ class LCSModel:
     def lam(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             return self.lcs.solve_lcp(torch.from_numpy(np.ascontiguousarray(x)),
-                                      torch.from_numpy(np.ascontiguousarray(u))).numpy()
+                                      torch.from_numpy(np.ascontiguousarray(u))).lam.numpy()
 
 
 def _lstsq(x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> np.ndarray:
