@@ -68,14 +68,16 @@ class LCPSolution:
     fallback_residual: float = 0.0
 
 
-def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor,
+                 w: torch.Tensor | None = None) -> torch.Tensor:
     """Relative violation of the LCP conditions, per sample ``(B,)``.
 
-    The natural residual ``|min(lam, w)|_inf / (1 + |q|_inf)`` with ``w = F lam + q``: zero
-    exactly at the solution, and it bounds the violation of ``lam >= 0``, ``w >= 0`` and of
-    complementarity (``min(lam_i, w_i) = 0``).
+    The natural residual ``|min(lam, w)|_inf / (1 + |q|_inf)`` with ``w = F lam + q`` (computed
+    unless given): zero exactly at the solution, and it bounds the violation of ``lam >= 0``,
+    ``w >= 0`` and of complementarity (``min(lam_i, w_i) = 0``).
     """
-    w = lam @ F.mT + q
+    if w is None:
+        w = lam @ F.mT + q
     return torch.minimum(lam, w).abs().amax(-1) / (1.0 + q.abs().amax(-1))
 
 
@@ -146,7 +148,7 @@ def solve_lcp_fast(
             lam[bad_idx], free[bad_idx] = _reference(F, q[bad_idx], brute)
             w[bad_idx] = lam[bad_idx] @ F.mT + q[bad_idx]
             worst = float(lcp_residual(F, q[bad_idx], lam[bad_idx]).max())
-        resid = lcp_residual(F, q, lam) if residual else None
+        resid = lcp_residual(F, q, lam, w) if residual else None
         return LCPSolution(lam, w, free, sol.iterations, n_fb, resid, worst)
 
 

@@ -110,8 +110,9 @@ class _EnvelopeLoss(torch.autograd.Function):
     :func:`lcs_cvx._kernels.losses.envelope_forward` with Lemma 3's gradients
     (:func:`~lcs_cvx._kernels.losses.envelope_backward`) in the model's parameters ``params``
     (``A, B, C, d, D, E, G, H, c``). The same numbers as autograd through
-    :meth:`lcs_cvx.problems.ViolationProblem.objective` at the detached optimum (tested). Not
-    twice differentiable; Lemma 4 lives in :mod:`lcs_cvx.hessian`."""
+    :meth:`lcs_cvx.problems.ViolationProblem.objective` at the detached optimum (tested), without
+    its graph (the loss runs at every training step). Not twice differentiable; Lemma 4 lives
+    in :mod:`lcs_cvx.hessian`."""
 
     @staticmethod
     def forward(ctx, batch, lam, phi, gamma: float, eps: float, *params):  # noqa: D102
