@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
+import warnings
 
 import pytest
 import torch
@@ -43,8 +44,10 @@ def layer_case(n_lam, setting):
     """The cvxpylayers (diffcp + Clarabel) answer on :func:`helpers.violation_case`'s batch,
     compared with the fast one; computed once per (n_lam, setting)."""
     model, data, gamma, eps, values, info_f = violation_case(n_lam, setting)
-    info_l = violation_loss_info(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps,
-                                 solver="cvxpylayers")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", lcs_cvx.LayerAccuracyWarning)
+        info_l = violation_loss_info(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps,
+                                     solver="cvxpylayers")
     loss_f, loss_l = float(info_f.loss.detach()), float(info_l.loss.detach())
     scale = 1.0 + info_f.lam.abs().amax(-1)
 
@@ -62,6 +65,8 @@ def layer_case(n_lam, setting):
         "kkt_layer": float(violation_kkt_residual(values, info_l.lam).max()),
         # per sample; >= 0 iff the fast point is the better minimiser of the paper's objective
         "excess": (obj_l - obj_f) / (1.0 + obj_f.abs()),
+        "warned": any(issubclass(w.category, lcs_cvx.LayerAccuracyWarning) for w in caught),
+        "max_residual": info_l.max_residual,
     }
 
 
@@ -95,6 +100,9 @@ def test_cvxpylayers_violation_path_agrees_with_fast(n_lam, setting):
     # objective, and its KKT residual is the smaller one.
     assert float(res["excess"].min()) >= -1e-12
     assert res["kkt_fast"] <= res["kkt_layer"]
+    # an inaccurate layer solution is said (LayerAccuracyWarning), an accurate one is not
+    assert res["max_residual"] == pytest.approx(res["kkt_layer"], rel=1e-12)
+    assert res["warned"] == (res["kkt_layer"] > lcs_cvx.losses.LAYER_RESIDUAL_TOL)
 
 
 @pytest.mark.xfail(
