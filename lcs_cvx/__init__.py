@@ -1,5 +1,7 @@
 """lcs_cvx: learning linear complementarity systems (Jin, Aydinoglu, Halm, Posa; L4DC 2022)."""
 
+from ._checks import FallbackWarning as FallbackWarning
+from ._checks import LayerAccuracyWarning as LayerAccuracyWarning
 from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
 from .data import Dataset as Dataset
@@ -9,13 +11,14 @@ from .hessian import violation_hvp as violation_hvp
 from .io import load_metadata as load_metadata
 from .io import load_model as load_model
 from .io import save_model as save_model
-from .lcp import FallbackWarning as FallbackWarning
 from .lcp import LCPSolution as LCPSolution
 from .lcp import solve_lcp as solve_lcp
 from .losses import LossInfo as LossInfo
 from .losses import prediction_loss as prediction_loss
+from .losses import prediction_loss_info as prediction_loss_info
 from .losses import regularizer as regularizer
 from .losses import violation_loss as violation_loss
+from .losses import violation_loss_info as violation_loss_info
 from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
 from .problems import convex_lcp_problem as convex_lcp_problem

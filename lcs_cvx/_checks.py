@@ -1,20 +1,33 @@
-"""Input validation at the package boundary.
+"""Input validation at the package boundary, and the package's errors and warnings.
 
 Every public entry point converts its array arguments with :func:`as_batch` /
-:func:`as_matrix`, so a wrong shape, a non-finite value or a bad scalar is
-stopped with a :class:`LCSInputError` that names the argument, what was
-expected and what was received.
+:func:`as_matrix` (:func:`as_transitions` for a batch of ``(x, u, x')``), so a wrong shape, a
+non-finite value or a bad scalar is stopped with a :class:`LCSInputError` that names the
+argument, what was expected and what was received. A solver that cannot verify its answer says
+so: :class:`SolverError`, or a warning (:class:`FallbackWarning`, :class:`LayerAccuracyWarning`)
+when another solver took over or the answer is reported inaccurate.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["LCSInputError", "SolverError", "as_batch", "as_matrix", "check_positive"]
+__all__ = [
+    "LCSInputError",
+    "SolverError",
+    "FallbackWarning",
+    "LayerAccuracyWarning",
+    "as_batch",
+    "as_matrix",
+    "as_transitions",
+    "check_positive",
+    "report_unconverged",
+]
 
 
 class LCSInputError(ValueError):
@@ -23,6 +36,26 @@ class LCSInputError(ValueError):
 
 class SolverError(RuntimeError):
     """A solver could not produce a verified solution."""
+
+
+class FallbackWarning(RuntimeWarning):
+    """The fast solver did not converge on some samples; a reference solver solved them."""
+
+
+class LayerAccuracyWarning(RuntimeWarning):
+    """A cvxpylayers solve came back inaccurate (diffcp does not check its cone solver's status)."""
+
+
+def report_unconverged(n_bad: int, total: int, what: str, max_iter: int, fallback: bool,
+                       reference: str) -> None:
+    """Say that ``n_bad`` of ``total`` samples did not converge in ``max_iter`` pivoting sweeps:
+    a :class:`FallbackWarning` naming the ``reference`` that solves them instead if ``fallback``,
+    else :class:`SolverError` (a silent fallback would hide the slower, less exact answers)."""
+    msg = f"{what} pivoting did not converge on {n_bad} of {total} samples in {max_iter} sweeps"
+    if not fallback:
+        raise SolverError(msg)
+    # stacklevel 3: the caller of the public solver that called this
+    warnings.warn(f"{msg}; solved them with {reference}", FallbackWarning, stacklevel=3)
 
 
 def _describe(value: Any) -> str:
@@ -54,7 +87,7 @@ def _to_tensor(name: str, value: Any, dtype: torch.dtype, device: torch.device |
             f"convert with .to({dtype})"
         )
     t = t.to(dtype=dtype, device=device)
-    # a finite sum proves every entry finite (one reduction); only otherwise look closer
+    # a finite sum proves every entry finite; only otherwise look closer
     if not math.isfinite(float(t.detach().sum())) and not bool(torch.isfinite(t).all()):
         bad = int((~torch.isfinite(t)).sum())
         raise LCSInputError(f"{name}: expected finite values, received {bad} NaN/inf entries")
@@ -88,6 +121,17 @@ def as_batch(
             f"{name}: expected {batch} rows to match the other inputs, received {t.shape[0]}"
         )
     return t
+
+
+def as_transitions(model: Any, x: Any, u: Any, x_next: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(x, u, x_next)`` as tensors of ``model``'s dtype and device, ``(N, n_x)``, ``(N, n_u)``,
+    ``(N, n_x)``, with matching ``N`` (a 1-D input is one sample); ``model`` is an
+    :class:`lcs_cvx.LCS` (its ``n_x``, ``n_u``, ``dtype``, ``device``)."""
+    kw = {"dtype": model.dtype, "device": model.device}
+    x = as_batch("x", x, model.n_x, **kw)
+    u = as_batch("u", u, model.n_u, batch=x.shape[0], **kw)
+    x_next = as_batch("x_next", x_next, model.n_x, batch=x.shape[0], **kw)
+    return x, u, x_next
 
 
 def as_matrix(

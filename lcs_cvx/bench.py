@@ -4,7 +4,7 @@ For each system size, a random ground truth (:func:`lcs_cvx.random_lcs`, stiffne
 noisy batch from it (:func:`lcs_cvx.make_dataset`, noise 1e-2) and a model that is the truth
 with every parameter perturbed by ``0.05 N(0, 1)`` (a mid-training model: the active sets are
 neither trivial nor those of the truth). One timed call is ``loss(...)`` followed by
-``.backward()``, as in a training step (without the diagnostics of ``return_info``);
+``.backward()``, as in a training step (without the diagnostics of the ``*_loss_info`` variants);
 throughput is ``batch / median(time)`` over ``repeats`` timed repeats (more, to fill
 :data:`MIN_TIMED_S`) after a warm-up of :data:`WARMUP_S`, a repeat being the mean of as many calls
 as fill :data:`MIN_REPEAT_S` (one call of a reference path).
@@ -25,10 +25,10 @@ from dataclasses import asdict, dataclass
 import torch
 
 from .data import make_dataset
-from .losses import prediction_loss, violation_loss
+from .losses import prediction_loss, prediction_loss_info, violation_loss, violation_loss_info
 from .system import LCS, random_lcs
 
-__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench"]
+__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time"]
 
 #: (n_x, n_u, n_lam) of the issue's comparison.
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
@@ -72,13 +72,13 @@ def _perturbed(truth: LCS, scale: float, seed: int) -> LCS:
 
 
 def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
-    """``fn(model, x, u, x_next, solver, info)``: the loss, and its :class:`LossInfo` if ``info``."""
+    """``fn(model, x, u, x_next, solver, info)``: the loss, or its :class:`LossInfo` if ``info``."""
     if loss == "violation":
-        return lambda m, x, u, xn, solver, info=False: violation_loss(
-            m, x, u, xn, gamma=gamma, eps=eps, solver=solver, return_info=info
+        return lambda m, x, u, xn, solver, info=False: (violation_loss_info if info else violation_loss)(
+            m, x, u, xn, gamma=gamma, eps=eps, solver=solver
         )
-    return lambda m, x, u, xn, solver, info=False: prediction_loss(
-        m, x, u, xn, solver=solver, return_info=info
+    return lambda m, x, u, xn, solver, info=False: (prediction_loss_info if info else prediction_loss)(
+        m, x, u, xn, solver=solver
     )
 
 
@@ -97,7 +97,7 @@ WARMUP_S = 0.5
 MIN_TIMED_S = 3.0
 
 
-def _time(fn: Callable[[], None], repeats: int) -> float:
+def median_time(fn: Callable[[], None], repeats: int) -> float:
     """Median over at least ``repeats`` repeats (and :data:`MIN_TIMED_S`) of the mean time of
     one call, each repeat ``ceil(MIN_REPEAT_S / t_call)`` calls long (one call for the slow
     reference paths), after a warm-up: one call (which compiles the CVXPY problem / layer on
@@ -140,14 +140,16 @@ def run_bench(
         model = _perturbed(truth, 0.05, seed + 2)
         for loss in losses:
             fn = _loss_fn(loss, gamma, eps)
-            ref_loss, ref_info = fn(model, data.x, data.u, data.x_next, "fast", True)
+            ref_info = fn(model, data.x, data.u, data.x_next, "fast", True)
+            ref_loss = ref_info.loss
             for path in paths:
                 def call(path=path, fn=fn, model=model, data=data):  # what a training step runs
                     model.zero_grad()
                     fn(model, data.x, data.u, data.x_next, path).backward()
 
-                med = _time(call, repeats)
-                value, info = fn(model, data.x, data.u, data.x_next, path, True)
+                med = median_time(call, repeats)
+                info = fn(model, data.x, data.u, data.x_next, path, True)
+                value = info.loss
                 row = BenchRow(
                     n_x, n_u, n_lam, loss, path, batch, batch / med, med,
                     float((info.lam - ref_info.lam).abs().max()),
@@ -204,11 +206,11 @@ def run_lcp_bench(
             F, q_all = truth.F, truth.lcp_offset(data.x, data.u)
         q_ref = q_all[:n_reference]
         ref = solve_lcp(F, q_ref[:1], method="cvxpy")  # compile the DPP problem once
-        t_ref = _time(lambda F=F, q_ref=q_ref: solve_lcp(F, q_ref, method="cvxpy"), max(1, repeats // 2))
+        t_ref = median_time(lambda F=F, q_ref=q_ref: solve_lcp(F, q_ref, method="cvxpy"), max(1, repeats // 2))
         ref = solve_lcp(F, q_ref, method="cvxpy")
         for batch in batches:
             q = q_all[:batch]
-            t_fast = _time(lambda F=F, q=q: solve_lcp(F, q), repeats)
+            t_fast = median_time(lambda F=F, q=q: solve_lcp(F, q), repeats)
             err = float((solve_lcp(F, q_ref).lam - ref.lam).abs().max())
             fast, clar = batch / t_fast, len(q_ref) / t_ref
             lines.append(

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
+from .io import atomic_write
 
 __all__ = ["Dataset", "make_dataset"]
 
@@ -234,11 +235,13 @@ class Dataset:
         return names
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write an ``.npz`` (no pickle) with arrays ``x``, ``u``, ``x_next`` (and ``lam``)."""
+        """Write an ``.npz`` (no pickle) with arrays ``x``, ``u``, ``x_next`` (and ``lam``) to
+        exactly ``path`` (no ``.npz`` appended), atomically (:func:`lcs_cvx.io.atomic_write`)."""
         arrays = {"x": self.x, "u": self.u, "x_next": self.x_next}
         if self.lam is not None:
             arrays["lam"] = self.lam
-        np.savez(os.fspath(path), **{k: v.detach().cpu().numpy() for k, v in arrays.items()})
+        arrays_np = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
+        atomic_write(path, lambda f: np.savez(f, **arrays_np))
 
     # -- container protocol -------------------------------------------------------------
     @property
@@ -307,7 +310,7 @@ def make_dataset(
         for i in range(0, n, batch_size):
             xb = x[i : i + batch_size].to(system.dtype)
             ub = u[i : i + batch_size].to(system.dtype)
-            lam = system.solve_lcp(xb, ub)
+            lam = system.solve_lcp(xb, ub).lam
             xs.append(xb @ system.A.mT + ub @ system.B.mT + lam @ system.C.mT + system.d)
             lams.append(lam)
     x_next = torch.cat(xs).to(f64) + noise_draw

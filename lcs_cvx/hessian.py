@@ -46,12 +46,12 @@ flattened row-major (``.reshape(-1)``, so ``A[i, j]`` sits at ``i * n_x + j`` of
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
-from ._checks import LCSInputError, SolverError, as_matrix, check_positive
-from .losses import _inputs, _violation_fast
+from ._checks import LCSInputError, SolverError, as_matrix, as_transitions, check_positive
+from .losses import violation_fast
 from .system import LCS, PARAMETER_NAMES, F_adjoint
 
 __all__ = [
@@ -64,6 +64,8 @@ __all__ = [
     "objective_hessian_zz",
     "objective_jacobians",
     "objective_linearisation",
+    "Setup",
+    "setup",
 ]
 
 
@@ -106,21 +108,31 @@ def objective_hessian_zz(
     return torch.cat([top, bottom], dim=0)
 
 
-def _setup(model: Any, x: Any, u: Any, x_next: Any, gamma: float, eps: float):
-    """Validate, solve (V) once (no grad) and return what every entry point needs.
+class Setup(NamedTuple):
+    """What every entry point needs (:func:`setup`): the validated ``x``, ``u``, ``x_next``, the
+    solution ``z = (lam, phi)`` ``(B, 2n)`` of (V), its free mask ``m`` ``(B, 2n)`` (0/1) and the
+    per-sample Cholesky factors ``chol`` ``(B, 2n, 2n)`` of
+    ``M_t = (m m^T) o J_zz + diag(1 - m)``."""
 
-    Returns ``(x, u, x_next)`` as tensors, ``z`` ``(B, 2n)``, the free mask ``m`` ``(B, 2n)``
-    (0/1) and the per-sample Cholesky factors ``chol`` ``(B, 2n, 2n)`` of
-    ``M_t = (m m^T) o J_zz + diag(1 - m)``.
-    """
+    x: torch.Tensor
+    u: torch.Tensor
+    x_next: torch.Tensor
+    z: torch.Tensor
+    m: torch.Tensor
+    chol: torch.Tensor
+
+
+def setup(model: Any, x: Any, u: Any, x_next: Any, gamma: float, eps: float) -> Setup:
+    """Validate, solve (V) once (no grad) and factor the masked ``J_zz`` of every sample
+    (:class:`Setup`). Package-internal: :mod:`lcs_cvx.second_order` builds on it."""
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
-    x, u, x_next = _inputs(model, x, u, x_next)
+    x, u, x_next = as_transitions(model, x, u, x_next)
     check_positive("eps", eps)
     with torch.no_grad():  # checks gamma; z is exactly the loss's (lam, phi)
-        _, _, lam, phi = _violation_fast(model, x, u, x_next, gamma, eps, None, residual=False)
+        info = violation_fast(model, x, u, x_next, gamma=gamma, eps=eps)
     kw = {"dtype": model.dtype, "device": model.device}
-    z = torch.cat([lam, phi], dim=1)
+    z = torch.cat([info.lam, info.phi], dim=1)
     m = (z > 0).to(z.dtype)
     with torch.no_grad():
         Jzz = objective_hessian_zz(model.C, model.F, gamma, eps)
@@ -132,7 +144,7 @@ def _setup(model: Any, x: Any, u: Any, x_next: Any, gamma: float, eps: float):
             f"(J_zz)_FF not positive definite on {int((bad != 0).sum())} samples; "
             f"check gamma < sigma_min(F + F^T) = {model.sigma_min:.6g}"
         )
-    return x, u, x_next, z, m, chol
+    return Setup(x, u, x_next, z, m, chol)
 
 
 def _residuals(model: LCS, x, u, x_next, z) -> tuple[torch.Tensor, torch.Tensor]:
@@ -153,11 +165,11 @@ def _delta_rows(f: torch.Tensor, R: int) -> torch.Tensor:
     return out
 
 
-def _to_GH(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`lcs_cvx.system.F_adjoint`, each block ``(..., n * n)`` row-major."""
-    lead = T_F.shape[:-2]
+def _flat_GH(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`lcs_cvx.system.F_adjoint` of ``T_F`` ``(..., n, n)``, each block flattened
+    row-major to ``(..., n * n)`` (the Jacobians' column layout)."""
     dG, dH = F_adjoint(T_F, G)
-    return dG.reshape(*lead, -1), dH.reshape(*lead, -1)
+    return dG.flatten(-2), dH.flatten(-2)
 
 
 def objective_jacobians(
@@ -202,7 +214,7 @@ def objective_jacobians(
         w_blocks = {k2: _delta_rows(f, n).reshape(B, n, -1)
                     for k2, f in (("D", x), ("E", u), ("c", ones))}
         wF = _delta_rows(lam, n)  # (B, n, n, n): d w_i / d F_jm
-        w_blocks["G"], w_blocks["H"] = _to_GH(wF, G)
+        w_blocks["G"], w_blocks["H"] = _flat_GH(wF, G)
 
         # J_z rows for lam: C^T (de/dtheta) + kappa F^T (dw/dtheta) + the explicit C and F terms
         lam_blocks = {k: torch.einsum("jl,bk->bljk", C, f).reshape(B, n, -1) for k, f in feats.items()}
@@ -211,7 +223,7 @@ def objective_jacobians(
         for k2, f in (("D", x), ("E", u), ("c", ones)):
             lam_blocks[k2] = kappa * torch.einsum("jl,bk->bljk", F, f).reshape(B, n, -1)
         lamF = kappa * (torch.einsum("jl,bm->bljm", F, lam) + torch.einsum("lm,bj->bljm", eye_n, w))
-        lam_blocks["G"], lam_blocks["H"] = _to_GH(lamF, G)
+        lam_blocks["G"], lam_blocks["H"] = _flat_GH(lamF, G)
 
         sl = parameter_slices(m)
         P = sl[PARAMETER_NAMES[-1]].stop
@@ -318,7 +330,7 @@ def violation_hessian(
         >>> violation_hessian(sys, data.x, data.u, data.x_next, eps=0.1).shape
         torch.Size([44, 44])
     """
-    x, u, x_next, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    x, u, x_next, z, m, chol = setup(model, x, u, x_next, gamma, eps)
     rho_theta, Jzt = objective_jacobians(model, x, u, x_next, z, gamma, eps)  # (B, r | 2n, P)
     B = z.shape[0]
     with torch.no_grad():
@@ -337,7 +349,7 @@ def hvp_operator(
 ) -> Callable[[torch.Tensor], torch.Tensor]:
     """``v -> hess L_eps @ v`` (Lemma 4) with the solve and factorisations done once, for
     iterative methods that need many products at the same ``theta`` (see :func:`violation_hvp`)."""
-    x, u, x_next, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    x, u, x_next, z, m, chol = setup(model, x, u, x_next, gamma, eps)
     jvp, vjp = objective_linearisation(model, x, u, x_next, z, gamma, eps)
     S = _gg_curvature(model, x, u, x_next, z, gamma, eps)
     sl, n, B = parameter_slices(model)["G"], model.n_lam, z.shape[0]

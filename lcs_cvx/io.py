@@ -31,16 +31,16 @@ import os
 import pickle
 import secrets
 import zipfile
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import IO, Any
 
 import numpy as np
 import torch
 
 from ._checks import LCSInputError
-from .system import LCS, PARAMETER_NAMES, _shapes
+from .system import LCS, PARAMETER_NAMES, parameter_shapes
 
-__all__ = ["save_model", "load_model", "load_metadata", "FORMAT", "FORMAT_VERSION"]
+__all__ = ["save_model", "load_model", "load_metadata", "atomic_write", "FORMAT", "FORMAT_VERSION"]
 
 #: Value of ``meta["format"]`` in every model file.
 FORMAT = "lcs_cvx.model"
@@ -102,13 +102,18 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         arrays["stiffness"] = model.stiffness.detach().cpu().numpy()
         arrays["F"] = model.F.detach().cpu().numpy()
     arrays["meta"] = np.array(meta_json)
-    _atomic_savez(path, arrays)
+    atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
-def _atomic_savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], name: str = "path") -> None:
-    """``np.savez`` to exactly ``path`` via a temporary file in its directory and ``os.replace``.
+def atomic_write(path: str | os.PathLike, write: Callable[[IO[bytes]], Any], *, name: str = "path") -> None:
+    """Write the file ``path`` atomically: ``write(f)`` writes the bytes into ``f``, an open
+    binary temporary file in ``path``'s directory (e.g. ``np.savez(f, ...)``, which appends no
+    ``.npz`` to a file object, or ``torch.save(obj, f)``), which is then flushed to disk and
+    moved onto ``path`` (``os.replace``). An interrupted write leaves the old file or the new
+    one, never a truncated one; the temporary file is removed on any error.
 
-    ``name`` is the argument named in error messages.
+    ``name`` is the argument named in error messages (a directory, a missing directory, an
+    unwritable place: :class:`LCSInputError`).
     """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
@@ -127,7 +132,7 @@ def _atomic_savez(path: str | os.PathLike, arrays: Mapping[str, np.ndarray], nam
         raise LCSInputError(f"{name}: could not write {path!r}: {exc.strerror}") from None
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)  # a file object: np.savez appends no ".npz"
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -223,7 +228,7 @@ def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str
 
     dims = {"n_x": meta["n_x"], "n_u": meta["n_u"], "n_lam": meta["n_lam"]}
     dims_text = ", ".join(f"{k}={v}" for k, v in dims.items())
-    expected = _shapes(meta["n_x"], meta["n_u"], meta["n_lam"])
+    expected = parameter_shapes(meta["n_x"], meta["n_u"], meta["n_lam"])
     expected["stiffness"] = ()
     dtype = np.dtype(meta["dtype"])
     for name in PARAMETER_NAMES + ("stiffness", "F"):
@@ -283,17 +288,3 @@ def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
     meta.setdefault("metadata", {})
     return meta
 
-
-def atomic_write(path, write, *, name: str = "path") -> None:  # provisional, replaced on merge
-    import tempfile
-    path = os.fspath(path)
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, prefix=f".{os.path.basename(path)}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise

@@ -40,12 +40,12 @@ LAYER_SOLVERS: dict[str, dict] = {
 }
 
 
-def _check_backend(backend: str) -> dict:
-    if backend not in LAYER_SOLVERS:
+def _check_cone_solver(cone_solver: str) -> dict:
+    if cone_solver not in LAYER_SOLVERS:
         raise LCSInputError(
-            f"backend: expected one of {sorted(LAYER_SOLVERS)}, received {backend!r}"
+            f"cone_solver: expected one of {sorted(LAYER_SOLVERS)}, received {cone_solver!r}"
         )
-    return LAYER_SOLVERS[backend]
+    return LAYER_SOLVERS[cone_solver]
 
 
 @functools.cache
@@ -64,13 +64,14 @@ def violation_layer(n_lam: int) -> CvxpyLayer:
     return CvxpyLayer(decl.problem, parameters=params, variables=[decl.variables["lam"]])
 
 
-def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], backend: str = "clarabel") -> torch.Tensor:
+def solve_layer(layer: CvxpyLayer, values: list[torch.Tensor], cone_solver: str = "clarabel") -> torch.Tensor:
     """Run ``layer`` on parameter tensors (batched ones first dimension ``B``); returns ``lam``.
 
-    Differentiable (diffcp, dense mode). The result is on the device and of the dtype of
+    Differentiable (diffcp, dense mode). ``cone_solver``: diffcp's cone solver, ``"clarabel"``
+    or ``"scs"`` (:data:`LAYER_SOLVERS`). The result is on the device and of the dtype of
     ``values[0]`` (diffcp computes in float64).
     """
-    args = dict(_check_backend(backend))
+    args = dict(_check_cone_solver(cone_solver))
     if torch.is_grad_enabled() and any(v.requires_grad for v in values):
         # only with gradients: a solve-only call hands unknown options to the cone solver
         args.update(mode="dense", n_jobs_backward=1)

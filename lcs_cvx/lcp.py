@@ -2,10 +2,10 @@ r"""Exact batched solution of the LCP of eq. (equ.lcp): ``0 <= lam _|_ F lam + q
 
 Three solvers, one answer (Assumption 1, ``F + F^T > 0``, makes it unique):
 
-- ``"fast"``: batched block principal pivoting (:mod:`lcs_cvx.pivoting`) on the free set
-  ``I = {i : lam_i > 0}``; each sweep solves ``F_II lam_I = -q_I`` for the whole batch with
-  one batched LU. The converged free set gives the exact active-set solution. A sample that
-  does not converge is re-solved with the reference and reported (warning + counter).
+- ``"fast"``: batched block principal pivoting (the kernel :mod:`lcs_cvx._kernels.lcp`) on the
+  free set ``I = {i : lam_i > 0}``; each sweep solves ``F_II lam_I = -q_I`` for the whole batch
+  with one batched LU. The converged free set gives the exact active-set solution. A sample that
+  does not converge is re-solved with a reference and reported (warning + counter).
 - ``"cvxpy"``: the declared problem (P) (:func:`lcs_cvx.problems.convex_lcp_problem`)
   solved with Clarabel, one sample at a time -- the reference.
 - ``"brute"``: enumeration of all ``2^n`` active sets -- for tests, ``n <= 12``.
@@ -23,16 +23,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from ._checks import LCSInputError, as_batch, as_matrix
-from .pivoting import (
-    ArrayOps,
-    FallbackWarning,
-    PivotResult,
-    array_ops,
-    block_pivoting,
-    initial_state,
-    unconverged,
-)
+from ._checks import LCSInputError, as_batch, as_matrix, report_unconverged
+from ._kernels import lcp as kernel
+from ._kernels.arrays import TORCH
+from ._kernels.lcp import PIVOT_TOL
 from .problems import convex_lcp_problem
 
 __all__ = [
@@ -43,14 +37,10 @@ __all__ = [
     "active_set_solve",
     "free_set_matrix",
     "lcp_residual",
-    "FallbackWarning",
 ]
 
 #: Up to this ``n`` an unconverged sample falls back to enumerating its ``2^n`` free sets.
 BRUTE_MAX = 12
-
-#: Relative tolerance for feasibility of a pivoting candidate (scaled by ``1 + |q|_inf``).
-PIVOT_TOL = 1e-11
 
 
 @dataclass(frozen=True)
@@ -62,8 +52,11 @@ class LCPSolution:
         w: ``(B, n)`` ``F lam + q``.
         free: ``(B, n)`` bool, the free set (``lam_i`` determined by ``w_i = 0``).
         iterations: pivoting sweeps (0 for the reference solvers).
-        n_fallback: samples the fast solver handed to the reference.
-        residual: ``(B,)`` relative LCP residual (:func:`lcp_residual`).
+        n_fallback: samples the fast solver handed to a reference.
+        residual: ``(B,)`` relative LCP residual (:func:`lcp_residual`), or None when not asked
+            for (a converged pivoting is exact to its tolerance by construction).
+        fallback_residual: the largest relative LCP residual among the samples a reference
+            solved (0.0 if none).
     """
 
     lam: torch.Tensor
@@ -71,26 +64,29 @@ class LCPSolution:
     free: torch.Tensor
     iterations: int
     n_fallback: int
-    residual: torch.Tensor
+    residual: torch.Tensor | None
+    fallback_residual: float = 0.0
 
 
-def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+def lcp_residual(F: torch.Tensor, q: torch.Tensor, lam: torch.Tensor,
+                 w: torch.Tensor | None = None) -> torch.Tensor:
     """Relative violation of the LCP conditions, per sample ``(B,)``.
 
-    The natural residual ``|min(lam, w)|_inf / (1 + |q|_inf)`` with ``w = F lam + q``: zero
-    exactly at the solution, and it bounds the violation of ``lam >= 0``, ``w >= 0`` and of
-    complementarity (``min(lam_i, w_i) = 0``).
+    The natural residual ``|min(lam, w)|_inf / (1 + |q|_inf)`` with ``w = F lam + q`` (computed
+    unless given): zero exactly at the solution, and it bounds the violation of ``lam >= 0``,
+    ``w >= 0`` and of complementarity (``min(lam_i, w_i) = 0``).
     """
-    w = lam @ F.mT + q
+    if w is None:
+        w = lam @ F.mT + q
     return torch.minimum(lam, w).abs().amax(-1) / (1.0 + q.abs().amax(-1))
 
 
 def free_set_matrix(F: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
     """``(B, n, n)``: ``F`` (``(n, n)`` or ``(B, n, n)``) on the rows and columns of the free sets
     ``free`` ``(B, n)``, the identity elsewhere -- the matrix of ``lam_I = -F_II^{-1} q_I`` with
-    ``lam_J = 0``. Differentiable in ``F``; the kernels' :meth:`ArrayOps.free_block`."""
+    ``lam_J = 0``. Differentiable in ``F``; the kernels' ``ArrayOps.free_block``."""
     n = F.shape[-1]
-    return array_ops(F, "torch").free_block(F.reshape(-1, n * n), free)
+    return TORCH.free_block(F.reshape(-1, n * n), free)
 
 
 def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
@@ -104,32 +100,6 @@ def active_set_solve(F: torch.Tensor, q: torch.Tensor, free: torch.Tensor) -> to
     return torch.linalg.solve(free_set_matrix(F, free), rhs).squeeze(-1)
 
 
-def _initial_free(q: Any) -> Any:
-    return q < 0
-
-
-def _pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
-           warm_start: torch.Tensor | None, device: torch.device) -> PivotResult:
-    """Block pivoting on the LCP in the kernel's arrays."""
-    n = q.shape[1]
-    F_flat, FT = F.reshape(1, n * n), xp.contiguous(F.T)
-    data = xp.concat([q, -tol * (1.0 + xp.amax_abs(q))])  # one gather when the work set shrinks
-
-    def solve(free: Any, idx: Any):
-        d = data if idx is None else data[idx]
-        qq, at = d[:, :n], d[:, n:]
-        # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
-        lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
-        w = qq + lam @ FT
-        bad = xp.where(free, lam < at, w < at)
-        if failed is not None:
-            bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
-        return lam, bad
-
-    state0 = initial_state(xp, _initial_free(q), warm_start, device)
-    return block_pivoting(xp, solve, state0, max_iter=max_iter)
-
-
 def solve_lcp_fast(
     F: torch.Tensor,
     q: torch.Tensor,
@@ -137,8 +107,9 @@ def solve_lcp_fast(
     max_iter: int = 1000,
     tol: float = PIVOT_TOL,
     fallback: bool = True,
+    residual: bool = True,
     warm_start: torch.Tensor | None = None,
-    backend: str = "auto",
+    arrays: str = "auto",
 ) -> LCPSolution:
     """Solve ``0 <= lam _|_ F lam + q >= 0`` for a batch by block principal pivoting.
 
@@ -151,12 +122,13 @@ def solve_lcp_fast(
         tol: relative feasibility tolerance of a candidate free set.
         fallback: re-solve unconverged samples (and warn) -- by enumeration of the ``2^n``
             free sets for ``n <= BRUTE_MAX`` (exact), else with the Clarabel reference; if
-            False, raise :class:`SolverError` instead.
+            False, raise :class:`lcs_cvx.SolverError` instead.
+        residual: also compute the per-sample residual (:func:`lcp_residual`).
         warm_start: ``(B, n)`` bool first guess of the free sets, e.g. ``free`` of an earlier
             solve of the same samples (default: ``q < 0``, the guess of ``lam = 0``). The
             solution is unique (Assumption 1) and does not depend on it; the sweeps do.
-        backend: the kernel's arrays (:func:`lcs_cvx.pivoting.array_ops`): ``"auto"`` (NumPy
-            for CPU tensors, torch otherwise), ``"numpy"`` or ``"torch"``.
+        arrays: the kernel's array library: ``"auto"`` (NumPy for CPU tensors, torch
+            otherwise), ``"numpy"`` or ``"torch"``.
 
     Returns:
         :class:`LCPSolution` (no autograd graph; see :func:`active_set_solve`).
@@ -165,30 +137,33 @@ def solve_lcp_fast(
         F = F.detach()
         q = q.detach()
         n = q.shape[1]
-        xp = array_ops(q, backend)
-        with xp.threads():
-            res = _pivot(xp, xp.wrap(F), xp.wrap(q), tol, max_iter, warm_start, q.device)
-        solution = xp.unwrap(res.solution)
-        lam = solution.clamp(min=0.0)
-        free = xp.unwrap(res.free) & (solution > 0)
-        brute = n <= BRUTE_MAX
-        bad_idx = unconverged(xp, res.converged, "LCP", max_iter, fallback,
-                              f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
-        n_fb = 0 if bad_idx is None else int(bad_idx.numel())
-        if bad_idx is not None and brute:
-            ref = solve_lcp_brute(F, q[bad_idx])
-            lam[bad_idx], free[bad_idx] = ref.lam, ref.free & (ref.lam > 0)
-        elif bad_idx is not None:
-            ref = convex_lcp_problem(n).solve(F.cpu(), q[bad_idx].cpu().numpy())
-            lam_ref = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
-            # polish: re-solve exactly on the reference's active set, keep it if it is better
-            free_ref = lam_ref > lam_ref @ F.mT + q[bad_idx]
-            lam_pol = active_set_solve(F, q[bad_idx], free_ref)
-            better = lcp_residual(F, q[bad_idx], lam_pol) < lcp_residual(F, q[bad_idx], lam_ref)
-            lam[bad_idx] = torch.where(better[:, None], lam_pol.clamp(min=0.0), lam_ref)
-            free[bad_idx] = free_ref
-        w = lam @ F.mT + q
-        return LCPSolution(lam, w, free, res.iterations, n_fb, lcp_residual(F, q, lam))
+        sol = kernel.solve(F, q, tol=tol, max_iter=max_iter, warm_start=warm_start, arrays=arrays)
+        lam, w, free, bad_idx = sol.lam, sol.w, sol.free, sol.unconverged
+        n_fb, worst = 0, 0.0
+        if bad_idx is not None:
+            brute = n <= BRUTE_MAX
+            n_fb = int(bad_idx.numel())
+            report_unconverged(n_fb, q.shape[0], "LCP", max_iter, fallback,
+                               f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
+            lam[bad_idx], free[bad_idx] = _reference(F, q[bad_idx], brute)
+            w[bad_idx] = lam[bad_idx] @ F.mT + q[bad_idx]
+            worst = float(lcp_residual(F, q[bad_idx], lam[bad_idx]).max())
+        resid = lcp_residual(F, q, lam, w) if residual else None
+        return LCPSolution(lam, w, free, sol.iterations, n_fb, resid, worst)
+
+
+def _reference(F: torch.Tensor, q: torch.Tensor, brute: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lam, free)`` of the LCPs ``(F, q)`` by enumeration (``brute``), else by the Clarabel
+    reference polished on its active set (kept where that lowers the residual)."""
+    if brute:
+        ref = solve_lcp_brute(F, q)
+        return ref.lam, ref.free & (ref.lam > 0)
+    lam_ref = convex_lcp_problem(q.shape[1]).solve(F, q).clamp(min=0.0)
+    # polish: re-solve exactly on the reference's active set, keep it if it is better
+    free_ref = lam_ref > lam_ref @ F.mT + q
+    lam_pol = active_set_solve(F, q, free_ref)
+    better = lcp_residual(F, q, lam_pol) < lcp_residual(F, q, lam_ref)
+    return torch.where(better[:, None], lam_pol.clamp(min=0.0), lam_ref), free_ref
 
 
 def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
@@ -211,7 +186,7 @@ def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
             best_lam = torch.where(better[:, None], lam, best_lam)
             best_free = torch.where(better[:, None], free, best_free)
         lam = best_lam.clamp(min=0.0)
-        return LCPSolution(lam, lam @ F.mT + q, best_free, 0, 0, lcp_residual(F, q, lam))
+        return LCPSolution(lam, lam @ F.mT + q, best_free, 0, 0, lcp_residual(F, q, lam), 0.0)
 
 
 def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
@@ -239,9 +214,8 @@ def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
         return solve_lcp_brute(F, q)
     if method == "cvxpy":
         with torch.no_grad():
-            n = q.shape[-1]
-            ref = convex_lcp_problem(n).solve(F.detach().cpu(), q.detach().cpu().numpy())
-            lam = torch.as_tensor(ref, dtype=q.dtype, device=q.device).clamp(min=0.0)
-            w = lam @ F.detach().mT + q.detach()
-            return LCPSolution(lam, w, lam > w, 0, 0, lcp_residual(F.detach(), q.detach(), lam))
+            F, q = F.detach(), q.detach()
+            lam = convex_lcp_problem(q.shape[-1]).solve(F, q).clamp(min=0.0)
+            w = lam @ F.mT + q
+            return LCPSolution(lam, w, lam > w, 0, 0, lcp_residual(F, q, lam), 0.0)
     raise LCSInputError(f"method: expected one of 'fast', 'cvxpy', 'brute', received {method!r}")

@@ -7,6 +7,7 @@ from typing import Any
 import torch
 
 from ._checks import LCSInputError
+from .system import ACTIVE_TOL
 
 __all__ = ["relative_error", "count_modes"]
 
@@ -32,9 +33,12 @@ def relative_error(model: Any, dataset: Any) -> float:
     return float(num / den)
 
 
-def count_modes(system: Any, x: Any, u: Any, tol: float = 1e-5) -> int:
-    """Number of distinct active sets ``{i : lam_i > tol}`` of ``system`` over the samples."""
-    active = system.active_set(x, u, tol=tol)
+def count_modes(model: Any, dataset: Any, tol: float = ACTIVE_TOL) -> int:
+    """Number of distinct active sets ``{i : lam_i > tol}`` (the hybrid modes) of ``model`` (an
+    :class:`lcs_cvx.LCS`) over the inputs ``(x, u)`` of ``dataset`` (an :class:`lcs_cvx.Dataset`),
+    with ``lam`` the exact LCP solution (:meth:`lcs_cvx.LCS.active_set`)."""
+    with torch.no_grad():
+        active = model.active_set(dataset.x.to(model.dtype), dataset.u.to(model.dtype), tol=tol)
     if active.shape[0] == 0:
         return 0
     return int(torch.unique(active, dim=0).shape[0])

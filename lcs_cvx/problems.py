@@ -29,27 +29,27 @@ r"""The two per-sample convex problems of the paper, each declared once.
   independent of ``n_x``.
 
 Each declaration object carries the CVXPY problem, its parameters and variables by name, and
-builds the parameter values from torch tensors (differentiably) or from the fast losses' NumPy
-arrays (:func:`lcs_cvx.pivoting.ops_of`). The CVXPY problem is what the
-``cvxpylayers`` layers and the Clarabel reference solve; the same parameter values are what the
-fast batched kernels consume (:mod:`lcs_cvx.lcp`, :mod:`lcs_cvx.violation`). The value of
-(V) in the original (lam, phi) variables, from which gradients are taken, is
-:meth:`ViolationProblem.objective`; a test checks it against the CVXPY objective.
+builds the parameter values from torch tensors, differentiably. The CVXPY problem is what the
+``cvxpylayers`` layers and the Clarabel reference solve; the fast batched kernels consume the
+same data (:mod:`lcs_cvx.lcp`; :mod:`lcs_cvx.violation`, which takes (V) before the
+factorisation, :meth:`ViolationProblem.normal_equations`, the one formula the fast loss also
+evaluates in its arrays). The value of (V) in the original (lam, phi) variables, from which
+gradients are taken, is :meth:`ViolationProblem.objective`; a test checks it against the CVXPY
+objective.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass, field
-from typing import Any
 
 import cvxpy as cp
 import numpy as np
 import torch
 
 from ._checks import LCSInputError, SolverError, check_positive
-from .pivoting import ops_of
+from ._kernels import violation as kernel
+from ._kernels.arrays import TORCH
 
 __all__ = [
     "ConvexLCPProblem",
@@ -57,6 +57,7 @@ __all__ = [
     "convex_lcp_problem",
     "violation_problem",
     "sym_min_eig",
+    "check_gamma",
 ]
 
 #: Clarabel settings for the reference solves (tighter than the defaults: the reference
@@ -117,21 +118,23 @@ class ConvexLCPProblem:
         """Parameter values (differentiable) from ``F`` ``(n, n)`` and ``q`` ``(B, n)``."""
         return {"R": _upper_cholesky("F + F^T", F + F.mT), "F": F, "q": q}
 
-    def solve(self, F: torch.Tensor | np.ndarray, q: np.ndarray) -> np.ndarray:
-        """Solve (P) for each row of ``q`` ``(B, n)`` with Clarabel; returns ``lam`` ``(B, n)``.
+    def solve(self, F: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+        """Solve (P) for each row of ``q`` ``(B, n)`` with Clarabel; returns ``lam`` ``(B, n)``
+        of ``q``'s dtype and device (not clamped: Clarabel's interior point may leave
+        ``-1e-10``-small entries).
 
         This is the reference path: one CVXPY solve per sample.
         """
-        F_t = torch.as_tensor(F, dtype=torch.float64)
-        self.parameters["R"].value = _upper_cholesky("F + F^T", F_t + F_t.mT).numpy()
-        self.parameters["F"].value = F_t.numpy()
-        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
-        out = np.empty_like(q)
-        for i, qi in enumerate(q):
+        F_c = F.detach().cpu().to(torch.float64)
+        self.parameters["R"].value = _upper_cholesky("F + F^T", F_c + F_c.mT).numpy()
+        self.parameters["F"].value = F_c.numpy()
+        q_c = q.detach().cpu().to(torch.float64).reshape(-1, self.n_lam).numpy()
+        out = np.empty_like(q_c)
+        for i, qi in enumerate(q_c):
             self.parameters["q"].value = qi
             _solve_reference(self.problem, f"(P) sample {i}")
             out[i] = self.variables["lam"].value
-        return out
+        return torch.from_numpy(out).to(dtype=q.dtype, device=q.device)
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,49 +157,39 @@ class ViolationProblem:
     def parameter_order(self) -> list[str]:
         return ["L", "b", "K", "h"]
 
-    def normal_equations(self, C: Any, F: Any, q: Any, r: Any, gamma: float, eps: float,
-                         sigma_min_bound: float = 0.0) -> dict[str, Any]:
+    def normal_equations(self, C: torch.Tensor, F: torch.Tensor, q: torch.Tensor, r: torch.Tensor,
+                         gamma: float, eps: float, sigma_min_bound: float = 0.0) -> dict[str, torch.Tensor]:
         """(V)'s data before the factorisation: the form the fast kernel consumes.
 
         ``{"LtL": L^T L = eps C^T C + F + F^T - gamma I, "Ltb": rows of L^T b = eps C^T r + q,
         "K", "h"}``, the quantities of the module docstring that define the parameter values
-        (:meth:`parameter_values` factors them). Tensors (differentiable) from tensors, NumPy
-        arrays from NumPy arrays. Arguments as in :meth:`parameter_values`; ``gamma`` is checked
-        here.
+        (:meth:`parameter_values` factors them), differentiable in every input. The formula is
+        :func:`lcs_cvx._kernels.violation.normal_equations`, which the fast violation loss
+        evaluates in its own arrays. Arguments as in :meth:`parameter_values`; ``gamma`` is
+        checked here.
         """
-        xp = ops_of(F)
-        eye = xp.eye(self.n_lam, F)
         check_gamma(F, gamma, sigma_min_bound)
-        scale = 1.0 / math.sqrt(gamma)
-        return {
-            "LtL": eps * (C.mT @ C) + F + F.mT - gamma * eye,
-            "Ltb": eps * (r @ C) + q,  # rows of eps C^T r + q
-            "K": (gamma * eye - F) * scale,
-            "h": q * scale,
-        }
+        return kernel.normal_equations(TORCH, C, F, q, r, gamma, eps)
 
     @staticmethod
-    def factor(normal: dict[str, Any]) -> dict[str, Any]:
+    def factor(normal: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The parameter values ``{"L", "b", "K", "h"}`` from :meth:`normal_equations`: ``L``
         the upper Cholesky factor of ``L^T L`` (a clear error if it is not positive definite),
         ``b`` the rows of ``L^{-T} (L^T b)``."""
-        xp = ops_of(normal["LtL"])
-        L = xp.via_torch(functools.partial(_upper_cholesky, "eps C^T C + F + F^T - gamma I"), normal["LtL"])
-        b = xp.via_torch(_rows_solve_transposed, L, normal["Ltb"])
-        return {"L": L, "b": b, "K": normal["K"], "h": normal["h"]}
+        L = _upper_cholesky("eps C^T C + F + F^T - gamma I", normal["LtL"])
+        return {"L": L, "b": _rows_solve_transposed(L, normal["Ltb"]), "K": normal["K"], "h": normal["h"]}
 
     def parameter_values(
         self,
-        C: Any,
-        F: Any,
-        q: Any,
-        r: Any,
+        C: torch.Tensor,
+        F: torch.Tensor,
+        q: torch.Tensor,
+        r: torch.Tensor,
         gamma: float,
         eps: float,
         sigma_min_bound: float = 0.0,
-    ) -> dict[str, Any]:
-        """Parameter values of (V): tensors differentiable in every input from tensors, or
-        NumPy arrays from NumPy arrays.
+    ) -> dict[str, torch.Tensor]:
+        """Parameter values of (V), differentiable in every input.
 
         Args:
             C: ``(n_x, n)``; F: ``(n, n)``; q: ``(B, n)`` the LCP offset ``D x + E u + c``;
@@ -213,10 +206,10 @@ class ViolationProblem:
         return self.factor(self.normal_equations(C, F, q, r, gamma, eps, sigma_min_bound))
 
     @staticmethod
-    def phi(lam: Any, F: Any, q: Any, gamma: float) -> Any:
+    def phi(lam: torch.Tensor, F: torch.Tensor, q: torch.Tensor, gamma: float) -> torch.Tensor:
         """The exact minimiser over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``
-        (tensors or NumPy arrays)."""
-        return ops_of(lam).clamp_min(lam @ F.mT + q - gamma * lam, 0.0)
+        (:func:`lcs_cvx._kernels.violation.phi`)."""
+        return kernel.phi(TORCH, lam, F, q, gamma)
 
     @staticmethod
     def objective(
@@ -240,22 +233,24 @@ class ViolationProblem:
             (lam * phi).sum(-1) + (w_res * w_res).sum(-1) / (2.0 * gamma)
         ) / eps
 
-    def solve(self, values: dict[str, torch.Tensor]) -> np.ndarray:
-        """Solve (V) for every row of ``values["b"]`` with Clarabel; returns ``lam`` ``(B, n)``."""
-        self.parameters["L"].value = values["L"].detach().cpu().numpy()
-        self.parameters["K"].value = values["K"].detach().cpu().numpy()
-        b = values["b"].detach().cpu().numpy()
-        h = values["h"].detach().cpu().numpy()
+    def solve(self, values: dict[str, torch.Tensor]) -> torch.Tensor:
+        """Solve (V) for every row of ``values["b"]`` with Clarabel; returns ``lam`` ``(B, n)``
+        (clamped at 0) of ``values["b"]``'s dtype and device."""
+        self.parameters["L"].value = values["L"].detach().cpu().to(torch.float64).numpy()
+        self.parameters["K"].value = values["K"].detach().cpu().to(torch.float64).numpy()
+        b = values["b"].detach().cpu().to(torch.float64).numpy()
+        h = values["h"].detach().cpu().to(torch.float64).numpy()
         out = np.empty_like(b)
         for i in range(b.shape[0]):
             self.parameters["b"].value = b[i]
             self.parameters["h"].value = h[i]
             _solve_reference(self.problem, f"(V) sample {i}")
             out[i] = self.variables["lam"].value
-        return np.maximum(out, 0.0)
+        lam = torch.from_numpy(np.maximum(out, 0.0))
+        return lam.to(dtype=values["b"].dtype, device=values["b"].device)
 
 
-def check_gamma(F: Any, gamma: float, sigma_min_bound: float = 0.0) -> None:
+def check_gamma(F: torch.Tensor, gamma: float, sigma_min_bound: float = 0.0) -> None:
     """Lemma 2's condition ``0 < gamma < sigma_min(F + F^T)``; raise naming both numbers.
 
     ``gamma < sigma_min(F + F^T)`` iff ``F + F^T - gamma I`` is positive definite, so the check
@@ -267,7 +262,7 @@ def check_gamma(F: Any, gamma: float, sigma_min_bound: float = 0.0) -> None:
     check_positive("gamma", gamma)
     if gamma < sigma_min_bound:
         return
-    Fd = torch.as_tensor(F).detach()
+    Fd = F.detach()
     S = Fd + Fd.mT
     S.diagonal().sub_(gamma + 1e-12 * max(gamma, float(S.abs().amax())))
     if int(torch.linalg.cholesky_ex(S)[1]) != 0:

@@ -30,12 +30,12 @@ from dataclasses import dataclass
 import torch
 
 from .hessian import (
-    _setup,
     flatten_parameters,
     hvp_operator,
     objective_jacobians,
     objective_linearisation,
     parameter_slices,
+    setup,
     violation_hessian,
 )
 from .losses import regularizer, violation_loss
@@ -98,7 +98,7 @@ def gauss_newton_matrix(
 
     Costs ``O(N r P^2)``: for small models; :func:`gauss_newton_operator` for large ones.
     """
-    x, u, x_next, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    x, u, x_next, z, m, chol = setup(model, x, u, x_next, gamma, eps)
     J_theta, Jzt = objective_jacobians(model, x, u, x_next, z, gamma, eps)  # z fixed
     with torch.no_grad():
         # J_t = rho_theta + rho_z dz/dtheta with dz_F = -(J_zz)_FF^{-1} (J_ztheta)_F:
@@ -115,7 +115,7 @@ def gauss_newton_operator(
     """``v -> mean_t J_t^T J_t v`` without forming the matrix: ``J v`` by the closed-form
     products of :func:`lcs_cvx.hessian.objective_linearisation` and a batched Cholesky solve,
     ``J^T w`` by their transposes. ``O(N r n)`` per product."""
-    x, u, x_next, z, m, chol = _setup(model, x, u, x_next, gamma, eps)
+    x, u, x_next, z, m, chol = setup(model, x, u, x_next, gamma, eps)
     jvp, vjp = objective_linearisation(model, x, u, x_next, z, gamma, eps)
     rho_z = _rho_z(model, gamma, eps)
     N = x.shape[0]

@@ -6,10 +6,14 @@ r"""The linear complementarity system, eq. (equ.lcs), as a ``torch.nn.Module``.
 The parameterisation of F (paper Sec. 5) makes ``F + F^T >= 2 s I > 0`` for every value of the
 learnable ``G`` and ``H`` and the fixed ``stiffness`` ``s > 0`` -- Assumption 1 holds by
 construction, so the LCP has a unique solution for every ``(x, u)``.
+
+:class:`LCS` and :func:`random_lcs` share their defaults (``stiffness`` :data:`DEFAULT_STIFFNESS`,
+``seed`` 0): a default model's set of ``F`` contains every default ground truth's ``F``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -17,19 +21,42 @@ import torch
 from torch import nn
 
 from ._checks import LCSInputError, as_batch, as_matrix, check_positive
-from .lcp import active_set_solve, solve_lcp
-from .pivoting import ops_of
+from ._kernels import losses as kernel
+from ._kernels.arrays import TORCH
+from .lcp import LCPSolution, active_set_solve, solve_lcp
 from .problems import sym_min_eig
 
-__all__ = ["LCS", "random_lcs", "PARAMETER_NAMES", "MATRIX_NAMES", "F_matrix", "F_adjoint"]
+__all__ = [
+    "LCS",
+    "random_lcs",
+    "PARAMETER_NAMES",
+    "MATRIX_NAMES",
+    "ACTIVE_TOL",
+    "DEFAULT_STIFFNESS",
+    "parameter_shapes",
+    "F_matrix",
+    "F_adjoint",
+    "split_F",
+]
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
 #: Matrices of the LCS as exported by :meth:`LCS.to_matrices`.
 MATRIX_NAMES = ("A", "B", "C", "d", "D", "E", "F", "c")
 
+#: ``lam_i > ACTIVE_TOL`` marks unit ``i`` active (:meth:`LCS.active_set`,
+#: :func:`lcs_cvx.count_modes`, the studies' mode counts). The fast solver's inactive ``lam_i`` are
+#: exactly 0; an interior-point reference leaves ~1e-10 on them, which must not count as a mode.
+#: The mode counts of the demo's data and of the Fig. 1 studies' training sets are the same for
+#: every tolerance from 0 to 1e-5.
+ACTIVE_TOL = 1e-5
 
-def _shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
+#: The default ``stiffness`` ``s`` of :class:`LCS` and :func:`random_lcs`.
+DEFAULT_STIFFNESS = 0.5
+
+
+def parameter_shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
+    """The shape of every parameter of :data:`PARAMETER_NAMES` and of ``F``, by name."""
     return {
         "A": (n_x, n_x),
         "B": (n_x, n_u),
@@ -44,17 +71,28 @@ def _shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
     }
 
 
-def F_matrix(G: Any, H: Any, stiffness: Any) -> Any:
-    """``F = G G^T + H - H^T + s I`` (Sec. 5) from ``G``, ``H`` ``(n, n)``: tensors
-    (differentiable) or NumPy arrays (the fast losses' kernel arrays)."""
-    return G @ G.mT + H - H.mT + stiffness * ops_of(G).eye(G.shape[-1], G)
+def F_matrix(G: torch.Tensor, H: torch.Tensor, stiffness: torch.Tensor | float) -> torch.Tensor:
+    """``F = G G^T + H - H^T + s I`` (Sec. 5) from ``G``, ``H`` ``(n, n)`` (differentiable)."""
+    return kernel.F_matrix(TORCH, G, H, stiffness)
 
 
 def F_adjoint(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The chain rule of ``F = G G^T + H - H^T + s I`` (Sec. 5): given ``T_F[..., j, m] =
     d(.)/dF_jm`` ``(..., n, n)``, return ``d(.)/dG = (T_F + T_F^T) G`` and
     ``d(.)/dH = T_F - T_F^T``, each ``(..., n, n)``."""
-    return (T_F + T_F.mT) @ G, T_F - T_F.mT
+    return kernel.F_adjoint(T_F, G)
+
+
+def split_F(F: torch.Tensor, stiffness: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` ``(n, n)`` whose symmetric part is
+    ``>= s I``, the inverse of :func:`F_matrix`: ``H = (F - F^T) / 4`` and ``G = V sqrt(D)`` from
+    the eigen-decomposition ``V D V^T`` of ``(F + F^T) / 2 - s I``. Below ``s I`` the symmetric
+    part's eigenvalues are raised to ``s``: the nearest ``F`` of the model's set in the symmetric
+    part."""
+    n = F.shape[0]
+    sym = 0.5 * (F + F.mT) - float(stiffness) * torch.eye(n, dtype=F.dtype, device=F.device)
+    vals, vecs = torch.linalg.eigh(sym)
+    return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
 
 
 class LCS(nn.Module):
@@ -62,9 +100,10 @@ class LCS(nn.Module):
 
     Args:
         n_x, n_u, n_lam: state, input and complementarity dimensions (``n_u`` may be 0).
-        stiffness: ``s > 0`` in ``F = G G^T + H - H^T + s I``; ``sigma_min(F + F^T) >= 2 s``.
+        stiffness: ``s > 0`` in ``F = G G^T + H - H^T + s I``; ``sigma_min(F + F^T) >= 2 s``
+            (default :data:`DEFAULT_STIFFNESS`, as :func:`random_lcs`).
         init_scale: parameters are drawn as ``init_scale * N(0, 1)``.
-        seed: seed of the initialisation (None: torch's global generator).
+        seed: seed of the initialisation (default 0; None: torch's global generator).
         dtype: floating dtype of the parameters (float64 recommended: the LCPs can be stiff).
 
     Batched methods take ``x`` ``(N, n_x)`` and ``u`` ``(N, n_u)``; a 1-D input is one sample.
@@ -82,9 +121,9 @@ class LCS(nn.Module):
         n_x: int,
         n_u: int,
         n_lam: int,
-        stiffness: float = 1.0,
+        stiffness: float = DEFAULT_STIFFNESS,
         init_scale: float = 0.1,
-        seed: int | None = None,
+        seed: int | None = 0,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         super().__init__()
@@ -101,7 +140,7 @@ class LCS(nn.Module):
         self.register_buffer("stiffness", torch.tensor(float(stiffness), dtype=dtype))
         gen = torch.Generator().manual_seed(seed) if seed is not None else None
         for name in PARAMETER_NAMES:
-            shape = _shapes(self.n_x, self.n_u, self.n_lam)[name]
+            shape = parameter_shapes(self.n_x, self.n_u, self.n_lam)[name]
             value = torch.randn(shape, generator=gen, dtype=torch.float64) * float(init_scale)
             setattr(self, name, nn.Parameter(value.to(dtype)))
 
@@ -137,7 +176,7 @@ class LCS(nn.Module):
         if B_arr.ndim != 2:
             raise LCSInputError(f"B: expected shape (n_x, n_u), received shape {B_arr.shape}")
         n_lam, n_u = C_arr.shape[1], B_arr.shape[1]
-        shapes = _shapes(n_x, n_u, n_lam)
+        shapes = parameter_shapes(n_x, n_u, n_lam)
         given = {"A": A, "B": B, "C": C, "d": d, "D": D, "E": E, "F": F, "c": c}
         mats = {k: as_matrix(k, v, shapes[k], dtype=torch.float64) for k, v in given.items()}
         Fm = mats["F"]
@@ -190,26 +229,28 @@ class LCS(nn.Module):
         x, u = self._xu(x, u)
         return x @ self.D.mT + u @ self.E.mT + self.c
 
-    def solve_lcp(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
-        """``lam = LCP(F, D x + E u + c)`` ``(N, n_lam)``, exact.
+    def solve_lcp(self, x: Any, u: Any, method: str = "fast") -> LCPSolution:
+        """The LCP ``lam = LCP(F, D x + E u + c)`` of every sample, exact: an
+        :class:`lcs_cvx.LCPSolution` (``lam`` ``(N, n_lam)``, ``w``, ``free``, ...).
 
         ``method`` is ``"fast"`` (batched pivoting), ``"cvxpy"`` (declared problem (P) with
         Clarabel) or ``"brute"``. When autograd is recording and the parameters require grad,
-        ``lam`` is re-expressed on the solution's free set, so gradients are those of the
-        implicit function theorem (Lemma 1); a degenerate index (``lam_i = w_i = 0``) is held
-        at zero (one-sided derivative).
+        ``lam`` (and ``w``) are re-expressed on the solution's free set, so gradients are those
+        of the implicit function theorem (Lemma 1); a degenerate index (``lam_i = w_i = 0``) is
+        held at zero (one-sided derivative).
         """
         F = self.F
         q = self.lcp_offset(x, u)
         sol = solve_lcp(F, q, method=method)
         if torch.is_grad_enabled() and (F.requires_grad or q.requires_grad):
-            return active_set_solve(F, q, sol.free)
-        return sol.lam
+            lam = active_set_solve(F, q, sol.free)
+            return dataclasses.replace(sol, lam=lam, w=lam @ F.mT + q)
+        return sol
 
     def step(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
         """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)``."""
         x, u = self._xu(x, u)
-        lam = self.solve_lcp(x, u, method=method)
+        lam = self.solve_lcp(x, u, method=method).lam
         return x @ self.A.mT + u @ self.B.mT + lam @ self.C.mT + self.d
 
     def forward(self, x: Any, u: Any) -> torch.Tensor:
@@ -238,10 +279,10 @@ class LCS(nn.Module):
         out = torch.stack(xs, dim=1)
         return out[0] if single else out
 
-    def active_set(self, x: Any, u: Any, tol: float = 1e-8) -> torch.Tensor:
+    def active_set(self, x: Any, u: Any, tol: float = ACTIVE_TOL) -> torch.Tensor:
         """Bool ``(N, n_lam)``: ``lam_i > tol`` at the LCP solution (the hybrid mode)."""
         with torch.no_grad():
-            return self.solve_lcp(x, u) > tol
+            return self.solve_lcp(x, u).lam > tol
 
     def to_matrices(self) -> dict[str, np.ndarray]:
         """The LCS as numpy arrays, keys ``"A", "B", "C", "d", "D", "E", "F", "c"``."""
@@ -286,7 +327,7 @@ def random_lcs(
     n_x: int,
     n_u: int,
     n_lam: int,
-    stiffness: float = 0.5,
+    stiffness: float = DEFAULT_STIFFNESS,
     seed: int = 0,
     dtype: torch.dtype = torch.float64,
     g_scale: float = 1.0,

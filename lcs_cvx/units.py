@@ -29,19 +29,9 @@ import torch
 
 from ._checks import LCSInputError
 from .lcp import solve_lcp_fast
-from .system import LCS
+from .system import LCS, split_F
 
 __all__ = ["submodel", "pivot", "grow", "prune", "refit_output"]
-
-
-def _from_F(model: LCS, F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` whose symmetric part is ``>= s I``
-    (below that, the symmetric part's eigenvalues are raised to ``s``: the nearest ``F`` of the
-    model's set in the symmetric part)."""
-    n, s = F.shape[0], float(model.stiffness)
-    sym = 0.5 * (F + F.mT) - s * torch.eye(n, dtype=F.dtype, device=F.device)
-    vals, vecs = torch.linalg.eigh(sym)
-    return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
 
 
 def _check_keep(model: LCS, keep: Sequence[int]) -> list[int]:
@@ -58,7 +48,7 @@ def _check_keep(model: LCS, keep: Sequence[int]) -> list[int]:
 
 
 def _build(model: LCS, F: torch.Tensor, **matrices: torch.Tensor) -> LCS:
-    G, H = _from_F(model, F)
+    G, H = split_F(F, float(model.stiffness))
     new = LCS(model.n_x, model.n_u, F.shape[0], stiffness=float(model.stiffness),
               init_scale=0.0, dtype=model.dtype).to(model.device)
     with torch.no_grad():
@@ -119,7 +109,7 @@ def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Ten
     refit. ``warm_start``: a first guess of the LCP's free sets (:func:`lcs_cvx.lcp.solve_lcp_fast`).
     """
     with torch.no_grad():
-        lam = solve_lcp_fast(model.F, model.lcp_offset(x, u), warm_start=warm_start).lam
+        lam = solve_lcp_fast(model.F, model.lcp_offset(x, u), warm_start=warm_start, residual=False).lam
         n = x.shape[0]
         phi = torch.cat([x, u, lam, torch.ones(n, 1, dtype=x.dtype, device=x.device)], 1)
         gram = phi.mT @ phi / n
@@ -200,7 +190,7 @@ def prune(
     while current.n_lam > n_lam:
         best: tuple[float, LCS] | None = None
         with torch.no_grad():  # the candidates' active sets are mostly the current model's
-            free = solve_lcp_fast(current.F, current.lcp_offset(x, u)).free
+            free = solve_lcp_fast(current.F, current.lcp_offset(x, u), residual=False).free
         for j in range(current.n_lam):
             rest = [i for i in range(current.n_lam) if i != j]
             for cand in (submodel(current, rest), pivot(current, j)):

@@ -62,7 +62,7 @@ def test_time_warms_up_to_a_steady_state(monkeypatch):
         stamps.append(time.perf_counter())
         time.sleep(0.001)
 
-    t = bench._time(fn, repeats=2)
+    t = bench.median_time(fn, repeats=2)
     assert 0.001 <= t < 0.01
     # one set-up call, >= 0.05 s of warm-up calls, then 2 repeats of ~0.01 s each
     warm = [s for s in stamps if s - stamps[1] < 0.05]
@@ -79,5 +79,5 @@ def test_time_fills_the_minimum_timed_window(monkeypatch):
     monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.001)
     monkeypatch.setattr(bench, "MIN_TIMED_S", 0.1)
     calls = []
-    bench._time(lambda: calls.append(None), repeats=2)
+    bench.median_time(lambda: calls.append(None), repeats=2)
     assert len(calls) > 100  # ~0.1 s of calls, not 2 repeats of a few

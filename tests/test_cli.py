@@ -30,13 +30,13 @@ def test_demo_prints_checked_facts(capsys):
     facts = _facts(capsys.readouterr().out)
 
     assert facts["LCS"].startswith("n_x=10, n_u=4, n_lam=4 ")
-    system = lcs_cvx.random_lcs(10, 4, 4, 0.5, 0)
+    system = lcs_cvx.random_lcs(10, 4, 4, stiffness=0.5, seed=0)
     assert _leading_float(facts["sigma_min(F+F^T)"]) == pytest.approx(system.sigma_min, rel=1e-5)
     assert facts["data"].startswith("2000 samples, noise 0.01 ")
 
     data = lcs_cvx.make_dataset(system, 2000, noise=0.01, seed=0)
     modes = int(facts["hybrid modes"].split()[0])
-    assert modes == lcs_cvx.count_modes(system, data.x, data.u)
+    assert modes == lcs_cvx.count_modes(system, data)
     assert 1 <= modes <= 2**4
 
     assert _leading_float(facts["fast LCP"]) > 0
@@ -51,7 +51,7 @@ def test_demo_prints_checked_facts(capsys):
     # the learning part: both losses from the same start, e_test well below the start's
     assert facts["learning"].startswith("a random LCS n_x=10, n_u=4, n_lam=4 (")
     start = lcs_cvx.LCS(10, 4, 4, stiffness=1.0, seed=4)
-    test = lcs_cvx.make_dataset(lcs_cvx.random_lcs(10, 4, 4, 0.5, 1), 1000, seed=3)
+    test = lcs_cvx.make_dataset(lcs_cvx.random_lcs(10, 4, 4, stiffness=0.5, seed=1), 1000, seed=3)
     e_start = lcs_cvx.relative_error(start, test)
     for loss in ("violation", "prediction"):
         e = float(facts[f"  {loss:<10s} loss"].split()[1])

@@ -59,7 +59,7 @@ def test_predict_with_the_true_model(files, truth, capsys):
     facts = _facts(capsys.readouterr().out)
     data = Dataset.load(files["data"])
     assert float(facts["e_test"]) < 1e-24  # noiseless data of this very system
-    assert int(facts["modes"]) == lcs_cvx.count_modes(truth, data.x, data.u)
+    assert int(facts["modes"]) == lcs_cvx.count_modes(truth, data)
     assert int(facts["modes"]) >= 2
     assert facts["predictions"] == str(out)
     with np.load(out, allow_pickle=False) as f:
@@ -70,7 +70,7 @@ def test_predict_with_the_true_model(files, truth, capsys):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_predict_reports_the_library_metrics(files, capsys, dtype):
-    model = LCS(2, 1, 3, seed=9, init_scale=1.0, dtype=dtype)  # another system: e_test is not 0
+    model = LCS(2, 1, 3, stiffness=1.0, seed=9, init_scale=1.0, dtype=dtype)  # another system: e_test is not 0
     save_model(model, files["model"])
     assert main(["predict", "--model", str(files["model"]), "--data", str(files["test"])]) == 0
     facts = _facts(capsys.readouterr().out)
@@ -78,8 +78,7 @@ def test_predict_reports_the_library_metrics(files, capsys, dtype):
     expected = lcs_cvx.relative_error(model, test)
     assert expected > 1e-3
     assert float(facts["e_test"]) == pytest.approx(expected, rel=1e-5)
-    x, u = test.x.to(dtype), test.u.to(dtype)
-    assert int(facts["modes"]) == lcs_cvx.count_modes(model, x, u)
+    assert int(facts["modes"]) == lcs_cvx.count_modes(model, test)
     assert facts["model"].startswith("n_x=2, n_u=1, n_lam=3 ")
     assert "predictions" not in facts
 
@@ -217,7 +216,7 @@ def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
         "--eps", "1e-3", "--seed", "5", "--stiffness", "0.25", "--checkpoint", str(ckpt),
         "--resume", "--threads", "2", "--out", str(out),
     ]
-    fake_fit.truth = LCS(2, 1, 3, seed=1)
+    fake_fit.truth = LCS(2, 1, 3, stiffness=1.0, seed=1)
     assert main(argv) == 0
     facts = _facts(capsys.readouterr().out)
 

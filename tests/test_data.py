@@ -7,10 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from zoo import decoupled
 
 import lcs_cvx
 from lcs_cvx import LCS, Dataset, count_modes, make_dataset, random_lcs, relative_error
 from lcs_cvx.lcp import solve_lcp_brute
+from lcs_cvx.system import ACTIVE_TOL
 
 F64 = torch.float64
 
@@ -192,6 +194,18 @@ def test_dataset_save_load_round_trip(tmp_path, data, with_lam):
     assert torch.equal(back_str.x, ds.x)
 
 
+def test_dataset_save_is_atomic_and_uses_the_path_as_given(tmp_path, data):
+    """The path exactly as given (np.savez would append .npz), via lcs_cvx.io.atomic_write: no
+    temporary file is left behind, and a missing directory is an LCSInputError."""
+    path = tmp_path / "plain"
+    data[:10].save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["plain"]
+    with np.load(path, allow_pickle=False) as f:
+        assert np.array_equal(f["x"], data.x[:10].numpy())
+    with pytest.raises(lcs_cvx.LCSInputError, match="path: expected a file in an existing directory"):
+        data[:10].save(tmp_path / "missing" / "d.npz")
+
+
 def test_dataset_from_arrays():
     g = np.random.default_rng(0)
     x, u, xn = g.standard_normal((6, 3)), g.standard_normal(6), g.standard_normal((6, 3))
@@ -218,14 +232,9 @@ def test_dataset_from_arrays():
 # -- count_modes ---------------------------------------------------------------------------
 
 
-def decoupled(n_lam: int) -> LCS:
-    """x' = x + lam, 0 <= lam _|_ x + diag(1..n) lam >= 0: lam_i = max(0, -x_i / i), so unit i
-    is active exactly when x_i < 0."""
-    n = n_lam
-    return LCS.from_matrices(
-        A=np.eye(n), B=np.zeros((n, 0)), C=np.eye(n), d=np.zeros(n),
-        D=np.eye(n), E=np.zeros((n, 0)), F=np.diag(np.arange(1.0, n + 1)), c=np.zeros(n),
-    ).requires_grad_(False)
+def inputs(x, u) -> Dataset:
+    """The inputs ``(x, u)`` as a data set (count_modes reads only them)."""
+    return Dataset(x, u, torch.zeros_like(x))
 
 
 def test_count_modes_known_systems():
@@ -234,37 +243,39 @@ def test_count_modes_known_systems():
     x = torch.tensor(g.uniform(-1, 1, (400, 2)), dtype=F64)
     u = torch.zeros(400, 0, dtype=F64)
     assert torch.equal(sys2.active_set(x, u), x < 0)
-    assert count_modes(sys2, x, u) == 4
+    assert count_modes(sys2, inputs(x, u)) == 4
     # data in fewer quadrants: fewer modes
-    assert count_modes(sys2, x.abs(), u) == 1
-    assert count_modes(sys2, torch.stack([x[:, 0], x[:, 1].abs()], 1), u) == 2
+    assert count_modes(sys2, inputs(x.abs(), u)) == 1
+    assert count_modes(sys2, inputs(torch.stack([x[:, 0], x[:, 1].abs()], 1), u)) == 2
     # one unit: two modes
     sys1 = decoupled(1)
     x1 = torch.tensor(g.uniform(-1, 1, (100, 1)), dtype=F64)
-    assert count_modes(sys1, x1, torch.zeros(100, 0, dtype=F64)) == 2
-    assert count_modes(sys1, x1.abs() + 0.1, torch.zeros(100, 0, dtype=F64)) == 1
+    assert count_modes(sys1, inputs(x1, torch.zeros(100, 0, dtype=F64))) == 2
+    assert count_modes(sys1, inputs(x1.abs() + 0.1, torch.zeros(100, 0, dtype=F64))) == 1
     # three decoupled units with all sign patterns: 8
     sys3 = decoupled(3)
     x3 = torch.tensor(g.uniform(-1, 1, (2000, 3)), dtype=F64)
-    assert count_modes(sys3, x3, torch.zeros(2000, 0, dtype=F64)) == 8
+    assert count_modes(sys3, inputs(x3, torch.zeros(2000, 0, dtype=F64))) == 8
     # no samples, no modes
-    assert count_modes(sys2, x[:0], u[:0]) == 0
+    assert count_modes(sys2, inputs(x[:0], u[:0])) == 0
 
 
 def test_count_modes_tolerance():
     sys = decoupled(1)
     x = torch.tensor([[-1e-7], [-1.0], [1.0]], dtype=F64)  # lam = 1e-7, 1, 0
     u = torch.zeros(3, 0, dtype=F64)
-    assert count_modes(sys, x, u) == 2  # default tol 1e-5: 1e-7 counts as inactive
-    assert count_modes(sys, x, u, tol=1e-9) == 2
-    assert count_modes(sys, x[:1], u[:1], tol=1e-9) == 1
-    assert count_modes(sys, x[:1], u[:1]) == 1
+    assert ACTIVE_TOL == 1e-5  # the default of count_modes and LCS.active_set
+    assert count_modes(sys, inputs(x, u)) == 2  # default tol 1e-5: 1e-7 counts as inactive
+    assert count_modes(sys, inputs(x, u), tol=1e-9) == 2
+    assert count_modes(sys, inputs(x[:1], u[:1]), tol=1e-9) == 1
+    assert count_modes(sys, inputs(x[:1], u[:1])) == 1
     assert bool(sys.active_set(x[:1], u[:1], tol=1e-9)[0, 0])
     assert not bool(sys.active_set(x[:1], u[:1], tol=1e-5)[0, 0])
+    assert not bool(sys.active_set(x[:1], u[:1])[0, 0])
 
 
 def test_count_modes_random_system_matches_brute_force(truth, data):
-    modes = count_modes(truth, data.x, data.u)
+    modes = count_modes(truth, data)
     brute = solve_lcp_brute(truth.F, truth.lcp_offset(data.x, data.u))
     assert modes == torch.unique(brute.lam > 1e-5, dim=0).shape[0]
     assert 2 <= modes <= 2**3

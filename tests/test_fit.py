@@ -43,7 +43,7 @@ def _first_below(history, level):
 )
 def test_recovers_small_system(small, options):
     truth, train, test = small
-    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     result = lcs_cvx.fit(model, train, test=test, progress=False, **options)
     assert result.model is model
     assert result.history[-1]["e_test"] < 1e-5
@@ -52,11 +52,11 @@ def test_recovers_small_system(small, options):
 
 def test_second_order_needs_far_fewer_iterations_than_adam(small):
     _, train, test = small
-    adam = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+    adam = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, progress=False,
                        iterations=3000, lr=5e-3, eval_every=10)
-    gn = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+    gn = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, progress=False,
                      optimizer="gauss-newton", iterations=20)
-    newton = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+    newton = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, progress=False,
                          optimizer="newton", iterations=60)
     k_adam, k_gn, k_newton = (_first_below(r.history, 1e-5) for r in (adam, gn, newton))
     assert None not in (k_adam, k_gn, k_newton)
@@ -67,7 +67,7 @@ def test_second_order_needs_far_fewer_iterations_than_adam(small):
 def test_history_records_and_settings(small):
     _, train, test = small
     seen = []
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, progress=False,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, progress=False,
                          iterations=200, eval_every=50, callbacks=[lambda rec, m: seen.append(rec)])
     assert [h["iteration"] for h in result.history] == [50, 100, 150, 200]
     assert seen == result.history
@@ -78,14 +78,14 @@ def test_history_records_and_settings(small):
 
 def test_callback_stops_training(small):
     _, train, _ = small
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=1000,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=1000,
                          eval_every=10, callbacks=[lambda rec, m: rec["iteration"] >= 30])
     assert result.history[-1]["iteration"] == 30
 
 
 def test_keep_best_returns_the_best_iterate(small):
     _, train, test = small
-    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     # a learning rate too large to settle: the last iterate is not the best one
     result = lcs_cvx.fit(model, train, test=test, progress=False, iterations=400, lr=0.3,
                          eval_every=20, keep_best=True)
@@ -95,7 +95,7 @@ def test_keep_best_returns_the_best_iterate(small):
 
 def test_restarts_pick_the_best_on_holdout(small):
     _, train, _ = small
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False,
                          optimizer="gauss-newton", iterations=3, restarts=3, holdout=0.2)
     assert len(result.restart_scores) == 3
     _, holdout = train.split(0.8, seed=0)
@@ -107,12 +107,12 @@ def test_polish_lowers_the_prediction_loss(small):
     """A final polish on the prediction loss: recorded as its own phase, counted in the
     iterations, and it lowers L_pred on the training data from where Adam on L_eps left it."""
     truth, train, test = small
-    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     kw = {"iterations": 300, "lr": 5e-3, "progress": False, "eval_every": 50}
     plain = lcs_cvx.fit(model, train, test=test, **kw)
     with torch.no_grad():
         before = float(lcs_cvx.prediction_loss(plain.model, train.x, train.u, train.x_next))
-    polished = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, test=test, polish_iterations=200,
+    polished = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, polish_iterations=200,
                            polish_lr=1e-3, **kw)
     with torch.no_grad():
         after = float(lcs_cvx.prediction_loss(polished.model, train.x, train.u, train.x_next))
@@ -193,10 +193,10 @@ def test_options_are_frozen():
 def test_checkpoint_mismatch_is_refused(small, tmp_path):
     _, train, _ = small
     ckpt = tmp_path / "run.ckpt"
-    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=20,
                 checkpoint_every=10, checkpoint=ckpt)
     with pytest.raises(LCSInputError, match=r"checkpoint: .* other options \(differing: \['lr'\]\)"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=20,
                     checkpoint_every=10, checkpoint=ckpt, resume=True, lr=1e-2)
 
 
@@ -207,7 +207,7 @@ _SCRIPT = textwrap.dedent(
     truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
     train = lcs_cvx.make_dataset(truth, 2000, seed=1)
     test = lcs_cvx.make_dataset(truth, 200, seed=2)
-    model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     lcs_cvx.fit(model, train, test=test, progress=False, checkpoint=sys.argv[1], resume=True,
                 **OPTIONS)
     """
@@ -247,10 +247,10 @@ def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options):
             proc.kill()
     partial = torch.load(ckpt, weights_only=True)
     assert partial["run"] is not None  # killed mid-run: there is something left to do
-    resumed_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    resumed_model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     resumed = lcs_cvx.fit(resumed_model, train, test=test, progress=False, checkpoint=ckpt,
                           resume=True, **options)
-    clean_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    clean_model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     clean = lcs_cvx.fit(clean_model, train, test=test, progress=False, **options)
     for name, p in clean_model.named_parameters():
         assert torch.equal(p, getattr(resumed_model, name)), name
@@ -260,7 +260,7 @@ def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options):
 
     assert strip(resumed.history) == strip(clean.history)
     # resuming a finished run does nothing more and returns the same model
-    again_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    again_model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     again = lcs_cvx.fit(again_model, train, test=test, progress=False, checkpoint=ckpt,
                         resume=True, **options)
     assert strip(again.history) == strip(clean.history)
@@ -271,7 +271,7 @@ def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options):
 def test_divergence_is_reported_not_silent(small):
     _, train, _ = small
     with pytest.raises(lcs_cvx.SolverError, match=r"training diverged at iteration \d+: loss = .*not finite; lower lr"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=500, lr=1e200)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=500, lr=1e200)
 
 
 def test_fit_takes_options_and_overrides(small):

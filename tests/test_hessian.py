@@ -50,7 +50,7 @@ pytestmark = pytest.mark.filterwarnings(
 
 def perturbed_model(n_x, n_u, n_lam, n=30, seed=0, scale=0.1):
     """A model ``theta* + scale N(0, 1)`` around a random ground truth, and the truth's data."""
-    truth = lcs_cvx.random_lcs(n_x, n_u, n_lam, seed=seed)
+    truth = lcs_cvx.random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
     data = lcs_cvx.make_dataset(truth, n, seed=seed)
     model = copy.deepcopy(truth)
     gen = torch.Generator().manual_seed(seed + 100)
@@ -65,10 +65,8 @@ def gradient_and_mask(model, theta, data, eps):
     with torch.no_grad():
         for k, v in unflatten(model, theta).items():
             getattr(model, k).copy_(v)
-    loss, info = lcs_cvx.violation_loss(
-        model, data.x, data.u, data.x_next, GAMMA, eps, solver="fast", return_info=True
-    )
-    grads = torch.autograd.grad(loss, [getattr(model, k) for k in PARAMETER_NAMES])
+    info = lcs_cvx.violation_loss_info(model, data.x, data.u, data.x_next, GAMMA, eps, solver="fast")
+    grads = torch.autograd.grad(info.loss, [getattr(model, k) for k in PARAMETER_NAMES])
     return torch.cat([g.reshape(-1) for g in grads]), torch.cat([info.lam > 0, info.phi > 0], 1)
 
 
@@ -161,7 +159,7 @@ def test_objective_hessian_zz_closed_form():
 
 
 def test_parameter_slices_roundtrip():
-    model = lcs_cvx.LCS(3, 2, 4, seed=0)
+    model = lcs_cvx.LCS(3, 2, 4, stiffness=1.0, seed=0)
     slices = parameter_slices(model)
     assert list(slices) == list(PARAMETER_NAMES)
     theta = flatten_parameters(model)
@@ -187,9 +185,7 @@ def test_contact_free_equals_least_squares_hessian():
     with torch.no_grad():
         model.c.fill_(1e3)
     eps = 1e-1
-    _, info = lcs_cvx.violation_loss(
-        model, data.x, data.u, data.x_next, GAMMA, eps, return_info=True
-    )
+    info = lcs_cvx.violation_loss_info(model, data.x, data.u, data.x_next, GAMMA, eps)
     assert bool((info.lam == 0).all()) and bool((info.phi > 100).all())
     H = violation_hessian(model, data.x, data.u, data.x_next, GAMMA, eps)
 
@@ -288,7 +284,7 @@ def test_closed_form_jacobians_match_autodiff(dims, eps):
     """objective_jacobians (Kronecker blocks, chain rule to G and H) and the matrix-free
     objective_linearisation against jacfwd; measured agreement ~1e-16 relative."""
     model, data = perturbed_model(*dims)
-    _, info = lcs_cvx.violation_loss(model, data.x, data.u, data.x_next, GAMMA, eps, return_info=True)
+    info = lcs_cvx.violation_loss_info(model, data.x, data.u, data.x_next, GAMMA, eps)
     z = torch.cat([info.lam, info.phi], 1)
     R, Z = objective_jacobians(model, data.x, data.u, data.x_next, z, GAMMA, eps)
     R_ad, Z_ad = _autodiff_jacobians(model, data, z, eps)
@@ -310,7 +306,7 @@ def test_gauss_newton_matrix_and_operator_are_the_definition(dims):
     built here from the autodiff Jacobians; the dense matrix and the operator agree with it."""
     model, data = perturbed_model(*dims)
     eps, n = 1e-2, model.n_lam
-    _, info = lcs_cvx.violation_loss(model, data.x, data.u, data.x_next, GAMMA, eps, return_info=True)
+    info = lcs_cvx.violation_loss_info(model, data.x, data.u, data.x_next, GAMMA, eps)
     z = torch.cat([info.lam, info.phi], 1)
     R, Z = _autodiff_jacobians(model, data, z, eps)
     with torch.no_grad():

@@ -12,7 +12,7 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCS, LCSInputError, count_modes, load_metadata, load_model, save_model
-from lcs_cvx.io import FORMAT_VERSION
+from lcs_cvx.io import FORMAT_VERSION, atomic_write
 from lcs_cvx.system import PARAMETER_NAMES
 
 F64 = torch.float64
@@ -183,6 +183,26 @@ def test_interrupted_save_keeps_the_old_file(tmp_path, monkeypatch):
     assert _state_equal(load_model(path), old)
 
 
+def test_atomic_write_any_writer_and_errors_naming_the_argument(tmp_path):
+    """``atomic_write`` (model files, data sets, the CLI's outputs, training checkpoints) takes
+    any writer of bytes, e.g. ``torch.save``; an error names the caller's argument."""
+    path = tmp_path / "ckpt.pt"
+    atomic_write(path, lambda f: torch.save({"step": 3}, f))
+    assert os.listdir(tmp_path) == ["ckpt.pt"]
+    assert torch.load(path, weights_only=True) == {"step": 3}
+
+    def fails(f):
+        f.write(b"half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_write(path, fails)
+    assert os.listdir(tmp_path) == ["ckpt.pt"]  # the old file, no temporary one
+    assert torch.load(path, weights_only=True) == {"step": 3}
+    with pytest.raises(LCSInputError, match=r"^checkpoint: expected a file in an existing directory"):
+        atomic_write(tmp_path / "no" / "c.pt", lambda f: None, name="checkpoint")
+
+
 def test_save_into_a_missing_directory(tmp_path):
     with pytest.raises(LCSInputError, match=r"^path: expected a file in an existing directory"):
         save_model(_trained_like(), tmp_path / "no" / "m.npz")
@@ -323,7 +343,7 @@ def test_to_c3_simulates_like_the_model():
     g = torch.Generator().manual_seed(0)
     x = (torch.rand(400, 4, generator=g, dtype=F64) * 2 - 1) * 10
     u = (torch.rand(400, 2, generator=g, dtype=F64) * 2 - 1) * 5
-    assert count_modes(model, x, u) >= 4  # the samples cross the mode boundaries
+    assert count_modes(model, lcs_cvx.Dataset(x, u, x)) >= 4  # the samples cross the mode boundaries
 
     m = {k: torch.from_numpy(v) for k, v in model.to_c3().items()}
     # C3: x' = A x + B u + D lam + d,  0 <= lam _|_ E x + F lam + H u + c >= 0
@@ -331,6 +351,6 @@ def test_to_c3_simulates_like_the_model():
     x_next = x @ m["A"].T + u @ m["B"].T + lam @ m["D"].T + m["d"]
 
     with torch.no_grad():
-        assert torch.allclose(lam, model.solve_lcp(x, u), rtol=0, atol=1e-10)
+        assert torch.allclose(lam, model.solve_lcp(x, u).lam, rtol=0, atol=1e-10)
         assert torch.allclose(x_next, model.step(x, u), rtol=0, atol=1e-10)
     assert float(lam.abs().max()) > 1.0  # the contact term matters

@@ -1,36 +1,50 @@
 """The learning losses of :mod:`lcs_cvx.losses` against the paper's lemmas.
 
-- Lemma 3 (lemma.contactnet, eq. equ.diffvioloss): the autograd gradient of the violation loss
-  ``L_eps`` (eq. equ.contactnet) is the envelope gradient -- checked against the closed form
-  written out here, central finite differences and the cvxpylayers (diffcp + Clarabel) path.
+- Lemma 3 (lemma.contactnet, eq. equ.diffvioloss): the gradient of the violation loss
+  ``L_eps`` (eq. equ.contactnet) is the envelope gradient -- checked three ways: against the
+  closed form written out here, central finite differences and the cvxpylayers (diffcp +
+  Clarabel) path.
 - Lemma 1 (lemma.lcpdiff): the prediction loss ``L_pred`` (eq. equ.prednet) is differentiable
-  under strict complementarity -- finite differences and the cvxpylayers path of (P).
+  under strict complementarity -- against autograd through the active-set map (the closed
+  form), finite differences and the cvxpylayers path of (P).
 - Lemma 5 (lemma.approximation): ``L_eps -> L_pred`` as ``eps -> 0``, with ``L_eps <= L_pred``.
-- The solver paths ``"fast"``, ``"cvxpylayers"``, ``"cvxpylayers-scs"`` agree; the fast (V)
-  solution is certified against a high-precision refinement of the paper's (lam, phi) QP.
-- Input checks, the regulariser, devices and :class:`lcs_cvx.LossInfo`.
+- Input checks, the regulariser, devices and array back-ends, :class:`lcs_cvx.LossInfo` (also of
+  the trainer's fast paths) and warm starts.
 
-The library's losses are batch MEANS (the paper writes sums), so every closed form here is a
-mean. Everything is float64 on one torch thread; cvxpylayers batches stay at 10-20 samples
-(the layer solves a few hundred samples per second).
+The solvers behind the losses are tested in ``test_violation.py``, ``test_zoo.py`` and
+``test_layers.py``. The library's losses are batch MEANS (the paper writes sums), so every
+closed form here is a mean. Everything is float64 on one torch thread; cvxpylayers batches stay
+at 10-20 samples (the layer solves a few hundred samples per second).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 import pytest
 import torch
+from helpers import (
+    autograd,
+    lcp_terms,
+    lemma3_gradients,
+    make_problem,
+    rel_err,
+    violation_objective,
+)
 
 import lcs_cvx
-from lcs_cvx import LCSInputError, prediction_loss, regularizer, violation_loss
-from lcs_cvx.lcp import active_set_solve, solve_lcp_brute
-from lcs_cvx.pivoting import array_ops
-from lcs_cvx.problems import violation_problem
+from lcs_cvx import (
+    LCSInputError,
+    prediction_loss,
+    prediction_loss_info,
+    regularizer,
+    violation_loss,
+    violation_loss_info,
+)
+from lcs_cvx.lcp import active_set_solve
+from lcs_cvx.losses import prediction_fast, violation_fast
 from lcs_cvx.system import PARAMETER_NAMES
-from lcs_cvx.violation import violation_kkt_residual
 
 torch.set_num_threads(1)
 
@@ -43,101 +57,7 @@ FD_STEP = 1e-6
 FD_TOL = 1e-6
 
 
-# -- problems ------------------------------------------------------------------------------
-
-
-def make_problem(n_lam=3, n=40, model="init", seed=0, n_x=5, n_u=2):
-    """Ground truth ``random_lcs(n_x, n_u, n_lam)``, noisy data from it (paper Sec. 5, noise
-    1e-2), and a model to evaluate: ``"init"`` a fresh ``LCS(init_scale=0.3)`` or ``"perturbed"``
-    the truth plus ``0.1 N(0, 1)`` on every parameter (stiffness kept)."""
-    truth = lcs_cvx.random_lcs(n_x, n_u, n_lam, seed=seed)
-    data = lcs_cvx.make_dataset(truth, n, noise=0.01, seed=seed + 1)
-    if model == "init":
-        m = lcs_cvx.LCS(n_x, n_u, n_lam, init_scale=0.3, seed=seed + 2)
-    else:
-        m = lcs_cvx.LCS(n_x, n_u, n_lam, stiffness=float(truth.stiffness), init_scale=0.0)
-        gen = torch.Generator().manual_seed(seed + 3)
-        with torch.no_grad():
-            for name in PARAMETER_NAMES:
-                p = getattr(truth, name)
-                getattr(m, name).copy_(p + 0.1 * torch.randn(p.shape, generator=gen, dtype=F64))
-    return m, data
-
-
-def grads(model):
-    return {k: getattr(model, k).grad.detach().clone() for k in PARAMETER_NAMES}
-
-
-def autograd(loss_fn, model, data, **kw):
-    """``(loss, info, {name: grad})`` of one loss evaluation."""
-    model.zero_grad()
-    loss, info = loss_fn(model, data.x, data.u, data.x_next, return_info=True, **kw)
-    loss.backward()
-    return float(loss.detach()), info, grads(model)
-
-
-def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
-    """``max |a - b| / max |b|`` (``b`` the reference)."""
-    return float((a - b).abs().max() / b.abs().max().clamp(min=1e-300))
-
-
-def lcp_terms(model, data):
-    """``q = D x + E u + c`` and ``r = A x + B u + d - x'`` (detached)."""
-    with torch.no_grad():
-        q = data.x @ model.D.mT + data.u @ model.E.mT + model.c
-        r = data.x @ model.A.mT + data.u @ model.B.mT + model.d - data.x_next
-    return q, r
-
-
-def violation_objective(model, data, lam, phi, gamma, eps):
-    """Per-sample value of eq. (equ.contactnet.2) at ``(lam, phi)``, written out from the paper:
-    ``1/2 |A x + B u + C lam + d - x'|^2 + (lam^T phi + |D x + E u + F lam + c - phi|^2 / (2 gamma)) / eps``.
-    """
-    with torch.no_grad():
-        q, r = lcp_terms(model, data)
-        e_dyn = r + lam @ model.C.mT
-        w_res = q + lam @ model.F.mT - phi
-        return (
-            0.5 * (e_dyn**2).sum(-1)
-            + ((lam * phi).sum(-1) + (w_res**2).sum(-1) / (2 * gamma)) / eps
-        )
-
-
 # -- Lemma 3: envelope gradients of the violation loss --------------------------------------
-
-
-def lemma3_gradients(model, data, lam, phi, gamma, eps, magnitude=False):
-    """Eq. (equ.diffvioloss) as batch means, with F mapped back to G and H.
-
-    ``e_dyn = A x + B u + C lam + d - x'``, ``e_lcp = (D x + E u + F lam + c - phi) / (eps gamma)``;
-    ``F = G G^T + H - H^T + s I`` gives ``grad_G = (grad_F + grad_F^T) G``,
-    ``grad_H = grad_F - grad_F^T``.
-
-    ``magnitude=True``: the same sums of products over the absolute values of their terms
-    (``|q| + |lam| |F|^T + |phi|`` for the numerator of ``e_lcp``, ...) -- the scale of the
-    round-off of the expressions, ``|computed - exact| <~ k u * magnitude``.
-    """
-    a = torch.abs if magnitude else (lambda t: t)
-    with torch.no_grad():
-        x, u, N = a(data.x), a(data.u), data.x.shape[0]
-        q, r = (a(t) for t in lcp_terms(model, data))
-        if magnitude:  # the terms of q and r themselves
-            q = q + a(data.x) @ a(model.D).mT + a(data.u) @ a(model.E).mT + a(model.c)
-            r = r + a(data.x) @ a(model.A).mT + a(data.u) @ a(model.B).mT + a(model.d) + a(data.x_next)
-        e_dyn = r + a(lam) @ a(model.C).mT
-        e_lcp = (q + a(lam) @ a(model.F).mT + a(phi) * (1 if magnitude else -1)) / (eps * gamma)
-        gF = e_lcp.mT @ a(lam) / N
-        return {
-            "A": e_dyn.mT @ x / N,
-            "B": e_dyn.mT @ u / N,
-            "C": e_dyn.mT @ a(lam) / N,
-            "d": e_dyn.mean(0),
-            "D": e_lcp.mT @ x / N,
-            "E": e_lcp.mT @ u / N,
-            "G": (gF + gF.mT) @ a(model.G),
-            "H": gF + gF.mT if magnitude else gF - gF.mT,
-            "c": e_lcp.mean(0),
-        }
 
 
 @pytest.mark.parametrize(
@@ -152,7 +72,7 @@ def lemma3_gradients(model, data, lam, phi, gamma, eps, magnitude=False):
 def test_violation_gradient_is_lemma3_closed_form(model_kind, n_lam, gamma, eps):
     model, data = make_problem(n_lam=n_lam, model=model_kind, seed=n_lam)
     assert gamma < model.sigma_min
-    _, info, g = autograd(violation_loss, model, data, gamma=gamma, eps=eps)
+    _, info, g = autograd(violation_loss_info, model, data, gamma=gamma, eps=eps)
     closed = lemma3_gradients(model, data, info.lam, info.phi, gamma, eps)
     scale = lemma3_gradients(model, data, info.lam, info.phi, gamma, eps, magnitude=True)
     for name in PARAMETER_NAMES:
@@ -174,14 +94,14 @@ def _pattern_prediction(info):
     return info.lam > 0
 
 
-def finite_difference_check(loss_fn, model, data, pattern, **kw):
+def finite_difference_check(info_fn, model, data, pattern, **kw):
     """Central differences of the loss VALUE on every entry of every parameter.
 
     Asserts that the active-set pattern of the solution is the same at ``theta +- h`` as at
     ``theta`` (the loss is smooth there, Lemmas 1 and 3) and returns the worst
     ``|fd - autograd| / (1 + |autograd|)`` per parameter.
     """
-    _, info0, g = autograd(loss_fn, model, data, **kw)
+    _, info0, g = autograd(info_fn, model, data, **kw)
     base = pattern(info0)
     worst = {}
     with torch.no_grad():
@@ -193,9 +113,9 @@ def finite_difference_check(loss_fn, model, data, pattern, **kw):
                 vals = []
                 for sign in (1.0, -1.0):
                     p[idx] = old + sign * FD_STEP
-                    loss, info = loss_fn(model, data.x, data.u, data.x_next, return_info=True, **kw)
+                    info = info_fn(model, data.x, data.u, data.x_next, **kw)
                     assert torch.equal(pattern(info), base), f"active set changed under {name}{idx}"
-                    vals.append(float(loss))
+                    vals.append(float(info.loss))
                 p[idx] = old
                 fd[idx] = (vals[0] - vals[1]) / (2 * FD_STEP)
             worst[name] = float(((fd - g[name]).abs() / (1.0 + g[name].abs())).max())
@@ -208,7 +128,7 @@ def test_violation_gradient_matches_finite_differences(model_kind):
     # in the flat part of the error curve (measured 2.3e-9 .. 3e-8 for h = 1e-5 .. 1e-6).
     model, data = make_problem(model=model_kind)
     worst = finite_difference_check(
-        violation_loss, model, data, _pattern_violation, gamma=1e-2, eps=1e-1
+        violation_loss_info, model, data, _pattern_violation, gamma=1e-2, eps=1e-1
     )
     assert set(worst) == set(PARAMETER_NAMES)
     for name, err in worst.items():
@@ -228,9 +148,9 @@ def test_violation_gradient_matches_cvxpylayers_path():
     """
     model, data = make_problem(n=20)
     for eps in (1e-1, 1e-2):
-        lf, info_f, gf = autograd(violation_loss, model, data, gamma=1e-2, eps=eps)
+        lf, info_f, gf = autograd(violation_loss_info, model, data, gamma=1e-2, eps=eps)
         ll, info_l, gl = autograd(
-            violation_loss, model, data, gamma=1e-2, eps=eps, solver="cvxpylayers"
+            violation_loss_info, model, data, gamma=1e-2, eps=eps, solver="cvxpylayers"
         )
         assert abs(ll - lf) <= 1e-8 * abs(lf)
         for name in PARAMETER_NAMES:
@@ -243,13 +163,13 @@ def test_violation_gradient_matches_cvxpylayers_path():
 @pytest.mark.parametrize("model_kind", ["init", "perturbed"])
 def test_prediction_gradient_matches_finite_differences(model_kind):
     model, data = make_problem(model=model_kind)
-    _, info, _ = autograd(prediction_loss, model, data)
+    _, info, _ = autograd(prediction_loss_info, model, data)
     # Lemma 1's hypothesis, strict complementarity, with a margin far above the FD step.
     lam, w = info.lam, info.phi
     margin = torch.where(info.lam > 0, lam, w)
     assert float(margin.min()) > 1e-4
     assert bool((info.lam > 0).any()) and bool((info.lam == 0).any())  # both kinds of index occur
-    worst = finite_difference_check(prediction_loss, model, data, _pattern_prediction)
+    worst = finite_difference_check(prediction_loss_info, model, data, _pattern_prediction)
     for name, err in worst.items():
         assert err <= FD_TOL, (name, err)
 
@@ -260,7 +180,7 @@ def test_prediction_gradient_is_autograd_through_the_active_set_map(model_kind):
     ``active_set_solve`` on the same free sets -- the implicit function written as a graph.
     Same arithmetic up to association: measured <= 1e-15 relative."""
     model, data = make_problem(model=model_kind)
-    _, info, g = autograd(prediction_loss, model, data)
+    _, info, g = autograd(prediction_loss_info, model, data)
     model.zero_grad()
     x, u, m = data.x, data.u, model
     q = x @ m.D.mT + u @ m.E.mT + m.c
@@ -280,8 +200,8 @@ def test_prediction_gradient_matches_cvxpylayers_path():
     H: <= 3e-9) -- Clarabel's accuracy on (P) through the cone form. Asserted: 1e-5.
     """
     model, data = make_problem(n=20)
-    lf, info_f, gf = autograd(prediction_loss, model, data)
-    ll, info_l, gl = autograd(prediction_loss, model, data, solver="cvxpylayers")
+    lf, info_f, gf = autograd(prediction_loss_info, model, data)
+    ll, info_l, gl = autograd(prediction_loss_info, model, data, solver="cvxpylayers")
     assert abs(ll - lf) <= 1e-8 * abs(lf)
     assert float((info_l.lam - info_f.lam).abs().max()) <= 1e-6
     for name in PARAMETER_NAMES:
@@ -332,10 +252,9 @@ def test_violation_loss_is_below_prediction_loss_per_sample(eps):
     model, data = make_problem(model="perturbed")
     gamma = 1e-2
     with torch.no_grad():
-        l_pred, info_p = prediction_loss(model, data.x, data.u, data.x_next, return_info=True)
-        l_eps, info_v = violation_loss(
-            model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, return_info=True
-        )
+        info_p = prediction_loss_info(model, data.x, data.u, data.x_next)
+        info_v = violation_loss_info(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps)
+        l_pred, l_eps = info_p.loss, info_v.loss
         lam_lcp, w = info_p.lam, info_p.phi
         pred = data.x @ model.A.mT + data.u @ model.B.mT + lam_lcp @ model.C.mT + model.d
         per_pred = 0.5 * ((pred - data.x_next) ** 2).sum(-1)
@@ -347,331 +266,6 @@ def test_violation_loss_is_below_prediction_loss_per_sample(eps):
     assert float(per_viol.mean()) == pytest.approx(float(l_eps), rel=1e-12)
     assert bool((per_viol <= per_pred * (1 + 1e-12) + 1e-12).all())
     assert float(l_eps) < float(l_pred)
-
-
-# -- solver paths agree ------------------------------------------------------------------------
-
-#: name -> (gamma, eps, generator stiffness). "paper" is the paper's gamma = 1e-2, eps = 1e-4,
-#: evaluated at a fresh model; "stiff" is gamma = 1e-6, eps = 1e-4 (1/(eps gamma) = 1e10)
-#: evaluated at the ground truth drawn with stiffness 1e-6, so sigma_min(F + F^T) >= 2e-6 > gamma
-#: (measured sigma_min: 7e-3, 0.48, 3.6e-6, 1.7e-2 for n_lam = 1, 4, 10, 20).
-SETTINGS = {"paper": (1e-2, 1e-4, 0.5), "stiff": (1e-6, 1e-4, 1e-6)}
-N_LAMS = (1, 4, 10, 20)
-
-
-def certified_violation_solution(model, data, lam, phi, gamma, eps, dps=50, sweeps=6):
-    """A certificate for the (V) minimiser, independent of the library's DPP form.
-
-    Works on the paper's (lam, phi) QP (eq. equ.contactnet.2) with Hessian
-    ``Q = [[C^T C + F^T F/(eps gamma), (I - F^T/gamma)/eps], [(I - F/gamma)/eps, I/(eps gamma)]]``.
-    On the support ``J`` of the given point, iterative refinement with gradients evaluated in
-    ``dps``-digit arithmetic (mpmath) and float64 corrections from ``Q_JJ`` (which converge
-    while cond(Q_JJ) * 1e-16 < 1: ~1e11 here at worst). The refined point is the exact minimiser
-    (strong convexity, Lemma 3a) iff ``z_J > 0`` and ``grad_{not J} >= 0``; returns
-    ``(lam, phi, certified)`` with ``certified`` per sample.
-    """
-    mpmath = pytest.importorskip("mpmath")
-    ctx = mpmath.mp.clone()
-    ctx.dps = dps
-    mpf = ctx.mpf
-    C = model.C.detach().numpy()
-    F = model.F.detach().numpy()
-    q, r = (t.numpy() for t in lcp_terms(model, data))
-    n, inv_eg, inv_g, inv_e = (
-        F.shape[0],
-        mpf(1) / (mpf(eps) * mpf(gamma)),
-        mpf(1) / mpf(gamma),
-        mpf(1) / mpf(eps),
-    )
-    eye = np.eye(n)
-    Q = np.block(
-        [
-            [C.T @ C + F.T @ F / (eps * gamma), (eye - F.T / gamma) / eps],
-            [(eye - F / gamma) / eps, eye / (eps * gamma)],
-        ]
-    )
-    Cm, Fm = ctx.matrix(C.tolist()), ctx.matrix(F.tolist())
-
-    def gradient(z, k):  # exact-ish gradient of the (lam, phi) objective at z for sample k
-        lam_m, phi_m = ctx.matrix(z[:n]), ctx.matrix(z[n:])
-        e_dyn = Cm * lam_m + ctx.matrix(r[k].tolist())
-        w_res = Fm * lam_m + ctx.matrix(q[k].tolist()) - phi_m
-        g_lam = Cm.T * e_dyn + (phi_m + Fm.T * w_res * inv_g) * inv_e
-        g_phi = (lam_m - w_res * inv_g) * inv_e
-        return [g_lam[i] for i in range(n)] + [g_phi[i] for i in range(n)]
-
-    z_all, ok_all = [], []
-    for k in range(q.shape[0]):
-        z0 = np.concatenate([lam[k].numpy(), phi[k].numpy()])
-        J = [int(j) for j in np.nonzero(z0 > 0)[0]]
-        z = [mpf(0)] * (2 * n)
-        for j in J:
-            z[j] = mpf(float(z0[j]))
-        for _ in range(sweeps):
-            if not J:
-                break
-            g = gradient(z, k)
-            delta = np.linalg.solve(Q[np.ix_(J, J)], -np.array([float(g[j]) for j in J]))
-            for a, j in enumerate(J):
-                z[j] += mpf(float(delta[a]))
-        g = gradient(z, k)
-        scale = float(inv_eg) * (1.0 + np.abs(q[k]).max() + np.abs(z0).max())
-        ok = (
-            all(z[j] > 0 for j in J)
-            and all(float(g[j]) >= -1e-13 * scale for j in range(2 * n) if j not in J)
-            and all(abs(float(g[j])) <= 1e-20 * scale for j in J)
-        )
-        z_all.append([float(v) for v in z])
-        ok_all.append(ok)
-    Z = torch.tensor(np.array(z_all), dtype=F64)
-    return Z[:, :n], Z[:, n:], torch.tensor(ok_all)
-
-
-@functools.cache
-def agreement_case(n_lam, setting):
-    """Every solver's answer on one batch of 20 samples, computed once per (n_lam, setting)."""
-    gamma, eps, stiffness = SETTINGS[setting]
-    truth = lcs_cvx.random_lcs(6, 2, n_lam, stiffness=stiffness, seed=n_lam)
-    data = lcs_cvx.make_dataset(truth, 20, noise=0.01, seed=100 + n_lam)
-    if setting == "stiff":
-        model = truth.requires_grad_(True)  # gradients on: the layer's training configuration
-    else:
-        model = lcs_cvx.LCS(6, 2, n_lam, init_scale=0.3, seed=n_lam)
-    assert gamma < model.sigma_min
-    loss_f, info_f = violation_loss(
-        model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, return_info=True
-    )
-    loss_l, info_l = violation_loss(
-        model,
-        data.x,
-        data.u,
-        data.x_next,
-        gamma=gamma,
-        eps=eps,
-        solver="cvxpylayers",
-        return_info=True,
-    )
-    loss_f, loss_l = float(loss_f.detach()), float(loss_l.detach())
-    lam_x, phi_x, certified = certified_violation_solution(
-        model, data, info_f.lam, info_f.phi, gamma, eps
-    )
-    decl = violation_problem(n_lam)
-    q, r = lcp_terms(model, data)
-    values = decl.parameter_values(model.C.detach(), model.F.detach(), q, r, gamma, eps)
-    lam_ref = torch.as_tensor(decl.solve(values), dtype=F64)  # the Clarabel reference (QP form)
-    scale = 1.0 + info_f.lam.abs().amax(-1)
-
-    def dev(a, b):  # per-sample |a - b|_inf relative to 1 + |lam|_inf, worst sample
-        return float(((a - b).abs().amax(-1) / scale).max())
-
-    obj_f = violation_objective(model, data, info_f.lam, info_f.phi, gamma, eps)
-    obj_l = violation_objective(model, data, info_l.lam, info_l.phi, gamma, eps)
-    return {
-        "model": model,
-        "certified": certified,
-        "fast_vs_exact": dev(info_f.lam, lam_x),
-        "fast_vs_exact_phi": dev(info_f.phi, phi_x),
-        "layer_lam": dev(info_l.lam, info_f.lam),
-        "layer_lam_abs": float((info_l.lam - info_f.lam).abs().max()),
-        "layer_phi": dev(info_l.phi, info_f.phi),
-        "layer_loss": abs(loss_l - loss_f) / abs(loss_f),
-        "ref_lam": dev(lam_ref, info_f.lam),
-        "kkt_fast": float(violation_kkt_residual(values, info_f.lam).max()),
-        "kkt_layer": float(violation_kkt_residual(values, info_l.lam).max()),
-        "kkt_ref": float(violation_kkt_residual(values, lam_ref).max()),
-        # per sample; >= 0 iff the fast point is the better minimiser of the paper's objective
-        "excess": (obj_l - obj_f) / (1.0 + obj_f.abs()),
-        "info_f": info_f,
-    }
-
-
-CASES = [(n, s) for s in SETTINGS for n in N_LAMS]
-
-
-@pytest.mark.parametrize("n_lam, setting", CASES)
-def test_fast_violation_solution_is_certified_exact(n_lam, setting):
-    """The fast kernel's (lam, phi) is the exact minimiser to round-off in every setting,
-    the stiff one included. Measured: <= 1e-14 relative to 1 + |lam|_inf; KKT <= 8e-16."""
-    res = agreement_case(n_lam, setting)
-    assert bool(res["certified"].all())
-    assert res["fast_vs_exact"] <= 1e-12
-    assert res["fast_vs_exact_phi"] <= 1e-12
-    assert res["kkt_fast"] <= 1e-13
-    info = res["info_f"]
-    assert info.n_fallback == 0
-
-
-def test_certificate_rejects_a_wrong_point():
-    """The certificate is not vacuous: a wrong support fails it, and a point off by ``delta``
-    on the right support is refined back (the measured distance is ``delta``)."""
-    model, data = make_problem(n=8)
-    gamma, eps = 1e-2, 1e-3
-    _, info = violation_loss(
-        model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, return_info=True
-    )
-    lam, phi, ok = certified_violation_solution(model, data, info.lam, info.phi, gamma, eps)
-    assert bool(ok.all())
-    k, i = (int(v) for v in (info.lam > 0).nonzero()[0])
-    wrong = info.lam.clone()
-    wrong[k, i] = 0.0  # drop an active lam from the support
-    _, _, ok_wrong = certified_violation_solution(model, data, wrong, info.phi, gamma, eps)
-    assert not bool(ok_wrong[k]) and bool(ok_wrong[torch.arange(8) != k].all())
-    nudged = info.lam.clone()
-    nudged[k, i] += 1e-6
-    lam_n, _, ok_n = certified_violation_solution(model, data, nudged, info.phi, gamma, eps)
-    assert bool(ok_n.all())
-    assert float((lam_n - lam).abs().max()) <= 1e-13
-    assert float((nudged - lam_n).abs().max()) == pytest.approx(1e-6, rel=1e-6)
-
-
-#: Honest bounds for the cvxpylayers (diffcp + Clarabel) path against the certified fast
-#: solution, |d lam|_inf / (1 + |lam|_inf), worst of 20 samples. Clarabel reaches the QP
-#: reference's accuracy neither with lcs_cvx.layers.LAYER_SOLVERS as shipped (tolerances 1e-10)
-#: nor with any setting tried (iterative refinement, equilibration off, regularisation,
-#: presolve off, KKT solver): it ends on "AlmostSolved"/"NumericalError" for most samples,
-#: which diffcp passes on without an error. Measured (lam, relative):
-#:   paper (n = 1, 4, 10, 20): 1.8e-7, 4.2e-8, 1.2e-7, 5.8e-8 (absolute 2.3e-7 .. 4.8e-7);
-#:          phi <= 1.3e-7; loss 2e-10 .. 1.2e-8 relative
-#:   stiff: 1.6e-5, 9.0e-9, 3.6e-5, 7.0e-8 (absolute 5.4e-4, 1.4e-8, 1.8e-4, 4.7e-7); phi <= 1.4e-4;
-#:          the loss is off by a factor 3.7e2, 0.17, 3.5e3, 4.0 (the loss at the truth is ~3e-4
-#:          and 1/(eps gamma) = 1e10 amplifies the error in lam) -- not bounded, only its sign:
-#:          the layer's point is never the better minimiser.
-LAYER_BOUND = {
-    "paper": {"lam": 1e-6, "phi": 1e-6, "loss": 1e-7},
-    "stiff": {"lam": 1e-4, "phi": 1e-3},
-}
-
-
-@pytest.mark.parametrize("n_lam, setting", CASES)
-def test_cvxpylayers_violation_path_agrees_with_fast(n_lam, setting):
-    res = agreement_case(n_lam, setting)
-    bound = LAYER_BOUND[setting]
-    assert res["layer_lam"] <= bound["lam"], res["layer_lam"]
-    assert res["layer_phi"] <= bound["phi"], res["layer_phi"]
-    if "loss" in bound:
-        assert res["layer_loss"] <= bound["loss"], res["layer_loss"]
-    # Which side is accurate: the fast point is never the worse minimiser of the paper's
-    # objective, and its KKT residual is the smaller one.
-    assert float(res["excess"].min()) >= -1e-12
-    assert res["kkt_fast"] <= res["kkt_layer"]
-
-
-@pytest.mark.parametrize("n_lam, setting", CASES)
-def test_clarabel_reference_agrees_with_fast(n_lam, setting):
-    """The independent Clarabel reference (cvxpy, QP form, tolerances 1e-10) on the same
-    declaration. Measured relative: paper <= 1.3e-9; stiff <= 2.3e-7 (n = 10)."""
-    res = agreement_case(n_lam, setting)
-    assert res["ref_lam"] <= (1e-8 if setting == "paper" else 1e-6), res["ref_lam"]
-    assert res["kkt_fast"] <= res["kkt_ref"] + 1e-15
-
-
-@pytest.mark.xfail(
-    strict=True,
-    reason="Clarabel through diffcp's cone form reaches ~1e-7 on lam in the paper setting and "
-    "up to ~5e-4 (absolute) in the stiff one, not the issue's 1e-8; see LAYER_BOUND",
-)
-def test_cvxpylayers_path_meets_the_1e8_requirement():
-    worst = max(agreement_case(n, s)["layer_lam_abs"] for n, s in CASES)
-    assert worst <= 1e-8, worst
-
-
-@pytest.mark.parametrize("n_lam", N_LAMS)
-def test_fast_exact_where_the_layer_breaks_down(n_lam):
-    """gamma = 1e-6, eps = 1e-4 at a model on the edge of Lemma 2: G with a zero column makes
-    G G^T singular, so sigma_min(F + F^T) = 2 s = 1e-5 = 10 gamma exactly.
-
-    The fast solution is still certified exact (measured <= 6e-11 absolute with |lam| up to
-    1.9e5), and so close is the Clarabel reference (measured <= 1.1e-5 absolute). The
-    cvxpylayers path returns whatever Clarabel ended on -- mostly "AlmostSolved" or
-    "NumericalError", passed on by diffcp without an error -- measured |d lam| = 8.6e4 (n = 1,
-    |lam| = 1.9e5), 0.45, 4.8e-4, 0.13 for n = 1, 4, 10, 20, and a loss up to 3x too large.
-    Asserted of the layer: only that its point is never the better minimiser.
-    """
-    gamma, eps = 1e-6, 1e-4
-    truth = lcs_cvx.random_lcs(6, 2, n_lam, seed=n_lam)
-    data = lcs_cvx.make_dataset(truth, 20, noise=0.01, seed=100 + n_lam)
-    model = lcs_cvx.random_lcs(6, 2, n_lam, stiffness=5e-6, seed=50 + n_lam)
-    with torch.no_grad():
-        model.G[:, -1] = 0.0
-    model.requires_grad_(True)
-    assert model.sigma_min == pytest.approx(10 * gamma, rel=1e-6)
-    _, info = violation_loss(
-        model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, return_info=True
-    )
-    assert info.n_fallback == 0 and info.max_residual <= 1e-13
-    lam_x, phi_x, certified = certified_violation_solution(
-        model, data, info.lam, info.phi, gamma, eps
-    )
-    assert bool(certified.all())
-    scale = 1.0 + info.lam.abs().amax(-1)
-    assert float(((info.lam - lam_x).abs().amax(-1) / scale).max()) <= 1e-12
-    assert float(((info.phi - phi_x).abs().amax(-1) / scale).max()) <= 1e-12
-    # the layer's inaccuracy is not silent: its KKT residual is checked and reported
-    with pytest.warns(lcs_cvx.losses.LayerAccuracyWarning, match="KKT residual"):
-        _, info_l = violation_loss(
-            model,
-            data.x,
-            data.u,
-            data.x_next,
-            gamma=gamma,
-            eps=eps,
-            solver="cvxpylayers",
-            return_info=True,
-        )
-    assert info_l.max_residual > lcs_cvx.losses.LAYER_RESIDUAL_TOL
-    obj_f = violation_objective(model, data, info.lam, info.phi, gamma, eps)
-    obj_l = violation_objective(model, data, info_l.lam, info_l.phi, gamma, eps)
-    assert bool((obj_l >= obj_f - 1e-12 * (1.0 + obj_f.abs())).all())
-
-
-@pytest.mark.parametrize("n_lam", N_LAMS)
-@pytest.mark.parametrize("setting", list(SETTINGS))
-def test_prediction_paths_agree(n_lam, setting):
-    """LossInfo.lam of the prediction loss: fast == brute-force enumeration (the same
-    active-set solve, measured 0 difference) for n_lam <= 10; fast vs the cvxpylayers path of
-    (P): measured relative <= 7.5e-9 (paper; loss <= 1e-10), <= 3.1e-7 (stiff; absolute 8e-4 at
-    n = 1 where |lam| = 3.5e3; loss <= 1.6e-3)."""
-    _, _, stiffness = SETTINGS[setting]
-    truth = lcs_cvx.random_lcs(6, 2, n_lam, stiffness=stiffness, seed=n_lam)
-    data = lcs_cvx.make_dataset(truth, 20, noise=0.01, seed=100 + n_lam)
-    model = truth if setting == "stiff" else lcs_cvx.LCS(6, 2, n_lam, init_scale=0.3, seed=n_lam)
-    with torch.no_grad():
-        loss_f, info_f = prediction_loss(model, data.x, data.u, data.x_next, return_info=True)
-        loss_l, info_l = prediction_loss(
-            model, data.x, data.u, data.x_next, solver="cvxpylayers", return_info=True
-        )
-    scale = 1.0 + info_f.lam.abs().amax(-1)
-    if n_lam <= 10:
-        q, _ = lcp_terms(model, data)
-        brute = solve_lcp_brute(model.F.detach(), q)
-        assert float(((brute.lam - info_f.lam).abs().amax(-1) / scale).max()) <= 1e-12
-    layer = float(((info_l.lam - info_f.lam).abs().amax(-1) / scale).max())
-    assert layer <= (1e-7 if setting == "paper" else 1e-5), layer
-    assert abs(float(loss_l) - float(loss_f)) <= (1e-8 if setting == "paper" else 1e-2) * abs(
-        float(loss_f)
-    )
-    assert info_f.n_fallback == 0 and info_f.max_residual <= 1e-13
-
-
-# -- the SCS path ---------------------------------------------------------------------------
-
-
-def test_scs_path_runs_and_agrees_loosely():
-    """diffcp + SCS (eps 1e-10, 1e5 iterations). A first-order method, so only a loose
-    tolerance is promised: 1e-6 relative on lam, loss and gradients. Measured here: lam
-    <= 3e-11, loss <= 7e-12, gradients <= 5e-9 (violation) and <= 4e-11 (prediction)."""
-    model, data = make_problem(n=10)
-    for loss_fn, kw in ((violation_loss, {"gamma": 1e-2, "eps": 1e-2}), (prediction_loss, {})):
-        lf, info_f, gf = autograd(loss_fn, model, data, **kw)
-        ls, info_s, gs = autograd(loss_fn, model, data, solver="cvxpylayers-scs", **kw)
-        assert math.isfinite(ls)
-        assert info_s.iterations == 0 and info_s.n_fallback == 0
-        assert abs(ls - lf) <= 1e-6 * abs(lf)
-        assert float((info_s.lam - info_f.lam).abs().max()) <= 1e-6 * (
-            1 + float(info_f.lam.abs().max())
-        )
-        for name in PARAMETER_NAMES:
-            assert rel_err(gs[name], gf[name]) <= 1e-6, (loss_fn.__name__, name)
 
 
 # -- input checks and the regulariser ---------------------------------------------------------
@@ -720,19 +314,19 @@ def test_non_finite_input_raises(loss_fn, arg):
         loss_fn(model, inputs["x"], inputs["u"], inputs["x_next"])
 
 
-@pytest.mark.parametrize("weight", [0.0, 1e-5, 0.3])
-def test_regularizer_value_and_gradient(weight):
+@pytest.mark.parametrize("reg", [0.0, 1e-5, 0.3])
+def test_regularizer_value_and_gradient(reg):
     model, _ = make_problem(n=5)
     model.zero_grad()
-    value = regularizer(model, weight)
+    value = regularizer(model, reg=reg)
     assert float(value.detach()) == pytest.approx(
-        weight * float((model.C.detach() ** 2).sum()), rel=1e-14
+        reg * float((model.C.detach() ** 2).sum()), rel=1e-14
     )
     assert float(value.detach()) == pytest.approx(
-        weight * float(torch.linalg.matrix_norm(model.C.detach())) ** 2, rel=1e-12
+        reg * float(torch.linalg.matrix_norm(model.C.detach())) ** 2, rel=1e-12
     )
     value.backward()
-    assert torch.allclose(model.C.grad, 2 * weight * model.C.detach(), rtol=1e-14, atol=0)
+    assert torch.allclose(model.C.grad, 2 * reg * model.C.detach(), rtol=1e-14, atol=0)
     for name in PARAMETER_NAMES:
         if name != "C":
             assert getattr(model, name).grad is None
@@ -742,11 +336,11 @@ def test_regularizer_value_and_gradient(weight):
     )
 
 
-@pytest.mark.parametrize("weight", [-1e-3, True, "1e-5"])
-def test_regularizer_rejects_bad_weight(weight):
+@pytest.mark.parametrize("reg", [-1e-3, True, "1e-5"])
+def test_regularizer_rejects_bad_reg(reg):
     model, _ = make_problem(n=5)
-    with pytest.raises(LCSInputError, match="weight"):
-        regularizer(model, weight)
+    with pytest.raises(LCSInputError, match=r"reg: expected a number >= 0"):
+        regularizer(model, reg)
 
 
 # -- devices -------------------------------------------------------------------------------
@@ -764,16 +358,18 @@ def test_fast_paths_on_device(device):
     """The fast paths run on ``device`` and agree with the CPU float64 result."""
     model, data = make_problem(n=30)
     ref = {}
-    for loss_fn, kw in ((violation_loss, {"gamma": 1e-2, "eps": 1e-3}), (prediction_loss, {})):
-        ref[loss_fn.__name__] = autograd(loss_fn, model, data, **kw)
+    cases = ((violation_loss_info, {"gamma": 1e-2, "eps": 1e-3}), (prediction_loss_info, {}))
+    for info_fn, kw in cases:
+        ref[info_fn.__name__] = autograd(info_fn, model, data, **kw)
     model_d = model.to(device)
     data_d = data.to(device)
-    for loss_fn, kw in ((violation_loss, {"gamma": 1e-2, "eps": 1e-3}), (prediction_loss, {})):
+    for info_fn, kw in cases:
         model_d.zero_grad()
-        loss, info = loss_fn(model_d, data_d.x, data_d.u, data_d.x_next, return_info=True, **kw)
+        info = info_fn(model_d, data_d.x, data_d.u, data_d.x_next, **kw)
+        loss = info.loss
         assert loss.device.type == device and info.lam.device.type == device
         loss.backward()
-        l0, info0, g0 = ref[loss_fn.__name__]
+        l0, info0, g0 = ref[info_fn.__name__]
         assert float(loss.detach()) == pytest.approx(l0, rel=1e-10)
         assert torch.allclose(info.lam.cpu(), info0.lam, rtol=1e-10, atol=1e-10)
         for name in PARAMETER_NAMES:
@@ -797,26 +393,32 @@ def test_losses_are_scalars_with_a_graph(solver, dtype):
         assert all(getattr(model, k).grad.dtype == dtype for k in PARAMETER_NAMES)
 
 
-def test_fast_losses_in_torch_arrays_match_numpy(monkeypatch):
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fast_losses_in_torch_arrays_match_numpy(dtype):
     """The fast losses run in NumPy arrays on CPU and in torch tensors elsewhere (CUDA): forced
-    onto torch tensors on CPU, the same values, solutions and gradients (to round-off)."""
+    onto torch tensors on CPU (``arrays="torch"``), the same values, solutions and gradients (to
+    round-off) as in NumPy arrays, the CPU default."""
     model, data = make_problem(n=40, n_lam=5, model="perturbed", seed=3)
-    cases = ((violation_loss, {"gamma": 1e-2, "eps": 1e-3}), (prediction_loss, {}))
-    ref = {fn.__name__: autograd(fn, model, data, **kw) for fn, kw in cases}
-    forced = []
-
-    def torch_ops(t, backend="auto"):
-        forced.append(t.device)
-        return array_ops(t, "torch")
-
-    monkeypatch.setattr(lcs_cvx.losses, "array_ops", torch_ops)
+    model = model.to(dtype)
+    x, u, xn = (t.to(dtype) for t in (data.x, data.u, data.x_next))
+    cases = ((violation_fast, {"gamma": 1e-2, "eps": 1e-3}), (prediction_fast, {}))
     for fn, kw in cases:
-        value, info, g = autograd(fn, model, data, **kw)
-        assert forced.pop() == torch.device("cpu")
-        v0, info0, g0 = ref[fn.__name__]
+        out = {}
+        for arrays in ("auto", "torch"):
+            model.zero_grad()
+            info = fn(model, x, u, xn, arrays=arrays, **kw)
+            info.loss.backward()
+            out[arrays] = (float(info.loss.detach()), info, {k: getattr(model, k).grad.clone() for k in PARAMETER_NAMES})
+        (v0, info0, g0), (value, info, g) = out["auto"], out["torch"]
+        assert info.lam.dtype == dtype and info.phi.dtype == dtype and info.loss.dtype == dtype
+        if dtype == torch.float32:  # the same algorithm: single-precision round-off
+            assert value == pytest.approx(v0, rel=1e-5)
+            assert torch.equal(info.active, info0.active)
+            continue
         assert value == pytest.approx(v0, rel=1e-12)
         assert float((info.lam - info0.lam).abs().max()) <= 1e-12
-        if fn is violation_loss:  # round-off times 1/(eps gamma): against its terms' magnitude
+        assert torch.equal(info.active, info0.active) and info.iterations == info0.iterations
+        if fn is violation_fast:  # round-off times 1/(eps gamma): against its terms' magnitude
             scale = lemma3_gradients(model, data, info0.lam, info0.phi, magnitude=True, **kw)
             for name in PARAMETER_NAMES:
                 assert float(((g[name] - g0[name]).abs() / scale[name]).max()) <= 1e-14, name
@@ -832,10 +434,10 @@ def test_loss_info_violation_fast_and_layer():
     model, data = make_problem(n=20)
     N, n = 20, model.n_lam
     gamma, eps = 1e-2, 1e-3
-    loss, info = violation_loss(
-        model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, return_info=True
-    )
+    info = violation_loss_info(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps)
+    loss = info.loss
     assert isinstance(info, lcs_cvx.LossInfo)
+    assert loss.shape == () and loss.requires_grad
     assert info.lam.shape == (N, n) and info.phi.shape == (N, n)
     assert not info.lam.requires_grad and not info.phi.requires_grad
     assert bool((info.lam >= 0).all()) and bool((info.phi >= 0).all())
@@ -849,21 +451,14 @@ def test_loss_info_violation_fast_and_layer():
     # the mean of the per-sample objective at (info.lam, info.phi) is the loss
     per = violation_objective(model, data, info.lam, info.phi, gamma, eps)
     assert float(per.mean()) == pytest.approx(float(loss.detach()), rel=1e-12)
-    # without return_info: the same scalar
+    # the plain loss: the same scalar
     with torch.no_grad():
         again = violation_loss(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps)
     assert float(again) == float(loss.detach())
-    _, info_l = violation_loss(
-        model,
-        data.x,
-        data.u,
-        data.x_next,
-        gamma=gamma,
-        eps=eps,
-        solver="cvxpylayers",
-        return_info=True,
+    info_l = violation_loss_info(
+        model, data.x, data.u, data.x_next, gamma=gamma, eps=eps, solver="cvxpylayers"
     )
-    assert info_l.lam.shape == (N, n)
+    assert info_l.lam.shape == (N, n) and info_l.loss.requires_grad and info_l.active is None
     assert (info_l.iterations, info_l.n_fallback, info_l.n_degenerate) == (0, 0, 0)
     # the layer's own KKT residual is reported: small here, but not round-off small
     assert 0.0 < info_l.max_residual <= lcs_cvx.losses.LAYER_RESIDUAL_TOL
@@ -872,7 +467,7 @@ def test_loss_info_violation_fast_and_layer():
 def _degenerate_model():
     """A 3-variable model with ``c = (0, 1, 2)``: at ``x = 0, u = 0``, ``q = c`` exactly,
     whose LCP solution is ``lam = 0``, ``w = q``: index 0 has ``lam_0 = w_0 = 0``."""
-    model = lcs_cvx.LCS(4, 2, 3, init_scale=0.5, seed=11)
+    model = lcs_cvx.LCS(4, 2, 3, stiffness=1.0, init_scale=0.5, seed=11)
     with torch.no_grad():
         model.c.copy_(torch.tensor([0.0, 1.0, 2.0], dtype=F64))
     return model
@@ -881,7 +476,7 @@ def _degenerate_model():
 def _degenerate_model_active():
     """Index 0 degenerate next to an active index: ``lam* = (0, 1, 0)``, ``w* = (0, 0, 1)``;
     ``c = w* - F lam*`` so that ``q = c`` at ``x = 0, u = 0`` (``w_0 = 0`` up to round-off)."""
-    model = lcs_cvx.LCS(4, 2, 3, init_scale=0.5, seed=12)
+    model = lcs_cvx.LCS(4, 2, 3, stiffness=1.0, init_scale=0.5, seed=12)
     with torch.no_grad():
         lam = torch.tensor([0.0, 1.0, 0.0], dtype=F64)
         w = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
@@ -902,7 +497,8 @@ def test_loss_info_counts_degenerate_samples(build, lam_star):
     x[degenerate] = 0.0
     u[degenerate] = 0.0
     x_next = torch.randn(12, 4, generator=g, dtype=F64)
-    loss, info = prediction_loss(model, x, u, x_next, return_info=True)
+    info = prediction_loss_info(model, x, u, x_next)
+    loss = info.loss
     assert info.n_degenerate == len(degenerate)
     assert torch.allclose(
         info.lam[degenerate], torch.tensor(lam_star, dtype=F64).expand(4, 3), atol=1e-12
@@ -910,21 +506,23 @@ def test_loss_info_counts_degenerate_samples(build, lam_star):
     assert float(info.phi[degenerate, 0].abs().max()) <= 1e-12  # w_0 = 0 there
     # the non-degenerate samples are not counted
     rest = [i for i in range(12) if i not in degenerate]
-    _, info_rest = prediction_loss(model, x[rest], u[rest], x_next[rest], return_info=True)
+    info_rest = prediction_loss_info(model, x[rest], u[rest], x_next[rest])
     assert info_rest.n_degenerate == 0
     # the one-sided derivative is finite
     loss.backward()
     for name in PARAMETER_NAMES:
         assert bool(torch.isfinite(getattr(model, name).grad).all()), name
     # the violation loss never reports degeneracy
-    _, info_v = violation_loss(model, x, u, x_next, gamma=1e-2, eps=1e-2, return_info=True)
+    info_v = violation_loss_info(model, x, u, x_next, gamma=1e-2, eps=1e-2)
     assert info_v.n_degenerate == 0
 
 
 def test_loss_info_prediction_fields():
     model, data = make_problem(n=20)
-    loss, info = prediction_loss(model, data.x, data.u, data.x_next, return_info=True)
+    info = prediction_loss_info(model, data.x, data.u, data.x_next)
     q, _ = lcp_terms(model, data)
+    with torch.no_grad():  # the plain loss: the same scalar
+        assert float(prediction_loss(model, data.x, data.u, data.x_next)) == float(info.loss.detach())
     # phi is w = F lam + q; lam solves the LCP
     assert torch.allclose(info.phi, info.lam @ model.F.detach().mT + q, rtol=0, atol=1e-12)
     assert bool((info.lam >= 0).all())
@@ -932,6 +530,47 @@ def test_loss_info_prediction_fields():
     assert float((info.lam * info.phi).abs().max()) <= 1e-9
     assert info.n_fallback == 0 and info.n_degenerate == 0 and info.max_residual <= 1e-13
     assert not info.lam.requires_grad
+
+
+@pytest.mark.parametrize("loss", ["violation", "prediction"])
+def test_trainer_fast_paths_report_the_fallbacks_residual(monkeypatch, loss):
+    """``violation_fast`` / ``prediction_fast`` (the trainer's, on validated tensors): the public
+    loss's value, gradient and active sets; without the full residual, ``max_residual`` is the
+    worst residual of the samples a reference solved -- 0.0 when pivoting converged on all."""
+    model, data = make_problem(n_lam=6, model="perturbed", seed=11)
+    x, u, xn = data.x, data.u, data.x_next
+    if loss == "violation":
+        fast, public, kw = violation_fast, violation_loss_info, {"gamma": 1e-2, "eps": 1e-3}
+    else:
+        fast, public, kw = prediction_fast, prediction_loss_info, {}
+    ref = public(model, x, u, xn, **kw)
+    info = fast(model, x, u, xn, **kw)
+    assert float(info.loss.detach()) == float(ref.loss.detach())
+    assert torch.equal(info.lam, ref.lam) and torch.equal(info.active, ref.active)
+    assert info.n_fallback == 0 and info.max_residual == 0.0 < ref.max_residual + 1e-300
+    model.zero_grad()
+    info.loss.backward()
+    g_fast = {k: getattr(model, k).grad.clone() for k in PARAMETER_NAMES}
+    model.zero_grad()
+    ref.loss.backward()
+    for k in PARAMETER_NAMES:
+        assert torch.equal(g_fast[k], getattr(model, k).grad), k
+    monkeypatch.setattr(lcs_cvx.losses, "MAX_ITER", 0)  # every sample that must pivot falls back
+    with pytest.warns(lcs_cvx.FallbackWarning, match="did not converge"):
+        lean = fast(model, x, u, xn, **kw)
+        full = fast(model, x, u, xn, residual=True, **kw)
+    assert lean.n_fallback == full.n_fallback >= 1
+    assert float((lean.lam - ref.lam).abs().max()) <= 1e-6 * (1 + float(ref.lam.abs().max()))
+    if loss == "violation":  # Clarabel's answers: accurate, not round-off exact
+        assert 0.0 < lean.max_residual == pytest.approx(full.max_residual, rel=1e-12)
+    else:  # n_lam = 6: enumeration, exact; the samples whose first guess q < 0 was wrong
+        q, _ = lcp_terms(model, data)
+        fell_back = ((ref.lam > 0) != (q < 0)).any(-1)
+        assert int(fell_back.sum()) == lean.n_fallback
+        expected = float(lcs_cvx.lcp.lcp_residual(model.F.detach(), q[fell_back], lean.lam[fell_back]).max())
+        # round-off both (the loss forms F in its arrays, model.F is torch's: 1 ulp apart)
+        assert lean.max_residual == pytest.approx(expected, abs=1e-15)
+        assert lean.max_residual <= full.max_residual <= 1e-13
 
 
 # -- warm starts of the fast solvers ---------------------------------------------------------
@@ -947,11 +586,11 @@ def test_warm_start_changes_the_work_not_the_result(loss_fn):
     def run(m, warm=None):
         m.zero_grad()
         if loss_fn == "violation":
-            value, info = violation_loss(m, data.x, data.u, data.x_next, gamma=1e-2, eps=1e-3,
-                                         return_info=True, warm_start=warm)
+            info = violation_loss_info(m, data.x, data.u, data.x_next, gamma=1e-2, eps=1e-3,
+                                       warm_start=warm)
         else:
-            value, info = prediction_loss(m, data.x, data.u, data.x_next, return_info=True,
-                                          warm_start=warm)
+            info = prediction_loss_info(m, data.x, data.u, data.x_next, warm_start=warm)
+        value = info.loss
         value.backward()
         return value.detach(), {k: p.grad.clone() for k, p in m.named_parameters()}, info
 

@@ -108,13 +108,12 @@ def test_normalised_lcs_folds_into_the_same_lcs_in_physical_units():
     u = g.normal(1.0, 4.0, size=(300, 1))
     x_next = x + g.normal(0.0, [0.01, 0.05, 0.1, 0.5], size=(300, 4))
     sc = Scaling.fit(x, u, x_next)
-    normalised = LCS(4, 1, 3, init_scale=0.7, seed=1)
+    normalised = LCS(4, 1, 3, stiffness=1.0, init_scale=0.7, seed=1)
     physical = LCSModel.from_matrices(sc.to_physical(normalised.to_matrices()))
     z, v = sc.encode(x, u)
     with torch.no_grad():
         y = normalised.step(torch.from_numpy(z), torch.from_numpy(v)).numpy()
-        lam_n = lcs_cvx.solve_lcp(normalised.F, normalised.lcp_offset(torch.from_numpy(z),
-                                                                     torch.from_numpy(v))).lam.numpy()
+        lam_n = normalised.solve_lcp(torch.from_numpy(z), torch.from_numpy(v)).lam.numpy()
     np.testing.assert_allclose(physical.predict(x, u), sc.decode(x, y), rtol=1e-10, atol=1e-10)
     np.testing.assert_allclose(physical.lam(x, u), lam_n, rtol=1e-9, atol=1e-10)
     assert 0 < (lam_n > 0).mean() < 1  # the test exercises active and inactive units
@@ -370,7 +369,6 @@ def test_npz_from_a_user_and_its_errors(tmp_path):
 
 
 def test_a_diverged_restart_is_reported_not_selected(monkeypatch):
-    import lcs_cvx
     from studies.physics import models
 
     def diverge(*args, **kwargs):

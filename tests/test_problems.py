@@ -16,6 +16,8 @@ import torch
 from conftest import random_p_matrix, random_q
 
 import lcs_cvx
+from lcs_cvx._kernels import violation as kernel_violation
+from lcs_cvx._kernels.arrays import array_ops
 from lcs_cvx.lcp import solve_lcp_fast
 from lcs_cvx.problems import (
     ConvexLCPProblem,
@@ -88,9 +90,10 @@ def test_convex_lcp_parameter_values_and_solve():
     assert torch.allclose(R.mT @ R, F + F.mT, atol=1e-13)
     assert torch.equal(torch.triu(R), R)  # upper triangular
     assert vals["F"] is F and vals["q"] is q
-    lam = decl.solve(F, q.numpy())
-    exact = solve_lcp_fast(F, q).lam.numpy()
-    assert np.abs(lam - exact).max() <= 1e-7
+    lam = decl.solve(F, q)
+    assert lam.dtype == F64 and lam.shape == q.shape
+    exact = solve_lcp_fast(F, q).lam
+    assert float((lam - exact).abs().max()) <= 1e-7
     # the optimal value of (P) is 0 at the LCP solution (lam^T (F lam + q) = 0)
     decl.parameters["q"].value = q[-1].numpy()
     assert abs(decl.problem.value - 0.0) <= 1e-8
@@ -106,16 +109,16 @@ def test_reference_solve_does_not_depend_on_earlier_solves():
     n = 2
     F_ill = random_p_matrix(n, smin=1e-5, seed=5, skew=1e-3, min_dir=np.ones(n))
     q_ill = random_q(15, n, seed=2)
-    exact = solve_lcp_fast(F_ill, q_ill).lam.numpy()
-    assert exact.max() > 1e3
+    exact = solve_lcp_fast(F_ill, q_ill).lam
+    assert float(exact.max()) > 1e3
     cached = convex_lcp_problem(n)
-    other = lcs_cvx.random_lcs(4, 2, n, seed=1)
+    other = lcs_cvx.random_lcs(4, 2, n, stiffness=0.5, seed=1)
     ds = lcs_cvx.make_dataset(other, 5, seed=1)
-    cached.solve(other.F, other.lcp_offset(ds.x, ds.u).numpy())  # something else first
+    cached.solve(other.F, other.lcp_offset(ds.x, ds.u))  # something else first
     after_other = cached.solve(F_ill, q_ill)
     fresh = convex_lcp_problem.__wrapped__(n).solve(F_ill, q_ill)  # a brand-new declaration
-    assert np.array_equal(after_other, fresh)
-    assert np.abs(fresh - exact).max() <= 1e-8 * (1 + exact.max())
+    assert torch.equal(after_other, fresh)
+    assert float((fresh - exact).abs().max()) <= 1e-8 * (1 + float(exact.max()))
 
 
 def test_convex_lcp_parameter_values_reject_non_p_matrix():
@@ -187,10 +190,11 @@ def test_violation_parameter_values_complete_the_square():
     assert all(float(t.grad.abs().max()) > 0 for t in leaves)
 
 
-def test_violation_normal_equations_and_numpy_parameter_values():
+def test_violation_normal_equations_are_the_kernels_and_what_parameter_values_factor():
     """The kernel's form ``{LtL, Ltb, K, h}`` is what the parameter values factor: ``L^T L =
-    LtL`` and ``L^T b = Ltb`` for ``factor(normal_equations(...))``; the same numbers from NumPy
-    arrays (the fast loss's arrays) as from tensors."""
+    LtL`` and ``L^T b = Ltb`` for ``factor(normal_equations(...))``, and ``parameter_values`` is
+    that factorisation. The formula is the kernel's (``lcs_cvx._kernels.violation``): the
+    declaration evaluates it on tensors, the fast loss in NumPy arrays -- the same numbers."""
     n, n_x, B, gamma, eps = 4, 3, 5, 0.1, 1e-2
     F = random_p_matrix(n, smin=0.5, seed=3)
     C, q, r = randn(n_x, n, seed=1), randn(B, n, seed=2), randn(B, n_x, seed=3)
@@ -202,12 +206,20 @@ def test_violation_normal_equations_and_numpy_parameter_values():
     v = decl.factor(normal)
     assert torch.allclose(v["L"].mT @ v["L"], normal["LtL"], rtol=1e-12, atol=1e-12)
     assert torch.allclose(v["b"] @ v["L"], normal["Ltb"], rtol=1e-12, atol=1e-12)
-    v_np = decl.parameter_values(*(t.numpy() for t in (C, F, q, r)), gamma, eps)
+    values = decl.parameter_values(C, F, q, r, gamma, eps)
     for k in ("L", "b", "K", "h"):
-        assert isinstance(v_np[k], np.ndarray)
-        assert np.allclose(v_np[k], v[k].numpy(), rtol=1e-13, atol=1e-13), k
+        assert torch.equal(values[k], v[k]), k
+    # the fast loss's arrays: the kernel's formula in NumPy, factored, gives the same values
+    xp = array_ops(F, "numpy")
+    normal_np = kernel_violation.normal_equations(xp, *(t.numpy() for t in (C, F, q, r)), gamma, eps)
+    for k in ("LtL", "Ltb", "K", "h"):
+        assert isinstance(normal_np[k], np.ndarray)
+        assert np.allclose(normal_np[k], normal[k].numpy(), rtol=1e-14, atol=1e-14), k
+    v_np = decl.factor({k: torch.from_numpy(a) for k, a in normal_np.items()})
+    for k in ("L", "b", "K", "h"):
+        assert torch.allclose(v_np[k], v[k], rtol=1e-13, atol=1e-13), k
     with pytest.raises(lcs_cvx.LCSInputError, match=r"gamma: expected 0 < gamma < sigma_min"):
-        decl.normal_equations(C.numpy(), F.numpy(), q.numpy(), r.numpy(), 10.0, eps)
+        decl.normal_equations(C, F, q, r, 10.0, eps)
 
 
 # -- (V): the (lam, phi) objective against the declared problem ----------------------------

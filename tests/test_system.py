@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 from conftest import random_p_matrix
+from zoo import K_WALL, SPRING_POINTS, spring_wall, spring_wall_by_hand
 
 import lcs_cvx
-from lcs_cvx import LCS, random_lcs
+from lcs_cvx import LCS, LCPSolution, random_lcs
 from lcs_cvx.lcp import solve_lcp_brute
 from lcs_cvx.problems import sym_min_eig
-from lcs_cvx.system import MATRIX_NAMES, PARAMETER_NAMES
+from lcs_cvx.system import ACTIVE_TOL, DEFAULT_STIFFNESS, MATRIX_NAMES, PARAMETER_NAMES
 
 F64 = torch.float64
 
@@ -71,9 +72,21 @@ def test_lcs_init_parameters():
     assert m.sigma_min >= 1.4 * (1 - 1e-12)
     m2 = LCS(3, 2, 4, stiffness=0.7, init_scale=0.1, seed=0)
     assert all(torch.equal(a, b) for a, b in zip(m.parameters(), m2.parameters(), strict=True))
-    zero = LCS(3, 2, 4, init_scale=0.0)
+    zero = LCS(3, 2, 4, stiffness=1.0, init_scale=0.0)
     assert float(zero.A.detach().abs().max()) == 0.0
     assert torch.equal(zero.F.detach(), torch.eye(4, dtype=F64))
+
+
+def test_lcs_and_random_lcs_share_their_defaults():
+    """Seed 0 and one stiffness for both: the defaults are reproducible, and a default model's
+    F + F^T >= 2 s I contains every default ground truth's F."""
+    m, t = LCS(3, 2, 4), random_lcs(3, 2, 4)
+    assert float(m.stiffness) == float(t.stiffness) == DEFAULT_STIFFNESS
+    again = LCS(3, 2, 4)
+    assert all(torch.equal(a, b) for a, b in zip(m.parameters(), again.parameters(), strict=True))
+    assert all(torch.equal(a, b) for a, b in zip(t.parameters(), random_lcs(3, 2, 4, seed=0).parameters(),
+                                                  strict=True))
+    assert t.sigma_min >= 2 * float(m.stiffness) * (1 - 1e-12)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -127,51 +140,28 @@ def test_from_matrices_rejects_non_p_matrix(F, smin):
 
 # -- a hand-solvable system: a point mass against a spring wall ----------------------------
 
-H_STEP, K_WALL = 0.1, 50.0
-
-
-def spring_wall() -> LCS:
-    """Mass at position p, velocity v, unit mass, input force u, time step h. The wall at p = 0
-    pushes with impulse-force lam >= 0 and is a spring of stiffness k: the next position may
-    penetrate by lam / k, i.e. 0 <= lam _|_ p' + lam / k >= 0 with p' = p + h v + h^2 (u + lam).
-
-        x = (p, v),  A = [[1, h], [0, 1]],  B = C = [[h^2], [h]],  d = 0
-        D = [1, h],  E = [h^2],  F = [h^2 + 1/k],  c = 0
-    """
-    h = H_STEP
-    return LCS.from_matrices(
-        A=[[1.0, h], [0.0, 1.0]], B=[[h * h], [h]], C=[[h * h], [h]], d=[0.0, 0.0],
-        D=[[1.0, h]], E=[[h * h]], F=[[h * h + 1.0 / K_WALL]], c=[0.0],
-    )
-
 
 def test_spring_wall_by_hand():
+    """The zoo's spring wall (``tests/zoo.py``) as a system: lam and the next state by hand."""
     sys = spring_wall()
-    h, k = H_STEP, K_WALL
-    pts = [  # (p, v, u)
-        (1.0, 0.0, 0.0),     # far from the wall, at rest: no contact
-        (0.05, -1.0, 0.0),   # would cross the wall: contact
-        (0.0, 0.0, -2.0),    # pushed into the wall from rest
-        (-0.01, 0.5, 0.0),   # already inside, moving out fast enough: no force
-        (0.2, -3.0, 1.0),
-    ]
+    k = K_WALL
+    pts = SPRING_POINTS  # (p, v, u)
     x = torch.tensor([[p, v] for p, v, _ in pts], dtype=F64)
     u = torch.tensor([[uu] for _, _, uu in pts], dtype=F64)
-    lam_hand, xn_hand = [], []
-    for p, v, uu in pts:
-        p_free = p + h * v + h * h * uu  # next position without the wall
-        lam = max(0.0, -p_free / (h * h + 1.0 / k))
-        lam_hand.append([lam])
-        xn_hand.append([p_free + h * h * lam, v + h * (uu + lam)])
-    lam_hand = torch.tensor(lam_hand, dtype=F64)
-    xn_hand = torch.tensor(xn_hand, dtype=F64)
+    lam_hand, xn_hand = spring_wall_by_hand(pts)
     assert [bool(v) for v in lam_hand[:, 0] > 0] == [False, True, True, False, True]
     for method in ("fast", "brute", "cvxpy"):
-        assert torch.allclose(sys.solve_lcp(x, u, method=method), lam_hand, rtol=1e-8, atol=1e-9)
+        sol = sys.solve_lcp(x, u, method=method)
+        assert isinstance(sol, LCPSolution)
+        assert torch.allclose(sol.lam, lam_hand, rtol=1e-8, atol=1e-9)
         assert torch.allclose(sys.step(x, u, method=method), xn_hand, rtol=1e-8, atol=1e-9)
     # physics: in contact the wall is a spring, p' = -lam / k
     xn = sys.step(x, u)
-    lam = sys.solve_lcp(x, u)
+    sol = sys.solve_lcp(x, u)
+    lam = sol.lam
+    # a learnable model: lam (and w = F lam + q) through the differentiable active-set map
+    assert lam.requires_grad and sol.w.requires_grad
+    assert torch.allclose(sol.w, lam @ sys.F.mT + sys.lcp_offset(x, u), rtol=0, atol=1e-14)
     contact = lam[:, 0] > 0
     assert torch.allclose(xn[contact, 0], -lam[contact, 0] / k, rtol=1e-12, atol=1e-14)
     # out of contact w = p' >= 0: the mass never ends a step inside the wall without a force
@@ -237,7 +227,7 @@ def test_active_set_matches_brute_force(small_system):
     act = sys.active_set(x, u)
     assert act.dtype == torch.bool and act.shape == (500, 3)
     brute = solve_lcp_brute(sys.F, sys.lcp_offset(x, u))
-    assert torch.equal(act, brute.lam > 1e-8)
+    assert torch.equal(act, brute.lam > ACTIVE_TOL)  # the default tolerance
     assert torch.unique(act, dim=0).shape[0] >= 4  # several modes are visited
     assert torch.equal(sys.active_set(x, u, tol=1e9), torch.zeros_like(act))
 
@@ -247,14 +237,14 @@ def test_lcp_offset_and_step_formula(small_system):
     x, u = uniform((20, 4), 10, 4), uniform((20, 2), 5, 5)
     q = sys.lcp_offset(x, u)
     assert torch.allclose(q, x @ sys.D.T + u @ sys.E.T + sys.c, rtol=0, atol=1e-14)
-    lam = sys.solve_lcp(x, u)
+    lam = sys.solve_lcp(x, u).lam
     w = lam @ sys.F.T + q
     assert bool((lam >= 0).all()) and bool((w >= -1e-10).all())
     assert float((lam * w).abs().max()) <= 1e-10
     xn = sys.step(x, u)
     assert torch.allclose(xn, x @ sys.A.T + u @ sys.B.T + lam @ sys.C.T + sys.d, rtol=0, atol=1e-13)
     for method in ("brute", "cvxpy"):
-        assert torch.allclose(sys.solve_lcp(x, u, method=method), lam, rtol=1e-7, atol=1e-7)
+        assert torch.allclose(sys.solve_lcp(x, u, method=method).lam, lam, rtol=1e-7, atol=1e-7)
 
 
 # -- batched vs single ---------------------------------------------------------------------
@@ -264,12 +254,12 @@ def test_batched_equals_single_samples(small_system):
     sys = small_system
     x, u = uniform((30, 4), 10, 6), uniform((30, 2), 5, 7)
     batched = sys.step(x, u)
-    lam_b = sys.solve_lcp(x, u)
+    lam_b = sys.solve_lcp(x, u).lam
     for i in range(30):
         single = sys.step(x[i], u[i])
         assert single.shape == (1, 4)
         assert torch.allclose(single[0], batched[i], rtol=1e-12, atol=1e-12)
-        assert torch.allclose(sys.solve_lcp(x[i], u[i])[0], lam_b[i], rtol=1e-12, atol=1e-12)
+        assert torch.allclose(sys.solve_lcp(x[i], u[i]).lam[0], lam_b[i], rtol=1e-12, atol=1e-12)
     # numpy and nested lists are accepted as well
     assert torch.allclose(sys.step(x.numpy(), u.numpy()), batched, rtol=0, atol=0)
     assert torch.allclose(sys.step(x[:2].tolist(), u[:2].tolist()), batched[:2], rtol=0, atol=0)
@@ -279,7 +269,7 @@ def test_no_input_system():
     sys = random_lcs(3, 0, 2, seed=1)
     x = uniform((10, 3), 10, 0)
     xn = sys.step(x, torch.zeros(10, 0, dtype=F64))
-    lam = sys.solve_lcp(x, np.zeros((10, 0)))
+    lam = sys.solve_lcp(x, np.zeros((10, 0))).lam
     assert torch.allclose(xn, x @ sys.A.T + lam @ sys.C.T + sys.d, rtol=0, atol=1e-13)
 
 
@@ -289,7 +279,7 @@ def test_no_input_system():
 def _strictly_complementary_samples(sys, n, seed, margin=1e-2):
     x, u = uniform((4 * n, sys.n_x), 10, seed), uniform((4 * n, sys.n_u), 5, seed + 1)
     with torch.no_grad():
-        lam = sys.solve_lcp(x, u)
+        lam = sys.solve_lcp(x, u).lam
         w = lam @ sys.F.mT + sys.lcp_offset(x, u)
     ok = torch.maximum(lam, w).amin(-1) >= margin
     idx = ok.nonzero().squeeze(1)[:n]
@@ -337,7 +327,7 @@ def test_step_gradients_wrt_inputs_and_through_module_backward():
 def test_no_graph_without_grad(small_system):
     x, u = uniform((5, 4), 10, 0), uniform((5, 2), 5, 1)
     assert not small_system.step(x, u).requires_grad
-    m = LCS(4, 2, 3, seed=0)
+    m = LCS(4, 2, 3, stiffness=1.0, seed=0)
     assert m.step(x, u).requires_grad
     with torch.no_grad():
         assert not m.step(x, u).requires_grad
@@ -359,7 +349,7 @@ def test_float32_model():
     # numpy float64 input is converted to the model's dtype
     assert sys32.step(x.numpy(), u.numpy()).dtype == torch.float32
     # the learnable float32 model trains: gradients are float32 and finite
-    m = LCS(4, 2, 3, seed=0, dtype=torch.float32)
+    m = LCS(4, 2, 3, stiffness=1.0, seed=0, dtype=torch.float32)
     loss = ((m.step(x.float(), u.float()) - xn32) ** 2).mean()
     loss.backward()
     assert m.G.grad.dtype == torch.float32 and bool(torch.isfinite(m.G.grad).all())

@@ -51,7 +51,7 @@ def test_prune_removes_the_useless_unit():
         c=torch.cat([sys.c, -torch.ones(1, dtype=torch.float64)]),
     )
     data = lcs_cvx.make_dataset(sys, 300, seed=1)
-    assert bool((big.solve_lcp(data.x, data.u)[:, 3] > 0).any())  # the unit is active somewhere
+    assert bool((big.solve_lcp(data.x, data.u).lam[:, 3] > 0).any())  # the unit is active somewhere
     small = prune(big, 3, data.x, data.u, data.x_next)
     assert small.n_lam == 3
     assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-8)
@@ -73,7 +73,7 @@ def test_pivot_is_exact_for_an_always_active_unit():
     assert small.n_lam == 3 and small.sigma_min >= 2 * float(sys.stiffness) - 1e-9  # Assumption 1 kept
     assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-8)
     # the kept units' lam is unchanged; deleting the unit instead is wrong
-    assert torch.allclose(small.solve_lcp(data.x, data.u), data.lam[:, :3], atol=1e-8)
+    assert torch.allclose(small.solve_lcp(data.x, data.u).lam, data.lam[:, :3], atol=1e-8)
     deleted = submodel(sys, [0, 1, 2])
     with torch.no_grad():
         assert float((deleted.step(data.x, data.u) - data.x_next).abs().max()) > 1.0
@@ -102,7 +102,7 @@ def test_refit_output_recovers_the_output_matrices():
     # with reg, the exact minimiser of L_pred + reg ||C||^2: its gradient in (A, B, C, d) vanishes
     refit_output(m, data.x, data.u, data.x_next, reg=0.1)
     m.zero_grad()
-    lam = m.solve_lcp(data.x, data.u).detach()
+    lam = m.solve_lcp(data.x, data.u).lam.detach()
     pred = data.x @ m.A.mT + data.u @ m.B.mT + lam @ m.C.mT + m.d
     (0.5 * ((pred - data.x_next) ** 2).sum(-1).mean() + 0.1 * (m.C ** 2).sum()).backward()
     for name in ("A", "B", "C", "d"):

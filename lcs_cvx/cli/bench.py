@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from ._args import positive_int, sizes
+from .. import LCSInputError
+from ._args import positive_int, reraise_for, sizes
 
 
 def configure_bench(p: argparse.ArgumentParser) -> None:
@@ -26,16 +27,20 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
 def run_bench(args: argparse.Namespace) -> int:
     """Loss + gradient throughput of each solver path, side by side, with ratios to diffcp-Clarabel."""
     from ..bench import DEFAULT_SIZES, format_table, run_lcp_bench
-    from ..bench import run_bench as _run
+    from ..bench import run_bench as bench_rows
 
     if args.lcp:
         table = run_lcp_bench(repeats=args.repeats)
     else:
-        rows = _run(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
-                    repeats=args.repeats, progress=lambda line: print(line, flush=True))
+        rows = bench_rows(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
+                          repeats=args.repeats, progress=lambda line: print(line, flush=True))
         table = format_table(rows)
     print(table)
     if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+        from ..io import atomic_write
+
+        try:
+            atomic_write(args.out, lambda f: f.write((table + "\n").encode()), name="out")
+        except LCSInputError as exc:
+            raise reraise_for("out", exc) from None
     return 0

@@ -58,12 +58,12 @@ def _demo_learning(args: argparse.Namespace) -> None:
     from .. import LCS, fit, relative_error
 
     n_lam = args.learn_n_lam
-    truth = random_lcs(args.n_x, args.n_u, n_lam, args.stiffness, args.seed + 1)
+    truth = random_lcs(args.n_x, args.n_u, n_lam, stiffness=args.stiffness, seed=args.seed + 1)
     train = make_dataset(truth, args.learn_n, noise=TRAIN_NOISE, seed=args.seed + 2)
     test = make_dataset(truth, 1000, seed=args.seed + 3)
     print(
         f"learning: a random LCS n_x={args.n_x}, n_u={args.n_u}, n_lam={n_lam} "
-        f"({count_modes(truth, train.x, train.u)} modes in {len(train)} noisy samples)"
+        f"({count_modes(truth, train)} modes in {len(train)} noisy samples)"
     )
     runs = (
         ("violation", {"recipe": "best", "refine_iterations": 5}),
@@ -83,7 +83,7 @@ def _demo_learning(args: argparse.Namespace) -> None:
 def run_demo(args: argparse.Namespace) -> int:
     """Random paper-style LCS, a training set of ``--n`` samples, the fast LCP solve timed and
     checked against the Clarabel reference on a random subset."""
-    system = random_lcs(args.n_x, args.n_u, args.n_lam, args.stiffness, args.seed)
+    system = random_lcs(args.n_x, args.n_u, args.n_lam, stiffness=args.stiffness, seed=args.seed)
     print(
         f"LCS: n_x={system.n_x}, n_u={system.n_u}, n_lam={system.n_lam} "
         f"(stiffness {args.stiffness:g}, seed {args.seed})"
@@ -93,7 +93,7 @@ def run_demo(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     data = make_dataset(system, args.n, noise=TRAIN_NOISE, seed=args.seed)
     print(f"data: {len(data)} samples, noise {TRAIN_NOISE:g} ({time.perf_counter() - t0:.2f} s)")
-    print(f"hybrid modes: {count_modes(system, data.x, data.u)} distinct active sets in the data")
+    print(f"hybrid modes: {count_modes(system, data)} distinct active sets in the data")
 
     with torch.no_grad():
         F = system.F

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
 import torch
 
 from .. import LCSInputError, count_modes
@@ -119,7 +120,7 @@ def configure_predict(p: argparse.ArgumentParser) -> None:
 
 def run_predict(args: argparse.Namespace) -> int:
     """e_test and the number of hybrid modes of a saved model on a data set."""
-    from ..io import _atomic_savez, load_model
+    from ..io import atomic_write, load_model
 
     require(args, "model", "data")
     check_target("out", args.out)
@@ -134,14 +135,14 @@ def run_predict(args: argparse.Namespace) -> int:
     print(f"model: n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam} ({args.model})")
     print(f"data: {len(data)} samples ({args.data})")
     print(f"e_test: {relative_error_for('data', model, data):.6g}")
-    print(f"modes: {count_modes(model, x, u)}")
+    print(f"modes: {count_modes(model, data)}")
     if args.out is not None:
         with torch.no_grad():
-            lam = model.solve_lcp(x, u)
+            lam = model.solve_lcp(x, u).lam
             x_next = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
         arrays = {"x_next_pred": x_next.cpu().numpy(), "lam": lam.cpu().numpy()}
         try:
-            _atomic_savez(args.out, arrays, name="out")
+            atomic_write(args.out, lambda f: np.savez(f, **arrays), name="out")
         except LCSInputError as exc:
             raise reraise_for("out", exc) from None
         print(f"predictions: {args.out}")

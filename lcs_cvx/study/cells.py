@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ..system import ACTIVE_TOL
 from .config import config_hash, fit_options
 
 __all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "setup_cell", "run_cell", "REFERENCE"]
@@ -37,8 +38,6 @@ __all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "setup_cell", "run_cel
 STREAMS = ("truth", "train", "test", "init", "fit")
 #: ``value_index`` of a reference cell (trained once per trial, independent of the swept value).
 REFERENCE = -1
-#: ``lam_i > MODE_TOL`` marks unit ``i`` active (the default of :func:`lcs_cvx.count_modes`).
-MODE_TOL = 1e-5
 #: Fields of a cell that name it but do not change its result (left out of its key).
 _BOOKKEEPING = ("study", "config_hash", "value_index", "value", "trial")
 
@@ -124,8 +123,8 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         truth, train, test, learner, options = setup_cell(cell)
-        # = count_modes(truth, train.x, train.u), without solving the (possibly stiff) LCPs again
-        modes = int(torch.unique(train.lam > MODE_TOL, dim=0).shape[0])
+        # = count_modes(truth, train), without solving the (possibly stiff) LCPs again
+        modes = int(torch.unique(train.lam > ACTIVE_TOL, dim=0).shape[0])
         result = fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
                      seed=cell["seeds"]["fit"], **options)
         e_test = relative_error(result.model, test)

@@ -130,8 +130,7 @@ def reinit_saturated(state: TrainState) -> None:
     m = state.work
     idx = state.perm[: min(2000, len(state.perm))]
     with torch.no_grad():
-        lam = m.solve_lcp(state.train.x[idx], state.train.u[idx])
-        lam = lam.lam if hasattr(lam, "lam") else lam
+        lam = m.solve_lcp(state.train.x[idx], state.train.u[idx]).lam
         sat = ((lam > 0).to(torch.float64).mean(0) >= 0.98).nonzero().squeeze(1)
         if sat.numel() == 0:
             return

@@ -124,9 +124,8 @@ class LCSModel:
     def lam(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """``lam = LCP(F, D x + E u + c)`` ``(N, n_lam)`` for states ``(N, 4)``, inputs ``(N, 1)``."""
         with torch.no_grad():
-            q = self.lcs.lcp_offset(torch.from_numpy(np.ascontiguousarray(x)),
-                                    torch.from_numpy(np.ascontiguousarray(u)))
-            return lcs_cvx.solve_lcp(self.lcs.F, q).lam.numpy()
+            return self.lcs.solve_lcp(torch.from_numpy(np.ascontiguousarray(x)),
+                                      torch.from_numpy(np.ascontiguousarray(u))).lam.numpy()
 
 
 def _lstsq(x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> np.ndarray:

@@ -1,0 +1,15 @@
+"""Private array kernels of lcs_cvx: the array back-end and all array-level work.
+
+The public modules (:mod:`lcs_cvx.lcp`, :mod:`lcs_cvx.violation`, :mod:`lcs_cvx.losses`,
+:mod:`lcs_cvx.problems`, :mod:`lcs_cvx.system`) take and return torch tensors; the arithmetic
+they share runs here, written once against :class:`~lcs_cvx._kernels.arrays.ArrayOps`, which
+executes it on NumPy arrays for CPU tensors (no copy) and on torch tensors elsewhere:
+
+- :mod:`.arrays` -- the back-end (:class:`ArrayOps`, :func:`array_ops`) and its BLAS threads;
+- :mod:`.pivoting` -- batched block principal pivoting, the engine of both solvers;
+- :mod:`.lcp` -- the LCP kernel, ``0 <= lam _|_ F lam + q >= 0``;
+- :mod:`.violation` -- the kernel of the violation problem (V) and its normal equations;
+- :mod:`.losses` -- the forward and backward arithmetic of the two fast losses.
+
+Nothing here is public API; no name here is exported by :mod:`lcs_cvx`.
+"""

@@ -1,0 +1,146 @@
+r"""The kernel of the violation problem (V), eq. (equ.contactnet.2), in the form it consumes.
+
+(V) is declared once, in :func:`lcs_cvx.problems.violation_problem`; with ``phi`` eliminated and
+the objective times ``eps`` it reads::
+
+    min_{lam >= 0}  f(lam) = 1/2 ||L lam + b||^2 + 1/2 ||pos(K lam - h)||^2
+
+``f`` is piecewise quadratic and strongly convex. Its pieces are indexed by the set
+``s = {i : (K lam - h)_i > 0}`` -- exactly the indices where ``phi_i = 0`` in the paper's
+(lam, phi) form -- and the KKT system of the (lam, phi) problem is a 2 n-dimensional LCP with a
+positive definite matrix. Block principal pivoting on the joint set (free ``lam`` indices, ``s``)
+is therefore finite (:mod:`.pivoting`), and every sweep costs one batched ``n x n`` solve of
+
+    (L^T L + K^T diag(s) K)_II lam_I = -(L^T b - K^T (s * h))_I.
+
+The kernel therefore consumes the *normal equations* ``{LtL, Ltb, K, h}`` -- ``L^T L``, the rows
+of ``L^T b``, ``K`` and ``h`` -- which :func:`normal_equations` forms from the model's matrices
+(the one formula for them: :meth:`lcs_cvx.problems.ViolationProblem.parameter_values` factors
+its tensor result into the declaration's parameter values, and the fast violation loss builds
+them here in its arrays, without factorising).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import torch
+
+from .arrays import ArrayOps, array_ops
+from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
+
+__all__ = ["PIVOT_TOL", "Pivoted", "normal_equations", "phi", "pivot", "solve", "solve_arrays"]
+
+#: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
+#: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/gamma large), and
+#: ``K lam - h`` against ``1 + |h|_inf``.
+PIVOT_TOL = 1e-11
+
+
+def normal_equations(xp: ArrayOps, C: Any, F: Any, q: Any, r: Any, gamma: float, eps: float) -> dict[str, Any]:
+    """(V)'s data before the factorisation, in ``xp``'s arrays (differentiable on torch)::
+
+        LtL = eps C^T C + F + F^T - gamma I        (= L^T L)
+        Ltb = eps r C + q                          (rows of L^T b = eps C^T r + q)
+        K   = (gamma I - F) / sqrt(gamma),   h = q / sqrt(gamma)
+
+    ``C`` ``(n_x, n)``, ``F`` ``(n, n)``, ``q`` ``(B, n)``, ``r`` ``(B, n_x)``; ``gamma`` is not
+    checked here (:func:`lcs_cvx.problems.check_gamma`).
+    """
+    eye = xp.eye(F.shape[-1], F)
+    scale = 1.0 / math.sqrt(gamma)
+    return {
+        "LtL": eps * (C.T @ C) + F + F.T - gamma * eye,
+        "Ltb": eps * (r @ C) + q,
+        "K": (gamma * eye - F) * scale,
+        "h": q * scale,
+    }
+
+
+def phi(xp: ArrayOps, lam: Any, F: Any, q: Any, gamma: float) -> Any:
+    """The exact minimiser of (V) over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``."""
+    return xp.clamp_min(lam @ F.T + q - gamma * lam, 0.0)
+
+
+class Pivoted(NamedTuple):
+    """The kernel's answer for a batch of ``B`` (V) problems of size ``n`` (tensors).
+
+    Attributes:
+        lam: ``(B, n)`` minimiser (of the last sweep, clamped at 0).
+        active: ``(B, 2 n)`` bool ``[free, pos]``: ``lam_i > 0`` and ``(K lam - h)_i > 0``
+            (``phi_i = 0``).
+        unconverged: int64 indices of the samples still infeasible after ``max_iter`` sweeps, or
+            None if every sample converged.
+        iterations: pivoting sweeps made.
+    """
+
+    lam: torch.Tensor
+    active: torch.Tensor
+    unconverged: torch.Tensor | None
+    iterations: int
+
+
+def pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
+          warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, PivotResult]:
+    """Block pivoting on (V) in the kernel's arrays (:func:`normal_equations`):
+    ``(lam, active, result)`` with ``active = [lam > 0, K lam - h > 0]`` ``(B, 2 n)``."""
+    n = Ltb.shape[1]
+    # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
+    K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
+    scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
+    scale_t = tol * (1.0 + xp.amax_abs(h))
+    neg_l: list[Any] = []  # -(lam's scale), from the first candidate
+    LtL_flat = LtL.reshape(1, n * n)
+    KT_LtL = xp.concat([K.T, LtL])  # (n, 2 n): lam @ KT_LtL is [K lam, L^T L lam] in one product
+    # the per-sample data side by side: one gather when the work set shrinks
+    data = xp.concat([Ltb, -Ltb, h, -h, -scale_g, scale_t, -scale_t])
+    cut = [0, n, 2 * n, 3 * n, 4 * n, 4 * n + 1, 4 * n + 2, 4 * n + 3]
+    parts = [slice(i, j) for i, j in zip(cut[:-1], cut[1:], strict=True)]
+
+    def solve(state: Any, idx: Any):
+        free, pos = state[:, :n], state[:, n:]
+        d = data if idx is None else data[idx]
+        bb, nbb, hh, nhh, ng, st, nt = (d[:, part] for part in parts)
+        sf = xp.to_float(pos, Ltb)
+        # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
+        M = xp.free_block(LtL_flat + sf @ K_outer, free)
+        rhs = xp.where(free, nbb + (sf * hh) @ K, 0.0)
+        lam, failed = xp.solve(M, rhs)
+        prod = lam @ KT_LtL
+        t = prod[:, :n] + nhh
+        g = prod[:, n:] + bb + (sf * t) @ K
+        if not neg_l:
+            neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
+        nl = neg_l[0] if idx is None else neg_l[0][idx]
+        # infeasible: a free lam below 0, a bound lam with a negative gradient; a piece's
+        # t = K lam - h on the wrong side of 0 (to the tolerances above)
+        bad = xp.concat([xp.where(free, lam < nl, g < ng), xp.where(pos, t < nt, t > st)])
+        if failed is not None:
+            bad |= failed[:, None]  # a failed factorisation is never trusted
+        return lam, bad
+
+    state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
+    res = block_pivoting(xp, solve, state0, max_iter=max_iter)
+    lam = xp.clamp_min(res.solution, 0.0)
+    return lam, xp.concat([lam > 0, (lam @ K.T - h) > 0]), res
+
+
+def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device, tol: float = PIVOT_TOL,
+                 max_iter: int = 1000, warm_start: torch.Tensor | None = None) -> Pivoted:
+    """Pivot (V) given its normal equations in ``xp``'s arrays (:func:`normal_equations`); the
+    caller holds :meth:`ArrayOps.threads`. ``warm_start``: ``(B, 2 n)`` bool ``[free, pos]``."""
+    lam, active, res = pivot(xp, normal["LtL"], normal["Ltb"], normal["K"], normal["h"], tol,
+                             max_iter, warm_start, device)
+    return Pivoted(xp.unwrap(lam), xp.unwrap(active), unconverged(xp, res.converged), res.iterations)
+
+
+def solve(normal: dict[str, torch.Tensor], *, tol: float = PIVOT_TOL, max_iter: int = 1000,
+          warm_start: torch.Tensor | None = None, arrays: str = "auto") -> Pivoted:
+    """:func:`solve_arrays` on detached tensors ``{"LtL": (n, n), "Ltb": (B, n), "K": (n, n),
+    "h": (B, n)}``, in the ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
+    xp = array_ops(normal["Ltb"], arrays)
+    with xp.threads():
+        wrapped = {k: xp.wrap(v) for k, v in normal.items()}
+        return solve_arrays(xp, wrapped, device=normal["Ltb"].device, tol=tol, max_iter=max_iter,
+                            warm_start=warm_start)
