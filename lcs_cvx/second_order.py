@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import torch
 
+from ._checks import as_transitions
 from .hessian import (
     flatten_parameters,
     hvp_operator,
@@ -38,7 +39,7 @@ from .hessian import (
     setup,
     violation_hessian,
 )
-from .losses import regularizer, violation_loss
+from .losses import regularizer, violation_fast
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -59,16 +60,35 @@ class StepResult:
         accepted: whether a decreasing step was found.
         damping: the damping ``mu`` to use next.
         tries: trial steps evaluated.
+        n_fallback: samples the fast solver handed to the reference over the step's solves of (V).
+        max_residual: the worst relative KKT residual of those reference answers (0.0: none).
     """
 
     loss: float
     accepted: bool
     damping: float
     tries: int
+    n_fallback: int = 0
+    max_residual: float = 0.0
 
 
-def _objective(model: LCS, x, u, x_next, gamma: float, eps: float, reg: float) -> torch.Tensor:
-    return violation_loss(model, x, u, x_next, gamma=gamma, eps=eps) + regularizer(model, reg)
+class _Objective:
+    """``L_eps + omega ||C||^2`` on one batch (validated once), counting the fallbacks of its
+    solves of (V)."""
+
+    def __init__(self, model: LCS, x, u, x_next, gamma: float, eps: float, reg: float) -> None:
+        self.model, self.gamma, self.eps, self.reg = model, gamma, eps, reg
+        self.x, self.u, self.x_next = as_transitions(model, x, u, x_next)
+        self.n_fallback, self.max_residual = 0, 0.0
+
+    def __call__(self) -> torch.Tensor:
+        info = violation_fast(self.model, self.x, self.u, self.x_next, gamma=self.gamma, eps=self.eps)
+        self.n_fallback += info.n_fallback
+        self.max_residual = max(self.max_residual, info.max_residual)
+        return info.loss + regularizer(self.model, self.reg)
+
+    def result(self, loss: float, accepted: bool, damping: float, tries: int) -> StepResult:
+        return StepResult(loss, accepted, damping, tries, self.n_fallback, self.max_residual)
 
 
 def _assign(model: LCS, values: dict[str, torch.Tensor]) -> None:
@@ -245,7 +265,8 @@ def _damped_step(
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     theta0 = flatten_parameters(model)
     slices = parameter_slices(model)
-    loss = _objective(model, x, u, x_next, gamma, eps, reg)
+    objective = _Objective(model, x, u, x_next, gamma, eps, reg)
+    loss = objective()
     g = torch.cat([gr.reshape(-1) for gr in torch.autograd.grad(loss, params)]).detach()
     loss0 = float(loss.detach())
     reg_diag = torch.zeros_like(theta0)
@@ -277,11 +298,11 @@ def _damped_step(
             _assign(model, {k: theta[sl].reshape(old[k].shape) for k, sl in slices.items()})
             with torch.no_grad():
                 ok = model.sigma_min > gamma
-                loss1 = float(_objective(model, x, u, x_next, gamma, eps, reg)) if ok else math.inf
+                loss1 = float(objective()) if ok else math.inf
             if loss1 <= loss0 + 1e-4 * t * slope:
-                return StepResult(loss1, True, mu / 3.0 if t == 1.0 else mu, tries)
+                return objective.result(loss1, True, mu / 3.0 if t == 1.0 else mu, tries)
             t *= 0.5
         _assign(model, old)
         mu = max(10.0 * mu, 1e-8)
     _assign(model, old)
-    return StepResult(loss0, False, mu, max_tries)
+    return objective.result(loss0, False, mu, max_tries)

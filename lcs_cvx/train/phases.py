@@ -202,8 +202,7 @@ class RefinePhase(Phase):
         res = step(state.model, x, u, x_next, gamma=obj.gamma, eps=obj.eps, reg=obj.reg,
                    damping=state.damping)
         state.damping = res.damping
-        return Outcome(res.loss, obj.eps, None, getattr(res, "n_fallback", 0),
-                       getattr(res, "max_residual", 0.0))
+        return Outcome(res.loss, obj.eps, None, res.n_fallback, res.max_residual)
 
 
 class PolishPhase(Phase):
