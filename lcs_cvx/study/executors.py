@@ -88,9 +88,12 @@ def process_pool(cells: list[dict[str, Any]], workers: int) -> Iterator[Iterator
 @contextmanager
 def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int) -> Iterator[Iterator[Outcome]]:
     """Run ``cells`` on a Dask cluster (``address`` ``"local"`` or ``tcp://host:port``)."""
-    from dask.distributed import Client, LocalCluster, as_completed
-
     from .._checks import LCSInputError
+    from .._optional import require
+
+    distributed = require("dask.distributed", "studies", "lcs-cvx study run --scheduler")
+    Client, LocalCluster, as_completed = (
+        distributed.Client, distributed.LocalCluster, distributed.as_completed)
 
     cluster = None
     if address == "local":
