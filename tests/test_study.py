@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import math
 import sqlite3
-import time
 from pathlib import Path
 
 import pytest
@@ -23,8 +22,6 @@ CONFIGS = Path(__file__).resolve().parents[1] / "studies" / "configs"
 SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
 PANELS = {"fig1a_n_lam_smoke": "a", "fig1b_n_x_smoke": "b", "fig1c_stiffness_smoke": "c",
           "fig1d_gamma_smoke": "d", "fig1e_eps_smoke": "e"}
-#: Wall time of each smoke run (s).
-WALL: dict[str, float] = {}
 
 
 def _rows(out: Path, study: str | None = None) -> list[sqlite3.Row]:
@@ -41,9 +38,7 @@ def pool_out(tmp_path_factory) -> Path:
     """Every smoke config run once on a 2-worker process pool, into one database."""
     out = tmp_path_factory.mktemp("pool")
     for name in SMOKE:
-        t0 = time.perf_counter()
         summary = run_config(CONFIGS / f"{name}.toml", out=out, workers=2, progress=False)
-        WALL[name] = time.perf_counter() - t0
         assert (summary.executed, summary.skipped, summary.failed) == (summary.total, 0, 0)
     return out
 
@@ -63,7 +58,6 @@ def test_smoke_config_runs_on_the_process_pool(pool_out, name):
     config = load_config(CONFIGS / f"{name}.toml")
     rows = _rows(pool_out, name)
     assert len(rows) == len(expand(config))
-    assert WALL[name] < 30
     for r in rows:
         assert math.isfinite(r["e_test"]) and r["e_test"] > 0
         assert r["modes"] >= 1 and r["sigma_min"] > 0 and r["wall_time"] > 0
@@ -166,12 +160,10 @@ def test_ctrl_c_in_the_client_keeps_every_finished_cell(tmp_path, monkeypatch):
 
 def test_dask_local_cluster_gives_the_process_pool_results(pool_out, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
-    t0 = time.perf_counter()
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster:
         summary = run_config(CONFIGS / "fig1a_n_lam_smoke.toml", out=tmp_path,
                              scheduler=cluster.scheduler_address, progress=False)
-    WALL["dask"] = time.perf_counter() - t0
     assert (summary.executed, summary.failed) == (summary.total, 0)
     dask_rows = {r["key"]: r for r in _rows(tmp_path)}
     pool_rows = {r["key"]: r for r in _rows(pool_out, "fig1a_n_lam_smoke")}
