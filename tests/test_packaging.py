@@ -56,14 +56,24 @@ def test_license_is_an_spdx_expression():
     assert PYPROJECT["project"]["license"] == "MIT"
 
 
-@pytest.mark.parametrize("module", ["lcs_cvx", "lcs_cvx.cli", "lcs_cvx.study", "lcs_cvx.bench"])
+# every module of the package: what --doctest-modules imports to collect the examples
+EVERY_MODULE = (
+    "import lcs_cvx, pkgutil, importlib\n"
+    "for m in pkgutil.walk_packages(lcs_cvx.__path__, 'lcs_cvx.'):\n"
+    "    if not m.name.endswith('__main__'):\n"
+    "        importlib.import_module(m.name)"
+)
+
+
+@pytest.mark.parametrize("module", ["lcs_cvx", "lcs_cvx.cli", "lcs_cvx.study", "lcs_cvx.bench",
+                                    "every module"])
 def test_import_loads_no_optional_dependency(module):
-    """In a fresh interpreter, importing the package (and its command line and studies) leaves
-    Dask, distributed, MuJoCo and matplotlib unimported."""
+    """In a fresh interpreter, importing the package (and its command line, its studies, every
+    module) leaves Dask, distributed, MuJoCo and matplotlib unimported."""
     code = (
         "import json, sys\n"
-        f"import {module}\n"
-        f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & {set(OPTIONAL_MODULES)!r})))\n"
+        + (EVERY_MODULE if module == "every module" else f"import {module}") + "\n"
+        + f"print(json.dumps(sorted({{m.split('.')[0] for m in sys.modules}} & {set(OPTIONAL_MODULES)!r})))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
