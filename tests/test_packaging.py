@@ -65,8 +65,7 @@ EVERY_MODULE = (
 )
 
 
-@pytest.mark.parametrize("module", ["lcs_cvx", "lcs_cvx.cli", "lcs_cvx.study", "lcs_cvx.bench",
-                                    "every module"])
+@pytest.mark.parametrize("module", ["lcs_cvx", "lcs_cvx.cli", "lcs_cvx.study", "every module"])
 def test_import_loads_no_optional_dependency(module):
     """In a fresh interpreter, importing the package (and its command line, its studies, every
     module) leaves Dask, distributed, MuJoCo and matplotlib unimported."""
