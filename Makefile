@@ -1,17 +1,19 @@
-# Two entry points: `make demo` and `make test`. Both create .venv on first use.
+# Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
+# package and every extra (studies, physics, docs, dev) installed.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test docs lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	# torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download).
+	# torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
+	# `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[studies,physics,docs,dev]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -20,6 +22,9 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+docs: $(STAMP)
+	$(VENV)/bin/mkdocs build --strict --site-dir site
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff check lcs_cvx tests studies
 
@@ -27,4 +32,4 @@ bench: $(STAMP)
 	$(VENV)/bin/lcs-cvx bench
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache
+	rm -rf $(VENV) *.egg-info .pytest_cache site

@@ -46,28 +46,40 @@ def test_lcp_bench_tiny(short_timing):
     assert float(row[5]) < 1e-6  # fast and Clarabel agree
 
 
+class VirtualClock:
+    """Stands in for the ``time`` module of :mod:`lcs_cvx.bench`: ``perf_counter()`` reads a
+    clock that only the timed function advances, so these tests count calls, not seconds. The
+    steps are powers of two: the clock's sums are exact."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
 def test_time_warms_up_to_a_steady_state(monkeypatch):
     """A fast path is called for WARMUP_S before it is timed (the first few hundred calls of a
     process ran slower here), and a repeat averages as many calls as fill MIN_REPEAT_S."""
-    import time
-
     from lcs_cvx import bench
 
-    monkeypatch.setattr(bench, "WARMUP_S", 0.05)
-    monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.01)
+    clock, step = VirtualClock(), 2.0**-10  # one call takes ~1 ms of the virtual clock
+    monkeypatch.setattr(bench, "time", clock)
+    monkeypatch.setattr(bench, "WARMUP_S", 50 * step)
+    monkeypatch.setattr(bench, "MIN_REPEAT_S", 10 * step)
     monkeypatch.setattr(bench, "MIN_TIMED_S", 0.0)
     stamps = []
 
     def fn():
-        stamps.append(time.perf_counter())
-        time.sleep(0.001)
+        stamps.append(clock.now)
+        clock.now += step
 
     t = bench.median_time(fn, repeats=2)
-    assert 0.001 <= t < 0.01
-    # one set-up call, >= 0.05 s of warm-up calls, then 2 repeats of ~0.01 s each
-    warm = [s for s in stamps if s - stamps[1] < 0.05]
-    assert len(warm) >= 10
-    assert len(stamps) - 1 - len(warm) >= 2 * 3
+    assert t == step  # the mean time of one call
+    # one set-up call, >= WARMUP_S of warm-up calls, then 2 repeats of MIN_REPEAT_S each
+    warm = [s for s in stamps[1:] if s - stamps[1] < 50 * step]
+    assert len(warm) == 50
+    assert len(stamps) - 1 - len(warm) == 2 * 10
 
 
 def test_time_fills_the_minimum_timed_window(monkeypatch):
@@ -75,9 +87,17 @@ def test_time_fills_the_minimum_timed_window(monkeypatch):
     minority of the repeats whose median is kept)."""
     from lcs_cvx import bench
 
+    clock, step = VirtualClock(), 2.0**-14  # one call takes ~61 us of the virtual clock
+    monkeypatch.setattr(bench, "time", clock)
     monkeypatch.setattr(bench, "WARMUP_S", 0.0)
     monkeypatch.setattr(bench, "MIN_REPEAT_S", 0.001)
     monkeypatch.setattr(bench, "MIN_TIMED_S", 0.1)
     calls = []
-    bench.median_time(lambda: calls.append(None), repeats=2)
+
+    def fn():
+        calls.append(clock.now)
+        clock.now += step
+
+    bench.median_time(fn, repeats=2)
     assert len(calls) > 100  # ~0.1 s of calls, not 2 repeats of a few
+    assert clock.now - calls[2] >= 0.1  # the repeats after the set-up and warm-up calls

@@ -25,7 +25,7 @@ if ROOT not in sys.path:  # `studies` is a package at the repository root, not i
 
 needs_mujoco = pytest.mark.skipif(
     importlib.util.find_spec("mujoco") is None,
-    reason="mujoco is not installed (a dependency of lcs_cvx: pip install 'mujoco>=3')",
+    reason="mujoco is not installed (the physics extra: pip install 'lcs_cvx[physics]')",
 )
 F64 = torch.float64
 

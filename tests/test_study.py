@@ -32,8 +32,6 @@ CONFIGS = ROOT / "studies" / "configs"
 SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
 PANELS = {"fig1a_n_lam_smoke": "a", "fig1b_n_x_smoke": "b", "fig1c_stiffness_smoke": "c",
           "fig1d_gamma_smoke": "d", "fig1e_eps_smoke": "e"}
-#: Wall time of each smoke run (s).
-WALL: dict[str, float] = {}
 
 
 def _rows(out: Path, study: str | None = None) -> list[sqlite3.Row]:
@@ -50,9 +48,7 @@ def pool_out(tmp_path_factory) -> Path:
     """Every smoke config run once on a 2-worker process pool, into one database."""
     out = tmp_path_factory.mktemp("pool")
     for name in SMOKE:
-        t0 = time.perf_counter()
         summary = run_config(CONFIGS / f"{name}.toml", out=out, workers=2, progress=False)
-        WALL[name] = time.perf_counter() - t0
         assert (summary.executed, summary.skipped, summary.failed) == (summary.total, 0, 0)
     return out
 
@@ -72,7 +68,6 @@ def test_smoke_config_runs_on_the_process_pool(pool_out, name):
     config = load_config(CONFIGS / f"{name}.toml")
     rows = _rows(pool_out, name)
     assert len(rows) == len(expand(config))
-    assert WALL[name] < 30
     for r in rows:
         assert math.isfinite(r["e_test"]) and r["e_test"] > 0
         assert r["modes"] >= 1 and r["sigma_min"] > 0 and r["wall_time"] > 0
@@ -175,12 +170,10 @@ def test_ctrl_c_in_the_client_keeps_every_finished_cell(tmp_path, monkeypatch):
 
 def test_dask_local_cluster_gives_the_process_pool_results(pool_out, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
-    t0 = time.perf_counter()
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   host="127.0.0.1", dashboard_address=None) as cluster:
         summary = run_config(CONFIGS / "fig1a_n_lam_smoke.toml", out=tmp_path,
                              scheduler=cluster.scheduler_address, progress=False)
-    WALL["dask"] = time.perf_counter() - t0
     assert (summary.executed, summary.failed) == (summary.total, 0)
     dask_rows = {r["key"]: r for r in _rows(tmp_path)}
     pool_rows = {r["key"]: r for r in _rows(pool_out, "fig1a_n_lam_smoke")}
@@ -190,8 +183,9 @@ def test_dask_local_cluster_gives_the_process_pool_results(pool_out, tmp_path):
         assert r["final_loss"] == pytest.approx(pool_rows[key]["final_loss"], rel=1e-12)
 
 
-#: Bounds of the real-Dask test (s): the processes' start, the run, their shutdown.
-DASK_START_S, DASK_RUN_S, DASK_STOP_S = 60.0, 120.0, 10.0
+#: The grace of the real-Dask test's processes between SIGTERM and SIGKILL (s). No other bound:
+#: a start or a run that hangs is ended by pytest-timeout.
+DASK_STOP_S = 10.0
 
 
 def _free_port() -> int:
@@ -238,17 +232,15 @@ def test_a_dask_scheduler_and_worker_processes_give_the_local_results(pool_out, 
             [str(dask_bin), "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
              "--nthreads", "1", "--no-dashboard", "--death-timeout", "30",
              "--local-directory", str(tmp_path / "worker")], **common))
-        deadline = time.monotonic() + DASK_START_S
         while True:  # the scheduler takes a few seconds to listen
             try:
                 client = distributed.Client(address, timeout=5)
                 break
             except (OSError, TimeoutError):
-                assert time.monotonic() < deadline, "the dask scheduler did not start"
                 assert procs[0].poll() is None, f"dask scheduler exited ({procs[0].returncode})"
                 time.sleep(0.5)
         try:
-            client.wait_for_workers(1, timeout=max(1.0, deadline - time.monotonic()))
+            client.wait_for_workers(1)
             [worker_pid] = client.run(os.getpid).values()
         finally:
             client.close()
@@ -266,8 +258,7 @@ def test_a_dask_scheduler_and_worker_processes_give_the_local_results(pool_out, 
 
         thread = threading.Thread(target=run, daemon=True)
         thread.start()
-        thread.join(DASK_RUN_S)
-        assert not thread.is_alive(), f"the study did not finish on {address} in {DASK_RUN_S} s"
+        thread.join()
     finally:
         _stop(procs)
     assert "error" not in outcome, outcome.get("error")

@@ -100,9 +100,12 @@ def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int,
                  fn: CellFn = run_cell) -> Iterator[Iterator[Outcome]]:
     """Run ``fn`` on each of ``cells`` on a Dask cluster (``address`` ``"local"`` or
     ``tcp://host:port``); the iterator yields outcomes as they finish."""
-    from dask.distributed import Client, LocalCluster, as_completed
-
     from .._checks import LCSInputError
+    from .._optional import require
+
+    distributed = require("dask.distributed", "studies", "lcs-cvx study run --scheduler")
+    Client, LocalCluster, as_completed = (
+        distributed.Client, distributed.LocalCluster, distributed.as_completed)
 
     cluster = None
     if address == "local":

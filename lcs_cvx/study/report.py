@@ -153,8 +153,9 @@ def _positions(values: list[float]) -> tuple[list[float], bool]:
 
 
 def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[str]:
-    import matplotlib
+    from .._optional import require
 
+    matplotlib = require("matplotlib", "studies", "lcs-cvx study report (the figures)")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
