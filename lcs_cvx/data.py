@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
-from .io import atomic_write
+from .io import atomic_write, read_npz
 
 __all__ = ["Dataset", "make_dataset"]
 
@@ -95,11 +95,7 @@ class Dataset:
             )
         if not os.path.exists(path):
             raise LCSInputError(f"path: expected an existing .npz file, received {path!r} (not found)")
-        try:
-            with np.load(path, allow_pickle=False) as f:
-                arrays = {k: f[k] for k in f.files}
-        except (ValueError, OSError) as exc:
-            raise LCSInputError(f"path: expected an .npz file, could not read {path!r}: {exc}") from exc
+        arrays = read_npz(os.fspath(path), "an .npz data file with arrays x, u, x_next")
         missing = [k for k in ("x", "u", "x_next") if k not in arrays]
         if missing:
             raise LCSInputError(

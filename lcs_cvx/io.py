@@ -193,24 +193,29 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
     return _read(path)[2]
 
 
+def read_npz(path: str, expected: str) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` file at ``path``, read in full with the file closed again
+    (also when it is truncated or not an ``.npz``: then an :class:`LCSInputError` naming
+    ``path``, the ``expected`` file and what went wrong). No pickles."""
+    not_npz = f"path: expected {expected}, received {path!r}"
+    try:
+        with open(path, "rb") as fh:
+            f = np.load(fh, allow_pickle=False)
+            if not isinstance(f, np.lib.npyio.NpzFile):  # np.load also opens .npy files
+                raise LCSInputError(f"{not_npz} (a single .npy array)")
+            with f:
+                return {k: f[k] for k in f.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
+        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
+
+
 def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str, Any]]:
     """Open, parse and validate a model file; return ``(path, arrays, meta)``."""
     path_s = os.fspath(path)
     if not os.path.isfile(path_s):
         what = "a directory" if os.path.isdir(path_s) else "not found"
         raise LCSInputError(f"path: expected an existing model file (.npz), received {path_s!r} ({what})")
-    not_npz = f"path: expected an .npz model file written by lcs_cvx.save_model, received {path_s!r}"
-    try:
-        f = np.load(path_s, allow_pickle=False)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
-        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
-    if not isinstance(f, np.lib.npyio.NpzFile):  # np.load also opens .npy files
-        raise LCSInputError(f"{not_npz} (a single .npy array)")
-    try:
-        with f:
-            arrays = {k: f[k] for k in f.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
+    arrays = read_npz(path_s, "an .npz model file written by lcs_cvx.save_model")
 
     if "meta" not in arrays:
         hint = " -- a data set?" if {"x", "u", "x_next"} <= set(arrays) else ""

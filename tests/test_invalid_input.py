@@ -174,7 +174,17 @@ def test_load_file_lacking_arrays(tmp_path):
 def test_load_file_that_is_not_npz(tmp_path):
     path = tmp_path / "junk.npz"
     path.write_text("not an npz")
-    with pytest.raises(LCSInputError, match=r"^path: expected an \.npz file, could not read '.*junk\.npz'"):
+    with pytest.raises(LCSInputError, match=r"^path: expected an \.npz data file .*, received '.*junk\.npz' \(could not read it"):
+        Dataset.load(path)
+
+
+def test_load_truncated_npz(tmp_path):
+    """A truncated file is refused by name (not a BadZipFile traceback), and its handle is
+    closed (warnings are errors in the tests: an unclosed file would fail this test)."""
+    full, path = tmp_path / "full.npz", tmp_path / "truncated.npz"
+    Dataset.from_arrays(np.zeros((50, 2)), np.zeros((50, 1)), np.zeros((50, 2))).save(full)
+    path.write_bytes(full.read_bytes()[:200])
+    with pytest.raises(LCSInputError, match=r"^path: expected an \.npz data file .*truncated\.npz' \(could not read it"):
         Dataset.load(path)
 
 
@@ -182,7 +192,7 @@ def test_load_refuses_pickled_arrays(tmp_path):
     path = tmp_path / "pickled.npz"
     obj = np.empty(3, dtype=object)
     np.savez(path, x=obj, u=np.zeros((3, 1)), x_next=np.zeros((3, 2)))
-    with pytest.raises(LCSInputError, match=r"^path: expected an \.npz file, could not read .*allow_pickle"):
+    with pytest.raises(LCSInputError, match=r"^path: expected an \.npz data file .*could not read it.*allow_pickle"):
         Dataset.load(path)
 
 

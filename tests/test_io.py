@@ -232,9 +232,6 @@ def test_missing_file(tmp_path):
         load_metadata(tmp_path)
 
 
-# numpy.load leaks its file handle when a truncated .npz fails to parse (NpzFile's zipfile raises
-# before the NpzFile owns the handle); the handle is finalised during this test
-@pytest.mark.filterwarnings(r"ignore:unclosed file <_io\.BufferedReader name='[^']*truncated\.npz'>:ResourceWarning")
 def test_not_an_npz(tmp_path, saved):
     text = tmp_path / "model.txt"
     text.write_text("A = [[1, 2], [3, 4]]\n")
