@@ -25,8 +25,6 @@ __all__ = ["Dataset", "make_dataset"]
 
 #: The arrays of a dataset, in the order :meth:`Dataset.from_csv` reads their columns.
 _GROUPS = ("x", "u", "x_next", "lam")
-#: Default CSV column names: ``x_0, x_1, ...``, ``u_0, ...``, ``x_next_0, ...``, ``lam_0, ...``.
-_COLUMN = re.compile(r"^(x|u|x_next|lam)_(\d+)$")
 
 
 @dataclass(frozen=True)
@@ -124,111 +122,15 @@ class Dataset:
         finite number, no data rows, or inconsistent sizes (``x_next`` must match ``x``).
         """
         path = os.fspath(path)
-        if not os.path.exists(path):
-            raise LCSInputError(f"path: expected an existing .csv file, received {path!r} (not found)")
-        try:
-            with open(path, newline="", encoding="utf-8-sig") as f:
-                lines = [(i, line) for i, line in enumerate(f.read().splitlines(), start=1)
-                         if line.strip() and not line.lstrip().startswith("#")]
-        except (OSError, UnicodeDecodeError) as exc:
-            raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
-        if not lines:
-            raise LCSInputError(f"path: expected a CSV file with a header row, {path!r} is empty")
-        rows = [next(csv.reader([line])) for _, line in lines]  # one row per line
-        header = [h.strip() for h in rows[0]]
-        seen: set[str] = set()
-        for h in header:
-            if not h:
-                raise LCSInputError(f"path: line {lines[0][0]} of {path!r} (the header) has an empty column name")
-            if h in seen:
-                raise LCSInputError(f"path: duplicate column {h!r} in the header of {path!r}")
-            seen.add(h)
-        names = cls._csv_columns(path, header, columns)
+        header, rows = read_csv(path)
+        names = csv_columns(path, header, columns, _GROUPS, ("x", "u", "x_next"))
         if len(names["x_next"]) != len(names["x"]):
             raise LCSInputError(
                 f"path: expected as many next-state columns as state columns in {path!r}, received "
                 f"x: {names['x']}, x_next: {names['x_next']}"
             )
-        if len(rows) == 1:
-            raise LCSInputError(f"path: expected at least one data row in {path!r}, found only the header")
-        index = {h: j for j, h in enumerate(header)}
-        wanted = [index[n] for g in _GROUPS for n in names.get(g, ())]
-        values = np.empty((len(rows) - 1, len(wanted)), dtype=np.float64)
-        for r, (row, (lineno, _)) in enumerate(zip(rows[1:], lines[1:], strict=True)):
-            if len(row) != len(header):
-                raise LCSInputError(
-                    f"path: line {lineno} of {path!r} has {len(row)} fields, expected "
-                    f"{len(header)} (the header's)"
-                )
-            for k, j in enumerate(wanted):
-                text = row[j].strip()
-                try:
-                    v = float(text)
-                except ValueError:
-                    v = math.nan
-                if not math.isfinite(v):
-                    raise LCSInputError(
-                        f"path: line {lineno} of {path!r}, column {header[j]!r}: expected a finite "
-                        f"number, received {text!r}"
-                    )
-                values[r, k] = v
-        arrays, k = {}, 0
-        for g in _GROUPS:
-            if g in names:
-                arrays[g] = values[:, k : k + len(names[g])]
-                k += len(names[g])
+        arrays = {g: csv_numbers(path, header, rows, cols) for g, cols in names.items()}
         return cls.from_arrays(arrays["x"], arrays["u"], arrays["x_next"], arrays.get("lam"))
-
-    @staticmethod
-    def _csv_columns(
-        path: str, header: list[str], columns: Mapping[str, Sequence[str]] | None
-    ) -> dict[str, list[str]]:
-        """The column names of each array: given by ``columns`` or found by the default names."""
-        if columns is not None:
-            if not isinstance(columns, Mapping):
-                raise LCSInputError(
-                    f"columns: expected a dict of column-name lists, received {type(columns).__name__}"
-                )
-            unknown = sorted(set(columns) - set(_GROUPS))
-            missing = [g for g in ("x", "u", "x_next") if g not in columns]
-            if unknown or missing:
-                raise LCSInputError(
-                    f"columns: expected keys 'x', 'u', 'x_next' (and optionally 'lam'), received "
-                    f"{sorted(columns)}"
-                )
-            names = {}
-            for g, cols in columns.items():
-                if isinstance(cols, str) or not all(isinstance(c, str) for c in cols) or not cols:
-                    raise LCSInputError(
-                        f"columns: expected a non-empty list of column names for {g!r}, received {cols!r}"
-                    )
-                absent = [c for c in cols if c not in header]
-                if absent:
-                    raise LCSInputError(
-                        f"columns: {g!r} names {absent} not in the header of {path!r} (found {header})"
-                    )
-                names[g] = list(cols)
-            return names
-        found: dict[str, dict[int, str]] = {}
-        for h in header:
-            m = _COLUMN.match(h)
-            if m:
-                found.setdefault(m.group(1), {})[int(m.group(2))] = h
-        missing = [g for g in ("x", "u", "x_next") if g not in found]
-        if missing:
-            raise LCSInputError(
-                f"path: expected columns x_0.., u_0.., x_next_0.. (optionally lam_0..) in {path!r}, "
-                f"missing {[g + '_0..' for g in missing]} (found {header}); or name them with columns="
-            )
-        names = {}
-        for g, idx in found.items():
-            gap = [f"{g}_{i}" for i in range(max(idx) + 1) if i not in idx]
-            if gap:
-                raise LCSInputError(
-                    f"path: expected columns {g}_0 .. {g}_{max(idx)} in {path!r}, missing {gap}"
-                )
-            names[g] = [idx[i] for i in range(len(idx))]
-        return names
 
     def save(self, path: str | os.PathLike) -> None:
         """Write an ``.npz`` (no pickle) with arrays ``x``, ``u``, ``x_next`` (and ``lam``) to
@@ -311,3 +213,127 @@ def make_dataset(
             lams.append(lam)
     x_next = torch.cat(xs).to(f64) + noise_draw
     return Dataset(x, u, x_next, torch.cat(lams).to(f64))
+
+
+# -- CSV reading, shared with :mod:`lcs_cvx.trajectories` ---------------------------------------
+def read_csv(path: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """The header (stripped names) and the data rows ``(line number, fields)`` of the CSV file
+    ``path``; blank lines and lines starting with ``#`` are skipped. An :class:`LCSInputError`
+    naming the file (and the line) for a missing or unreadable file, no header, an empty or
+    duplicate column name, a row with the wrong number of fields, or no data rows."""
+    if not os.path.exists(path):
+        raise LCSInputError(f"path: expected an existing .csv file, received {path!r} (not found)")
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as f:
+            lines = [(i, line) for i, line in enumerate(f.read().splitlines(), start=1)
+                     if line.strip() and not line.lstrip().startswith("#")]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
+    if not lines:
+        raise LCSInputError(f"path: expected a CSV file with a header row, {path!r} is empty")
+    rows = [(lineno, next(csv.reader([line]))) for lineno, line in lines]  # one row per line
+    header = [h.strip() for h in rows[0][1]]
+    seen: set[str] = set()
+    for h in header:
+        if not h:
+            raise LCSInputError(f"path: line {lines[0][0]} of {path!r} (the header) has an empty column name")
+        if h in seen:
+            raise LCSInputError(f"path: duplicate column {h!r} in the header of {path!r}")
+        seen.add(h)
+    if len(rows) == 1:
+        raise LCSInputError(f"path: expected at least one data row in {path!r}, found only the header")
+    for lineno, row in rows[1:]:
+        if len(row) != len(header):
+            raise LCSInputError(
+                f"path: line {lineno} of {path!r} has {len(row)} fields, expected "
+                f"{len(header)} (the header's)"
+            )
+    return header, rows[1:]
+
+
+def csv_numbers(
+    path: str, header: list[str], rows: Sequence[tuple[int, list[str]]], cols: Sequence[str]
+) -> np.ndarray:
+    """The columns ``cols`` of ``rows`` (from :func:`read_csv`) as a ``(len(rows), len(cols))``
+    float64 array; a field that is not a finite number is an :class:`LCSInputError` naming the
+    file, the line and the column."""
+    index = {h: j for j, h in enumerate(header)}
+    wanted = [index[c] for c in cols]
+    values = np.empty((len(rows), len(wanted)), dtype=np.float64)
+    for r, (lineno, row) in enumerate(rows):
+        for k, j in enumerate(wanted):
+            text = row[j].strip()
+            try:
+                v = float(text)
+            except ValueError:
+                v = math.nan
+            if not math.isfinite(v):
+                raise LCSInputError(
+                    f"path: line {lineno} of {path!r}, column {header[j]!r}: expected a finite "
+                    f"number, received {text!r}"
+                )
+            values[r, k] = v
+    return values
+
+
+def csv_columns(
+    path: str,
+    header: list[str],
+    columns: Mapping[str, Sequence[str]] | None,
+    groups: Sequence[str],
+    required: Sequence[str],
+) -> dict[str, list[str]]:
+    """The column names of each array (``groups``, of which ``required`` must be present): given
+    by ``columns`` or found by the default names ``{group}_0, {group}_1, ...``."""
+    optional = [g for g in groups if g not in required]
+    keys = ", ".join(repr(g) for g in required) + (
+        f" (and optionally {', '.join(repr(g) for g in optional)})" if optional else ""
+    )
+    if columns is not None:
+        if not isinstance(columns, Mapping):
+            raise LCSInputError(
+                f"columns: expected a dict of column-name lists, received {type(columns).__name__}"
+            )
+        unknown = sorted(set(columns) - set(groups))
+        missing = [g for g in required if g not in columns]
+        if unknown or missing:
+            raise LCSInputError(f"columns: expected keys {keys}, received {sorted(columns)}")
+        names = {}
+        for g, cols in columns.items():
+            if isinstance(cols, str) or not all(isinstance(c, str) for c in cols) or not cols:
+                raise LCSInputError(
+                    f"columns: expected a non-empty list of column names for {g!r}, received {cols!r}"
+                )
+            absent = [c for c in cols if c not in header]
+            if absent:
+                raise LCSInputError(
+                    f"columns: {g!r} names {absent} not in the header of {path!r} (found {header})"
+                )
+            names[g] = list(cols)
+        return names
+    pattern = re.compile(rf"^({'|'.join(re.escape(g) for g in groups)})_(\d+)$")
+    found: dict[str, dict[int, str]] = {}
+    for h in header:
+        m = pattern.match(h)
+        if m:
+            found.setdefault(m.group(1), {})[int(m.group(2))] = h
+    missing = [g for g in required if g not in found]
+    if missing:
+        wanted = ", ".join(f"{g}_0.." for g in required)
+        extra = f" (optionally {', '.join(f'{g}_0..' for g in optional)})" if optional else ""
+        raise LCSInputError(
+            f"path: expected columns {wanted}{extra} in {path!r}, "
+            f"missing {[g + '_0..' for g in missing]} (found {header}); or name them with columns="
+        )
+    names = {}
+    for g in groups:
+        if g not in found:
+            continue
+        idx = found[g]
+        gap = [f"{g}_{i}" for i in range(max(idx) + 1) if i not in idx]
+        if gap:
+            raise LCSInputError(
+                f"path: expected columns {g}_0 .. {g}_{max(idx)} in {path!r}, missing {gap}"
+            )
+        names[g] = [idx[i] for i in range(len(idx))]
+    return names
