@@ -35,5 +35,7 @@ from .train import PruneOptions as PruneOptions
 from .train import RefineOptions as RefineOptions
 from .train import RunOptions as RunOptions
 from .train import fit as fit
+from .trajectories import Trajectories as Trajectories
+from .trajectories import rollout_error as rollout_error
 
 __version__ = "0.1.0"
