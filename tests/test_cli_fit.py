@@ -133,6 +133,85 @@ def test_predict_bad_input_exits_2(files, capsys, case, named, says):
     assert re.search(says, line), line
 
 
+def _trajectories(system: LCS, lengths, seed: int = 0) -> lcs_cvx.Trajectories:
+    """Noiseless trajectories of ``system``, simulated with ``LCS.rollout``."""
+    g = torch.Generator().manual_seed(seed)
+    xs, us = [], []
+    for T in lengths:
+        u = torch.rand(T, system.n_u, generator=g, dtype=F64) * 10 - 5
+        with torch.no_grad():
+            xs.append(system.rollout(torch.rand(system.n_x, generator=g, dtype=F64) * 20 - 10, u))
+        us.append(u)
+    return lcs_cvx.Trajectories(xs, us)
+
+
+@pytest.mark.parametrize("kind", ["npz", "csv"])
+def test_predict_on_a_trajectory_file(files, truth, capsys, kind):
+    trajs = _trajectories(truth, [8, 30, 12])
+    path = files["data"].with_name(f"trajs.{kind}")
+    if kind == "npz":
+        trajs.save(path)
+    else:
+        rows = ["trajectory,x_0,x_1,u_0"]
+        for i, (x, u) in enumerate(zip(trajs.xs, trajs.us, strict=True)):
+            rows += [f"{i},{x[t, 0].item()!r},{x[t, 1].item()!r},{u[t, 0].item() if t < len(u) else ''}"
+                     for t in range(len(x))]
+        path.write_text("\n".join(rows) + "\n")
+    model = LCS(2, 1, 3, stiffness=1.0, seed=9, init_scale=1.0, dtype=F64)  # not the truth: errors > 0
+    save_model(model, files["model"])
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path)]) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert facts["data"] == f"50 samples in 3 trajectories ({path})"
+    assert float(facts["e_test"]) == pytest.approx(lcs_cvx.relative_error(model, trajs.to_transitions()), rel=1e-5)
+    expected = lcs_cvx.rollout_error(model, trajs, (1, 5, 20))
+    printed = [float(v) for v in facts["rollout error (H=1, 5, 20)"].split(", ")]
+    assert printed == pytest.approx([expected[1], expected[5], expected[20]], rel=1e-5)
+    assert min(printed) > 1e-3
+
+    # --horizons; one longer than every trajectory is left out
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), "--horizons", "2,31,30"]) == 0
+    facts = _facts(capsys.readouterr().out)
+    expected = lcs_cvx.rollout_error(model, trajs, (2, 30))
+    printed = [float(v) for v in facts["rollout error (H=2, 30)"].split(", ")]
+    assert printed == pytest.approx([expected[2], expected[30]], rel=1e-5)
+    assert not any(k.startswith("rollout error (H=2, 31") for k in facts)
+
+    # the true system: zero rollout error; every horizon too long: said so
+    save_model(truth, files["model"])
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), "--horizons", "1,30"]) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert all(float(v) < 1e-24 for v in facts["rollout error (H=1, 30)"].split(", "))
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), "--horizons", "40"]) == 0
+    assert "longer than the longest trajectory, 30 steps" in _facts(capsys.readouterr().out)["rollout error"]
+
+
+def test_predict_on_transitions_prints_no_rollout_and_refuses_horizons(files, capsys):
+    assert main(["predict", "--model", str(files["model"]), "--data", str(files["test"])]) == 0
+    assert "rollout" not in capsys.readouterr().out
+    assert main(["predict", "--model", str(files["model"]), "--data", str(files["test"]), "--horizons", "1,5"]) == 2
+    assert "error: --horizons: only for trajectory files" in _error_line(capsys, "predict")
+
+
+@pytest.mark.parametrize(
+    "text, says",
+    [
+        ("trajectory,x_0,x_1,u_0\na,1,2,3\n", r"--data: trajectory 'a' of '.*bad\.csv' \(line 2\): expected at least 2 rows"),
+        ("trajectory,x_0,x_1,u_0\na,1,2,x\na,1,2,\n", r"--data: line 2 of '.*bad\.csv', column 'u_0': expected a finite number"),
+    ],
+)
+def test_predict_bad_trajectory_file_exits_2(files, capsys, text, says):
+    path = files["data"].with_name("bad.csv")
+    path.write_text(text)
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path)]) == 2
+    line = _error_line(capsys, "predict")
+    assert re.search(says, line), line
+
+
+def test_predict_bad_horizons_exits_2(files, capsys):
+    assert main(["predict", "--model", str(files["model"]), "--data", str(files["test"]), "--horizons", "1,0"]) == 2
+    assert "expected comma-separated integers >= 1" in capsys.readouterr().err
+
+
 # -- fit: the plumbing, with a stand-in for lcs_cvx.fit -------------------------------------
 
 

@@ -9,7 +9,9 @@ import math
 import os
 from typing import Any
 
-from .. import Dataset, LCSInputError, relative_error
+from .. import Dataset, LCSInputError, Trajectories, relative_error
+from ..data import read_csv
+from ..io import read_npz
 
 #: The program name in messages.
 PROG = "lcs-cvx"
@@ -58,6 +60,19 @@ def sizes(text: str) -> list[tuple[int, int, int]]:
     return out  # type: ignore[return-value]
 
 
+def horizons(text: str) -> tuple[int, ...]:
+    """``"1,5,20"`` -> ``(1, 5, 20)``."""
+    try:
+        out = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        out = ()
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers >= 1 such as '1,5,20', received {text!r}"
+        )
+    return out
+
+
 def require(args: argparse.Namespace, *names: str) -> None:
     """An :class:`LCSInputError` naming the first option of ``names`` that was not given."""
     for name in names:
@@ -82,6 +97,26 @@ def load_data(option: str, path: str) -> Dataset:
     if len(data) == 0:
         raise LCSInputError(f"{option}: expected at least one sample, received none in {path!r}")
     return data
+
+
+def load_trajectories(option: str, path: str) -> Trajectories | None:
+    """:meth:`Trajectories.load` with errors naming ``--option`` when ``path`` is a trajectory
+    file (an ``.npz`` with an ``offsets`` array, a ``.csv`` with a ``trajectory`` column), else
+    None: a file that cannot be read is left to :func:`load_data` to report."""
+    try:
+        if path.lower().endswith(".csv"):
+            found = "trajectory" in read_csv(path)[0]
+        else:
+            found = os.path.isfile(path) and "offsets" in read_npz(path, "an .npz file")
+    except LCSInputError:
+        return None
+    if not found:
+        return None
+    try:
+        return Trajectories.load(path)
+    except LCSInputError as exc:
+        err = reraise_for(option, exc)
+        raise err if repr(path) in str(err) else LCSInputError(f"{err} (in {path!r})") from None
 
 
 def check_target(option: str, path: str | None) -> None:

@@ -9,12 +9,14 @@ import time
 import numpy as np
 import torch
 
-from .. import LCSInputError, count_modes
+from .. import LCSInputError, count_modes, rollout_error
 from ._args import (
     check_dims,
     check_target,
+    horizons,
     jsonable,
     load_data,
+    load_trajectories,
     positive_float,
     positive_int,
     relative_error_for,
@@ -112,9 +114,12 @@ def run_fit(args: argparse.Namespace) -> int:
 def configure_predict(p: argparse.ArgumentParser) -> None:
     # required, but checked by run_predict: every command parses with no arguments (test_cli)
     p.add_argument("--model", help="model file written by lcs-cvx fit / save_model (required)")
-    p.add_argument("--data", help="data set, an .npz with x, u, x_next (required)")
+    p.add_argument("--data", help="data set, an .npz with x, u, x_next or a trajectory file "
+                   "(Trajectories.save's .npz, a .csv with a trajectory column) (required)")
     p.add_argument("--out", default=None,
                    help="also write the predictions (arrays x_next_pred, lam) to this .npz")
+    p.add_argument("--horizons", type=horizons, default=None,
+                   help="rollout horizons for trajectory files (default: 1,5,20)")
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
 
 
@@ -128,14 +133,32 @@ def run_predict(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except LCSInputError as exc:
         raise reraise_for("model", exc) from None
-    data = load_data("data", args.data)
+    trajs = load_trajectories("data", args.data)
+    if trajs is None and args.horizons is not None:
+        raise LCSInputError(
+            f"horizons: only for trajectory files (an .npz with offsets, a .csv with a trajectory "
+            f"column), received --data {args.data!r}"
+        )
+    data = load_data("data", args.data) if trajs is None else trajs.to_transitions()
     check_dims("data", args.data, data, model.n_x, model.n_u, f"the model's, {args.model!r}")
     model.requires_grad_(False)
     x, u = data.x.to(model.dtype), data.u.to(model.dtype)
     print(f"model: n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam} ({args.model})")
-    print(f"data: {len(data)} samples ({args.data})")
+    if trajs is None:
+        print(f"data: {len(data)} samples ({args.data})")
+    else:
+        print(f"data: {len(data)} samples in {len(trajs)} trajectories ({args.data})")
     print(f"e_test: {relative_error_for('data', model, data):.6g}")
     print(f"modes: {count_modes(model, data)}")
+    if trajs is not None:
+        longest = max(trajs.lengths)
+        hs = [h for h in dict.fromkeys(args.horizons or (1, 5, 20)) if h <= longest]
+        if hs:
+            errs = rollout_error(model, trajs, hs)
+            print(f"rollout error (H={', '.join(map(str, hs))}): "
+                  + ", ".join(f"{errs[h]:.6g}" for h in hs))
+        else:
+            print(f"rollout error: none (every horizon is longer than the longest trajectory, {longest} steps)")
     if args.out is not None:
         with torch.no_grad():
             lam = model.solve_lcp(x, u).lam
