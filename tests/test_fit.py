@@ -302,8 +302,10 @@ def test_fallbacks_are_recorded(small, monkeypatch):
     assert clean.n_fallback == 0 and clean.max_residual == 0.0
     assert all(h["n_fallback"] == 0 for h in clean.history)
     monkeypatch.setattr(lcs_cvx.losses, "MAX_ITER", 0)
+    best = {"recipe": "best", "iterations": 20, "eval_every": 10, "prune_batch": 100,
+            "refine_iterations": 1, "refine_batch": 100}  # Adam, pruning with repair, refinement
     for options in ({"iterations": 30, "eval_every": 10}, {"optimizer": "gauss-newton", "iterations": 2,
-                                                          "batch_size": 300}):
+                                                          "batch_size": 300}, best):
         with pytest.warns(lcs_cvx.FallbackWarning) as caught:  # and said so
             result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, **options)
         assert any("solved them with the Clarabel reference" in str(w.message) for w in caught)

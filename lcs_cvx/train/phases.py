@@ -153,7 +153,8 @@ def reinit_saturated(state: TrainState) -> None:
 class PrunePhase(Phase):
     """One step: the grown model pruned back to the user's ``n_lam`` units (deletion or
     elimination, scored after a least-squares refit; :func:`lcs_cvx.units.prune`), then loaded
-    into the user's model. Not recorded; checkpointed after."""
+    into the user's model. Not recorded itself (its repair steps' fallbacks count in the next
+    record); checkpointed after."""
 
     key = "prune"
     counted = False
@@ -165,17 +166,22 @@ class PrunePhase(Phase):
         o = self.options
         x, u, x_next = state.batch(state.next_batch(min(o.prune.batch_size, len(state.train))))
 
+        fallbacks = [0, 0.0]  # of the repair steps' solves, counted in the next record
+
         def repair(kept: LCS) -> None:  # Gauss--Newton steps after each removal
             mu = o.refine.damping
             for _ in range(o.prune.repair):
-                mu = gauss_newton_step(kept, x, u, x_next, gamma=o.objective.gamma,
-                                       eps=o.objective.eps, reg=o.objective.reg, damping=mu).damping
+                res = gauss_newton_step(kept, x, u, x_next, gamma=o.objective.gamma,
+                                        eps=o.objective.eps, reg=o.objective.reg, damping=mu)
+                mu = res.damping
+                fallbacks[0] += res.n_fallback
+                fallbacks[1] = max(fallbacks[1], res.max_residual)
 
         pruned = prune(state.work, state.model.n_lam, x, u, x_next, reg=o.objective.reg,
                        repair=repair if o.prune.repair else None)
         state.model.load_state_dict(pruned.state_dict())
         state.work = state.model
-        return Outcome(None, o.objective.eps, None)
+        return Outcome(None, o.objective.eps, None, fallbacks[0], fallbacks[1])
 
 
 class RefinePhase(Phase):
