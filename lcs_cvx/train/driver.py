@@ -13,7 +13,6 @@ uninterrupted one (wall times aside).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import os
@@ -29,10 +28,12 @@ from .._checks import LCSInputError
 from ..data import Dataset
 from ..io import atomic_write
 from ..metrics import relative_error
+from ..scaling import Scaling
 from ..system import LCS
 from .options import FitOptions
 from .phases import run_phases
 from .recipes import resolve_options, split_groups
+from .starts import fresh_like, start
 from .state import TrainState
 
 __all__ = ["FitResult", "fit", "CHECKPOINT_FORMAT"]
@@ -56,6 +57,9 @@ class FitResult:
         settings: the resolved :class:`FitOptions`.
         restart_scores: held-out relative error of each restart (empty with one run).
         wall_time: seconds, summed over resumed pieces.
+        scaling: the normalised coordinates the model was learned in
+            (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
+            history is in those coordinates; ``e_test`` and the restart scores are in the user's.
     """
 
     model: LCS
@@ -63,6 +67,7 @@ class FitResult:
     settings: FitOptions
     restart_scores: list[float] = field(default_factory=list)
     wall_time: float = 0.0
+    scaling: Scaling | None = None
 
     @property
     def n_fallback(self) -> int:
@@ -215,10 +220,22 @@ def fit(
     ckpt = store.load() if resume else None
     r = opts.run
 
-    fit_data, holdout = train, None
+    fit_user, holdout = train, None
     if r.restarts > 1:
-        fit_data, holdout = train.split(1.0 - r.holdout, seed=r.seed)
-    initial = copy.deepcopy(model.state_dict())
+        fit_user, holdout = train.split(1.0 - r.holdout, seed=r.seed)
+    # the coordinates of learning: normalised (folded back at the end) or the user's own
+    scaling = Scaling.fit(fit_user, model) if r.normalize else None
+    fit_data = scaling.encode(fit_user) if scaling is not None else fit_user
+    test_data = scaling.encode(test) if scaling is not None and test is not None else test
+
+    def in_units(m: LCS) -> LCS:
+        """A model being learned, in the user's units."""
+        return scaling.to_physical(m) if scaling is not None else m
+
+    def score_on(data: Dataset) -> Callable[[LCS], float]:
+        return lambda m: relative_error(in_units(m), data)
+
+    user_callbacks = [lambda rec, m, cb=cb: cb(rec, in_units(m)) for cb in callbacks]
     done: list[dict] = [] if ckpt is None else ckpt["done"]
     t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
     bar = None
@@ -233,17 +250,19 @@ def fit(
     def elapsed() -> float:
         return t_offset + time.perf_counter() - t_start
 
+    def learner_for(restart: int) -> LCS:
+        """The start of a restart in the coordinates of learning (restart 0: from ``model``)."""
+        base = model if restart == 0 else fresh_like(model, seed=r.seed * 7919 + restart)
+        return start(base, r.init, scaling, fit_data, exact=restart == 0)
+
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False
+    learner = None
     try:
         for restart in range(len(done), r.restarts):
-            if restart == 0:
-                model.load_state_dict(initial)
-            else:
-                fresh = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness),
-                            seed=r.seed * 7919 + restart, dtype=model.dtype).to(model.device)
-                model.load_state_dict(fresh.state_dict())
-            state = TrainState(model, fit_data, test, opts, restart)
+            learner = learner_for(restart)
+            state = TrainState(learner, fit_data, test_data, opts, restart,
+                               score=score_on(test) if test is not None else None)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:
@@ -252,12 +271,12 @@ def fit(
             def save(state: TrainState = state, restart: int = restart) -> None:
                 store.save(restart, done, state.state_dict(), elapsed())
 
-            stopped = run_phases(state, callbacks=callbacks, save=save, elapsed=elapsed, bar=bar)
+            stopped = run_phases(state, callbacks=user_callbacks, save=save, elapsed=elapsed, bar=bar)
             if r.keep_best:
                 state.restore_best()
-            score = relative_error(model, holdout) if holdout is not None else math.nan
+            score = score_on(holdout)(learner) if holdout is not None else math.nan
             done.append({"score": score, "history": state.history,
-                         "params": {k: v.detach().clone() for k, v in model.state_dict().items()}})
+                         "params": {k: v.detach().clone() for k, v in learner.state_dict().items()}})
             history.extend(state.history)
             if stopped:
                 break
@@ -267,7 +286,13 @@ def fit(
     scores = [d["score"] for d in done] if r.restarts > 1 else []
     if done:  # the chosen run (also when a resumed checkpoint had finished them all)
         best = min(range(len(done)), key=lambda i: done[i]["score"]) if r.restarts > 1 else -1
-        model.load_state_dict(done[best]["params"])
+        if learner is None:  # every restart came from the checkpoint
+            learner = learner_for(0)
+        learner.load_state_dict(done[best]["params"])
+        if scaling is not None:
+            scaling.to_physical(learner, out=model)
+        elif learner is not model:
+            model.load_state_dict(learner.state_dict())
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
-    return FitResult(model, history, opts, scores, elapsed())
+    return FitResult(model, history, opts, scores, elapsed(), scaling)

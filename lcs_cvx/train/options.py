@@ -37,6 +37,7 @@ LOSSES = ("violation", "prediction")
 OPTIMIZERS = ("adam", "gauss-newton", "newton")
 METHODS = (None, "gauss-newton", "newton")
 SCHEDULES = ("constant", "cosine")
+INITS = ("model", "increment", "affine")
 #: the recipes (:data:`lcs_cvx.train.RECIPES`)
 RECIPE_NAMES = ("paper", "best")
 
@@ -223,6 +224,17 @@ class RunOptions:
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
             second-order step are always followed by one).
         keep_best: return the iterate with the lowest e_test on ``test`` instead of the last.
+        normalize: learn in normalised coordinates (:class:`lcs_cvx.scaling.Scaling`: ``x``,
+            ``u`` and the increment ``x' - x`` scaled by the training set's statistics) and fold
+            the result back exactly into the user's units. The losses' constants, the
+            initialisation and the step sizes are calibrated for data of unit scale.
+        init: where training starts (:mod:`lcs_cvx.train.starts`). ``"model"``: the given
+            model's parameters, in the user's units. ``"increment"``: ``x' = x`` plus the mean
+            increment for ``(A, B, d)``, and the model's other learnable parameters taken as a
+            random draw in the coordinates of learning (a fresh :class:`lcs_cvx.LCS`'s
+            ``init_scale * N(0, 1)``: hyperplanes at the data's scale whatever its units).
+            ``"affine"``: as ``"increment"``, with ``(A, B, d)`` from the least-squares affine fit
+            ``x' ~ A x + B u + d``. Fixed parameters keep their values in every case.
     """
 
     restarts: int = 1
@@ -231,9 +243,14 @@ class RunOptions:
     eval_every: int = 100
     checkpoint_every: int = 500
     keep_best: bool = False
+    normalize: bool = True
+    init: str = "increment"
 
     def __post_init__(self) -> None:
         _count(self, 1, "restarts", "eval_every", "checkpoint_every")
+        _choice(self, "init", INITS)
+        if not isinstance(self.normalize, bool):
+            raise option_error("normalize", "True or False", self.normalize)
         if not (_number(self.holdout) and 0 < self.holdout < 1):
             raise option_error("holdout", "a fraction in (0, 1)", self.holdout)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):

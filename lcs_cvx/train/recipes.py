@@ -27,7 +27,7 @@ _FLAT: dict[str, tuple[str, str]] = {
     "refine_batch": ("refine", "batch_size"), "damping": ("refine", "damping"),
     "polish_iterations": ("polish", "iterations"), "polish_lr": ("polish", "lr"),
     **{k: ("run", k) for k in ("restarts", "holdout", "seed", "eval_every", "checkpoint_every",
-                               "keep_best")},
+                               "keep_best", "normalize", "init")},
 }
 
 #: (group, field) -> the flat keyword that sets it
@@ -49,9 +49,11 @@ _OPTIMIZER_DEFAULTS: dict[str, dict[str, Any]] = {
 
 #: The recipes, as the flat keywords they set (see the docs' training page for the measurements).
 _RECIPE_KEYWORDS: dict[str, dict[str, Any]] = {
-    # the paper's protocol (Sec. 5): Adam, constant lr 1e-3, fixed eps, one run
+    # the paper's protocol (Sec. 5): Adam, constant lr 1e-3, fixed eps, one run from the given
+    # model, in the data's own coordinates
     "paper": {"optimizer": "adam", "lr": 1e-3, "lr_schedule": "constant", "eps_start": None,
-              "refine": None, "restarts": 1, "reinit_saturated": False},
+              "refine": None, "restarts": 1, "reinit_saturated": False, "normalize": False,
+              "init": "model"},
     # cosine lr from 1e-2, eps continuation, saturated-unit re-initialisation, extra units then
     # pruning, a Gauss--Newton refinement: 4,000 Adam steps instead of 10,000
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,

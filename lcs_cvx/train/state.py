@@ -10,6 +10,7 @@ types only, loadable with ``torch.load(weights_only=True)``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,9 +45,12 @@ class TrainState:
     """One run of :func:`lcs_cvx.fit` (one restart)."""
 
     def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
-                 restart: int) -> None:
+                 restart: int, score: Callable[[LCS], float] | None = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
+        # e_test of a model being trained (default: its relative error on ``test``; under
+        # normalisation, the error of the folded-back model in the user's units)
+        self.score = score if score is not None else (lambda m: relative_error(m, test))
         a = options.adam
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
@@ -111,7 +115,7 @@ class TrainState:
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict[str, Any]:
         """Close the current stretch of steps as one history record (and track the best iterate
         when ``keep_best``)."""
-        e_test = relative_error(self.work, self.test) if self.test is not None else None
+        e_test = self.score(self.work) if self.test is not None else None
         rec = {
             "iteration": self.iteration, "phase": phase,
             "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
