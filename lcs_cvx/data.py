@@ -231,7 +231,10 @@ def read_csv(path: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
         raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
     if not lines:
         raise LCSInputError(f"path: expected a CSV file with a header row, {path!r} is empty")
-    rows = [(lineno, next(csv.reader([line]))) for lineno, line in lines]  # one row per line
+    try:
+        rows = [(lineno, next(csv.reader([line]))) for lineno, line in lines]  # one row per line
+    except csv.Error as exc:  # e.g. a field over csv.field_size_limit()
+        raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
     header = [h.strip() for h in rows[0][1]]
     seen: set[str] = set()
     for h in header:
