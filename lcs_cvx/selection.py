@@ -97,8 +97,8 @@ class Selection:
             its training run).
         results: the :class:`lcs_cvx.FitResult` of each candidate, by ``n_lam``.
         tolerance: the rule's tolerance.
-        validation: ``"validation set"`` or ``"held-out 20% of train"``: where the held-out
-            errors were measured.
+        validation: where the held-out errors were measured: ``"validation set"`` or
+            ``"held-out 20% of train"``.
         refit: the :class:`lcs_cvx.FitResult` of the refit on the whole training set, or None.
     """
 
@@ -122,7 +122,7 @@ class Selection:
         best = min((r for r in self.table if math.isfinite(r["validation_error"])),
                    key=lambda r: r["validation_error"])
         lines.append(
-            f"chosen n_lam={self.n_lam}: the smallest within {self.tolerance:.0%} of the lowest "
+            f"chosen n_lam={self.n_lam}: the smallest within {100 * self.tolerance:g}% of the lowest "
             f"validation error ({best['validation_error']:.4e} at n_lam={best['n_lam']}; "
             f"{self.validation})" + ("; refit on all of train" if self.refit is not None else "")
         )
@@ -241,7 +241,7 @@ def select_n_lam(
                 f"train: expected enough samples to hold {holdout:g} of them out, received "
                 f"{len(train)} (a part would be empty); pass a validation set"
             )
-        where = f"held-out {holdout:.0%} of train"
+        where = f"held-out {100 * holdout:g}% of train"
 
     def build(n: int) -> LCS:
         if make_model is None:

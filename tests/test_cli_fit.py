@@ -327,7 +327,7 @@ def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
         ("out-dir", "--out", r"expected a file in an existing directory"),
         ("checkpoint-dir", "--checkpoint", r"expected a file in an existing directory"),
         ("resume", "--resume", r"expected --checkpoint PATH to resume from, received none"),
-        ("n-lam", "--n-lam", r"expected an integer >= 1, received '0'"),
+        ("n-lam", "--n-lam", r"expected an integer >= 1 or 'auto', received '0'"),
         ("no-n-lam", "--n-lam", r"expected a value \(the option is required\), received none"),
         ("no-out", "--out", r"expected a value \(the option is required\), received none"),
         ("lr", "--lr", r"expected a finite number > 0, received '-1'"),

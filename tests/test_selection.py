@@ -11,7 +11,15 @@ import pytest
 import torch
 
 import lcs_cvx
-from lcs_cvx import LCS, Dataset, LCSInputError, make_dataset, random_lcs, relative_error, select_n_lam
+from lcs_cvx import (
+    LCS,
+    Dataset,
+    LCSInputError,
+    make_dataset,
+    random_lcs,
+    relative_error,
+    select_n_lam,
+)
 from lcs_cvx.selection import Selection, choose
 
 # -- the rule -------------------------------------------------------------------------------
