@@ -113,7 +113,8 @@ class Dataset:
         and, optionally, ``lam_0, ...``; any other column (a time stamp, a trajectory id) is
         ignored. ``columns`` names them instead, e.g.
         ``{"x": ["pos", "vel"], "u": ["force"], "x_next": ["pos_next", "vel_next"]}`` (keys
-        ``"x"``, ``"u"``, ``"x_next"`` and optionally ``"lam"``, in the order of the vectors).
+        ``"x"``, ``"u"``, ``"x_next"`` and optionally ``"lam"``, in the order of the vectors;
+        ``"u": []`` for a system without inputs, ``n_u = 0``).
         Blank lines and lines starting with ``#`` are skipped; the delimiter is a comma.
 
         Every problem is an :class:`LCSInputError` that names the file, and the line and column
@@ -123,7 +124,7 @@ class Dataset:
         """
         path = os.fspath(path)
         header, rows = read_csv(path)
-        names = csv_columns(path, header, columns, _GROUPS, ("x", "u", "x_next"))
+        names = csv_columns(path, header, columns, _GROUPS, ("x", "u", "x_next"), may_be_empty=("u",))
         if len(names["x_next"]) != len(names["x"]):
             raise LCSInputError(
                 f"path: expected as many next-state columns as state columns in {path!r}, received "
@@ -231,7 +232,10 @@ def read_csv(path: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
         raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
     if not lines:
         raise LCSInputError(f"path: expected a CSV file with a header row, {path!r} is empty")
-    rows = [(lineno, next(csv.reader([line]))) for lineno, line in lines]  # one row per line
+    try:
+        rows = [(lineno, next(csv.reader([line]))) for lineno, line in lines]  # one row per line
+    except csv.Error as exc:  # e.g. a field over csv.field_size_limit()
+        raise LCSInputError(f"path: expected a CSV text file, could not read {path!r}: {exc}") from exc
     header = [h.strip() for h in rows[0][1]]
     seen: set[str] = set()
     for h in header:
@@ -282,9 +286,11 @@ def csv_columns(
     columns: Mapping[str, Sequence[str]] | None,
     groups: Sequence[str],
     required: Sequence[str],
+    may_be_empty: Sequence[str] = (),
 ) -> dict[str, list[str]]:
     """The column names of each array (``groups``, of which ``required`` must be present): given
-    by ``columns`` or found by the default names ``{group}_0, {group}_1, ...``."""
+    by ``columns`` or found by the default names ``{group}_0, {group}_1, ...``. In ``columns``,
+    the groups of ``may_be_empty`` may name no column (``"u": []``: a system without inputs)."""
     optional = [g for g in groups if g not in required]
     keys = ", ".join(repr(g) for g in required) + (
         f" (and optionally {', '.join(repr(g) for g in optional)})" if optional else ""
@@ -300,9 +306,11 @@ def csv_columns(
             raise LCSInputError(f"columns: expected keys {keys}, received {sorted(columns)}")
         names = {}
         for g, cols in columns.items():
-            if isinstance(cols, str) or not all(isinstance(c, str) for c in cols) or not cols:
+            if (isinstance(cols, str) or not all(isinstance(c, str) for c in cols)
+                    or not (cols or g in may_be_empty)):
                 raise LCSInputError(
-                    f"columns: expected a non-empty list of column names for {g!r}, received {cols!r}"
+                    f"columns: expected a {'' if g in may_be_empty else 'non-empty '}list of "
+                    f"column names for {g!r}, received {cols!r}"
                 )
             absent = [c for c in cols if c not in header]
             if absent:

@@ -28,9 +28,7 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import secrets
-import zipfile
 from collections.abc import Callable, Mapping
 from typing import IO, Any
 
@@ -205,8 +203,12 @@ def read_npz(path: str, expected: str) -> dict[str, np.ndarray]:
                 raise LCSInputError(f"{not_npz} (a single .npy array)")
             with f:
                 return {k: f[k] for k in f.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, pickle.UnpicklingError) as exc:
-        raise LCSInputError(f"{not_npz} (could not read it: {exc})") from None
+    except LCSInputError:
+        raise
+    except Exception as exc:  # a damaged file fails in many ways, all named here:
+        # BadZipFile, EOFError, ValueError (a bad .npy header), OSError; from flipped bytes
+        # also NotImplementedError (an unknown compression method), RuntimeError ("encrypted")
+        raise LCSInputError(f"{not_npz} (could not read it: {type(exc).__name__}: {exc})") from None
 
 
 def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str, Any]]:

@@ -171,7 +171,8 @@ class Trajectories:
         In a CSV file the column ``trajectory`` holds the trajectory id: the rows of one id, in
         file order, are one trajectory, and the trajectories come in the order their ids first
         appear. The states are the columns ``x_0, ..., x_{n_x-1}`` and the inputs ``u_0, ...``
-        by default, or ``columns={"x": [...], "u": [...]}`` names them; other columns are
+        by default, or ``columns={"x": [...], "u": [...]}`` names them (``"u": []``: no
+        inputs, ``n_u = 0``); other columns are
         ignored. Row ``t`` holds ``x_t`` and ``u_t``, the input that drives ``x_t`` to
         ``x_{t+1}``; the last row of a trajectory has no next state, so its inputs are not
         read (leave them empty). Blank lines and lines starting with ``#`` are skipped.
@@ -221,7 +222,7 @@ class Trajectories:
                 f"trajectory: expected a column {trajectory!r} (the trajectory id) in the header of "
                 f"{path!r}, received {header}"
             )
-        names = csv_columns(path, header, columns, ("x", "u"), ("x", "u"))
+        names = csv_columns(path, header, columns, ("x", "u"), ("x", "u"), may_be_empty=("u",))
         if trajectory in names["x"] + names["u"]:
             raise LCSInputError(f"columns: the trajectory id column {trajectory!r} cannot be a state or input")
         j = header.index(trajectory)

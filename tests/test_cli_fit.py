@@ -327,7 +327,7 @@ def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
         ("out-dir", "--out", r"expected a file in an existing directory"),
         ("checkpoint-dir", "--checkpoint", r"expected a file in an existing directory"),
         ("resume", "--resume", r"expected --checkpoint PATH to resume from, received none"),
-        ("n-lam", "--n-lam", r"expected an integer >= 1, received '0'"),
+        ("n-lam", "--n-lam", r"expected an integer >= 1 or 'auto', received '0'"),
         ("no-n-lam", "--n-lam", r"expected a value \(the option is required\), received none"),
         ("no-out", "--out", r"expected a value \(the option is required\), received none"),
         ("lr", "--lr", r"expected a finite number > 0, received '-1'"),
@@ -434,3 +434,281 @@ def test_fit_reports_fallbacks_in_one_line(files, tmp_path, capsys, monkeypatch)
     facts = _facts(capsys.readouterr().out)
     assert facts["fallbacks"] == ("20 training samples were solved by the reference solver "
                                   "(worst relative KKT residual 2.00e-08)")
+
+
+# -- fit --n-lam auto --------------------------------------------------------------------------
+
+
+def _table(out: str) -> list[list[str]]:
+    """The rows of the selection table printed by ``fit --n-lam auto`` (the chosen one marked)."""
+    return [line.split() for line in out.splitlines() if re.match(r"^\s+\d+ [ *]\s", line)]
+
+
+def test_fit_n_lam_auto_end_to_end(files, capsys):
+    out = files["data"].with_name("auto.npz")
+    argv = ["fit", "--data", str(files["data"]), "--validation", str(files["test"]), "--n-lam", "auto",
+            "--candidates", "3,1,2", "--optimizer", "gauss-newton", "--iterations", "30", "--out", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    facts = _facts(text)
+    meta = load_metadata(out)["metadata"]
+    sel = meta["selection"]
+    assert sel["candidates"] == [1, 2, 3] and sel["tolerance"] == 0.1 and sel["holdout"] is None
+    assert [row["n_lam"] for row in sel["table"]] == [1, 2, 3]
+    errors = {row["n_lam"]: row["validation_error"] for row in sel["table"]}
+    assert sel["n_lam"] == lcs_cvx.selection.choose(errors) == int(facts["chosen n_lam"].split()[0])
+    assert facts["chosen n_lam"].endswith(f"lowest relative error on --validation '{files['test']}')")
+    assert meta["init"]["n_lam"] == sel["n_lam"] and meta["data"]["validation"] == str(files["test"])
+    assert meta["fit"]["iterations"] == 30 and meta["fit"]["seed"] == 0
+
+    learned = load_model(out)
+    assert learned.n_lam == sel["n_lam"]
+    # the saved model is the one whose validation error is in the table: recomputed
+    assert lcs_cvx.relative_error(learned, Dataset.load(files["test"])) == errors[learned.n_lam]
+    rows = _table(text)
+    assert [int(r[0]) for r in rows] == [1, 2, 3]
+    assert [r[1] == "*" for r in rows] == [n == sel["n_lam"] for n in (1, 2, 3)]
+    assert [float(r[-4]) for r in rows] == pytest.approx([errors[n] for n in (1, 2, 3)], rel=1e-4)
+    assert errors[1] > 10 * min(errors.values())  # one unit cannot hold the truth's two
+
+
+class _TruthFit(_FakeFit):
+    """A stand-in that only "learns" a model of the truth's size (other sizes stay as built)."""
+
+    def __call__(self, model, train, **kwargs):
+        if model.n_lam == self.truth.n_lam:
+            return super().__call__(model, train, **kwargs)
+        self.calls.append((model, train, kwargs))
+        return _Result(model, [], _Settings())
+
+
+def test_fit_n_lam_auto_passes_options_and_holds_out(files, monkeypatch, truth, capsys):
+    fake_fit = _TruthFit(truth)
+    monkeypatch.setattr(lcs_cvx, "fit", fake_fit)
+    out = files["data"].with_name("auto.npz")
+    argv = ["fit", "--data", str(files["data"]), "--test", str(files["test"]), "--n-lam", "auto",
+            "--holdout", "0.25", "--tolerance", "0", "--iterations", "7", "--seed", "4",
+            "--stiffness", "0.5", "--out", str(out)]
+    assert main(argv) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert [c[0].n_lam for c in fake_fit.calls] == [1, 2, 4, 8]  # the default candidates
+    part, _ = Dataset.load(files["data"]).split(0.75, seed=4)
+    for model, train, kwargs in fake_fit.calls:
+        assert torch.equal(train.x, part.x)
+        assert kwargs.pop("test").x.shape == (100, 2)
+        assert kwargs == {"progress": False, "seed": 4, "iterations": 7}
+        assert float(model.stiffness) == 0.5
+    meta = load_metadata(out)["metadata"]
+    assert meta["selection"]["n_lam"] == 2 and load_model(out).n_lam == 2  # the one "learned"
+    assert meta["selection"]["holdout"] == 0.25 and meta["selection"]["tolerance"] == 0.0
+    assert facts["chosen n_lam"].endswith("(the smallest within 0% of the lowest relative error on 25% of --data held out)")
+
+
+@pytest.mark.parametrize(
+    ("extra", "named", "says"),
+    [
+        (["--n-lam", "2", "--candidates", "1,2"], "--candidates", r"only with --n-lam auto, received --n-lam 2"),
+        (["--n-lam", "2", "--validation", "V"], "--validation", r"only with --n-lam auto, received --n-lam 2 \(use --test"),
+        (["--n-lam", "2", "--tolerance", "0.5"], "--tolerance", r"only with --n-lam auto"),
+        (["--n-lam", "auto", "--checkpoint", "C"], "--checkpoint", r"expected none with --n-lam auto"),
+        (["--n-lam", "auto", "--validation", "V", "--holdout", "0.3"], "--holdout", r"expected none with --validation"),
+        (["--n-lam", "auto", "--validation", "BAD"], "--validation", r"expected n_x=2, n_u=1 \(as in '.*data\.npz'\), received n_x=2, n_u=2"),
+        (["--n-lam", "auto", "--candidates", "1,1"], "--candidates", r"expected distinct comma-separated integers >= 1"),
+        (["--n-lam", "auto", "--candidates", "0,2"], "--candidates", r"expected distinct comma-separated integers >= 1"),
+        (["--n-lam", "auto", "--holdout", "1"], "--holdout", r"expected a fraction in \(0, 1\), received '1'"),
+        (["--n-lam", "auto", "--tolerance", "-1"], "--tolerance", r"expected a finite number >= 0, received '-1'"),
+        (["--n-lam", "many"], "--n-lam", r"expected an integer >= 1 or 'auto', received 'many'"),
+    ],
+)
+def test_fit_n_lam_auto_bad_input(files, fake_fit, capsys, extra, named, says):
+    tmp = files["data"].parent
+    subst = {"V": str(files["test"]), "C": str(tmp / "c.pt"), "BAD": _bad_data(tmp / "bad.npz", u=np.ones((20, 2)))}
+    argv = ["fit", "--data", str(files["data"]), "--out", str(tmp / "m.npz"), *[subst.get(a, a) for a in extra]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith("lcs-cvx fit: error: ") and named in line and re.search(says, line), line
+    assert fake_fit.calls == []
+
+
+# -- CSV files with the user's column names; trajectory files -----------------------------------
+
+
+def _write_csv(path: Path, header: list[str], rows: np.ndarray | list) -> Path:
+    lines = [",".join(header)] + [",".join(repr(float(v)) if not isinstance(v, str) else v for v in row) for row in rows]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
+def user_csv(files) -> tuple[Path, Dataset]:
+    """``files["data"]`` as a robot log: a time column and the user's own names."""
+    data = Dataset.load(files["data"])
+    table = np.column_stack([np.arange(len(data)) * 0.01, data.x, data.u, data.x_next])
+    path = _write_csv(files["data"].with_name("log.csv"), ["t", "z", "vz", "fz", "z_next", "vz_next"], table)
+    return path, data
+
+
+def test_fit_and_predict_on_a_csv_with_the_users_names(files, user_csv, fake_fit, truth, capsys):
+    path, data = user_csv
+    out = path.with_name("m.npz")
+    names = ["--state", "z,vz", "--input", "fz"]
+    test = _write_csv(path.with_name("test.csv"), ["z", "vz", "fz", "z_next", "vz_next"],
+                      np.column_stack([data.x, data.u, data.x_next])[:40])
+    assert main(["fit", "--data", str(path), "--test", str(test), "--n-lam", "2", "--out", str(out), *names]) == 0
+    (_, train, kwargs), = fake_fit.calls
+    assert torch.equal(train.x, data.x) and torch.equal(train.u, data.u) and torch.equal(train.x_next, data.x_next)
+    assert torch.equal(kwargs["test"].x, data.x[:40])
+    capsys.readouterr()
+
+    # the default names are refused with a hint that names the command-line options
+    assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out)]) == 2
+    line = _error_line(capsys, "fit")
+    assert "--data: expected columns x_0.., u_0.., x_next_0.." in line
+    assert "(found ['t', 'z', 'vz', 'fz', 'z_next', 'vz_next']); or name them with --state and --input" in line
+    assert "columns=" not in line
+
+    # predict reads the same file the same way: the truth predicts it exactly
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), *names]) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert float(facts["e_test"]) < 1e-24 and facts["data"] == f"300 samples ({path})"
+
+    # other next-state names, by suffix
+    renamed = path.with_name("log2.csv")
+    renamed.write_text(path.read_text().replace("z_next,vz_next", "z+,vz+", 1))
+    assert main(["predict", "--model", str(files["model"]), "--data", str(renamed), *names, "--next-suffix", "+"]) == 0
+    assert float(_facts(capsys.readouterr().out)["e_test"]) < 1e-24
+
+
+def test_a_system_without_inputs(tmp_path, capsys):
+    system = random_lcs(2, 0, 2, seed=1)
+    data = make_dataset(system, 50, seed=0)
+    path = _write_csv(tmp_path / "free.csv", ["p", "v", "p_next", "v_next"], np.column_stack([data.x, data.x_next]))
+    save_model(system, tmp_path / "m.npz")
+    assert main(["predict", "--model", str(tmp_path / "m.npz"), "--data", str(path), "--state", "p,v", "--input", ""]) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert float(facts["e_test"]) < 1e-24 and facts["model"].startswith("n_x=2, n_u=0, n_lam=2 ")
+
+
+def _trajectory_csv(path: Path, trajs: lcs_cvx.Trajectories, header: list[str], id_column: str = "run",
+                    extra: bool = False) -> Path:
+    rows = []
+    for i, (x, u) in enumerate(zip(trajs.xs, trajs.us, strict=True)):
+        for t in range(len(x)):
+            ut = [repr(v) for v in u[t].tolist()] if t < len(u) else [""] * u.shape[1]
+            nxt = [repr(v) for v in x[t + 1].tolist()] if t + 1 < len(x) else ["0"] * x.shape[1]
+            if extra and t == len(u):  # a transitions file: every row complete
+                ut = ["0"] * u.shape[1]
+            rows.append(",".join([f"run{i}", *map(repr, x[t].tolist()), *ut, *(nxt if extra else [])]))
+    path.write_text(",".join([id_column, *header]) + "\n" + "\n".join(rows) + "\n")
+    return path
+
+
+def test_fit_and_predict_on_trajectory_rows(files, truth, fake_fit, capsys):
+    trajs = _trajectories(truth, [6, 11, 4])
+    path = _trajectory_csv(files["data"].with_name("runs.csv"), trajs, ["z", "vz", "fz"])
+    names = ["--state", "z,vz", "--input", "fz", "--trajectory-column", "run"]
+    out = path.with_name("m.npz")
+    assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out), *names]) == 0
+    (_, train, _), = fake_fit.calls
+    expected = trajs.to_transitions()  # the next state: the next row of the same run
+    assert len(train) == 21 and torch.equal(train.x, expected.x) and torch.equal(train.x_next, expected.x_next)
+    assert torch.equal(train.u, expected.u)
+    assert _facts(capsys.readouterr().out)["data"] == "21 samples (n_x=2, n_u=1)"
+
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), *names]) == 0
+    facts = _facts(capsys.readouterr().out)
+    assert facts["data"] == f"21 samples in 3 trajectories ({path})"
+    assert float(facts["e_test"]) < 1e-24 and "rollout error (H=1, 5)" in facts
+
+    # the trajectory column not in the file: named, with the file's columns
+    assert main(["predict", "--model", str(files["model"]), "--data", str(path), "--state", "z,vz",
+                 "--input", "fz", "--trajectory-column", "episode"]) == 2
+    line = _error_line(capsys, "predict")
+    assert re.search(r"--trajectory-column: expected a column 'episode' \(the trajectory id\) in --data "
+                     r"file '.*runs\.csv', received columns \['run', 'z', 'vz', 'fz'\]", line), line
+
+
+def test_a_trajectory_label_beside_next_state_columns_is_a_label(files, truth, fake_fit, capsys):
+    """A transitions file that also has a ``trajectory`` column is read row by row (the column
+    is a label), unless --trajectory-column names it."""
+    trajs = _trajectories(truth, [3, 5])
+    path = _trajectory_csv(files["data"].with_name("both.csv"), trajs, ["x_0", "x_1", "u_0", "x_next_0", "x_next_1"],
+                           id_column="trajectory", extra=True)
+    out = path.with_name("m.npz")
+    assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out)]) == 0
+    assert len(fake_fit.calls[-1][1]) == 10  # every row, the last of each run included
+    assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out), "--trajectory-column", "trajectory"]) == 0
+    assert len(fake_fit.calls[-1][1]) == 8  # the next rows of each run
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    ("names", "named", "says"),
+    [
+        (["--state", "z,vy", "--input", "fz"], "--state",
+         r"expected columns \['z', 'vy'\] in --data file '.*log\.csv', missing \['vy'\] \(its columns: \['t', 'z', 'vz', 'fz', 'z_next', 'vz_next'\]\)"),
+        (["--state", "z,vz", "--input", "fz"], "--input",
+         r"expected columns \['fz'\] in --test file '.*test\.csv', missing \['fz'\] \(its columns: \['z', 'vz', 'force', 'z_next', 'vz_next'\]\)"),
+        (["--state", "z,vz", "--input", "fz", "--next-suffix", "_n"], "--next-suffix",
+         r"expected next-state columns \['z_n', 'vz_n'\] \(--state \+ '_n'\) in --data file .* missing \['z_n', 'vz_n'\]"),
+        (["--state", "z,vz"], "--input", r"expected the input columns with --state \(--input '' for a system without inputs\)"),
+        (["--input", "fz"], "--input", r"expected --state too"),
+        (["--next-suffix", "_n"], "--next-suffix", r"expected --state too"),
+        (["--state", "", "--input", "fz"], "--state", r"expected at least one state column"),
+        (["--state", "z,z", "--input", "fz"], "--state", r"expected distinct comma-separated column names"),
+        (["--state", "z,vz", "--input", "vz"], "--input", r"expected columns other than --state's, received \['vz'\] in both"),
+    ],
+)
+def test_column_options_bad_input(files, user_csv, fake_fit, capsys, names, named, says):
+    path, data = user_csv
+    test = path.with_name("test.csv")
+    test.write_text("z,vz,force,z_next,vz_next\n1,2,3,4,5\n")
+    argv = ["fit", "--data", str(path), "--test", str(test), "--n-lam", "2", "--out", str(path.with_name("m.npz")), *names]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    line = err.strip().splitlines()[-1]
+    assert line.startswith(f"lcs-cvx fit: error: {named}") or f"argument {named}" in line, line
+    assert re.search(says, line), line
+    assert fake_fit.calls == []
+
+
+# -- damaged files --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("what", ["data-npz", "data-csv", "test-npz", "model", "checkpoint", "trajectory-npz"])
+def test_damaged_files_exit_2_in_one_line(files, truth, fake_fit, monkeypatch, capsys, what):
+    tmp = files["data"].parent
+    bad = tmp / ("bad.csv" if what == "data-csv" else "bad.npz")
+    if what == "data-csv":  # a CSV cut in the middle of a row
+        bad.write_text("x_0,x_1,u_0,x_next_0,x_next_1\n1,2,3,4,5\n1,2,3,4,5\n1,2")
+    elif what == "trajectory-npz":
+        _trajectories(truth, [4, 4]).save(tmp / "t.npz")
+        bad.write_bytes((tmp / "t.npz").read_bytes()[:200])
+    else:
+        source = files["model"] if what in ("model", "checkpoint") else files["data"]
+        bad.write_bytes(source.read_bytes()[:-60])  # the end of the zip directory lost
+    out = str(tmp / "m.npz")
+    argv = {
+        "data-npz": ["fit", "--data", str(bad), "--n-lam", "2", "--out", out],
+        "data-csv": ["fit", "--data", str(bad), "--n-lam", "2", "--out", out],
+        "test-npz": ["fit", "--data", str(files["data"]), "--test", str(bad), "--n-lam", "2", "--out", out],
+        "model": ["predict", "--model", str(bad), "--data", str(files["data"])],
+        "checkpoint": ["fit", "--data", str(files["data"]), "--n-lam", "2", "--out", out,
+                       "--checkpoint", str(bad), "--resume", "--iterations", "2"],
+        "trajectory-npz": ["predict", "--model", str(files["model"]), "--data", str(bad)],
+    }[what]
+    if what == "checkpoint":
+        monkeypatch.setattr(lcs_cvx, "fit", lcs_cvx.train.fit)  # the real trainer reads it
+    assert main(argv) == 2
+    line = _error_line(capsys, argv[0])
+    option = {"data-npz": "--data", "data-csv": "--data", "test-npz": "--test", "model": "--model",
+              "checkpoint": "--checkpoint", "trajectory-npz": "--data"}[what]
+    assert line.startswith(f"lcs-cvx {argv[0]}: error: {option}: "), line
+    assert str(bad) in line
+    if what == "data-csv":
+        assert "line 4 of" in line and "has 2 fields, expected 5" in line
+    elif what != "checkpoint":
+        assert "could not read it" in line

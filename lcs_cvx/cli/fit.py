@@ -5,20 +5,26 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import Any
 
 import numpy as np
 import torch
 
-from .. import LCSInputError, count_modes, rollout_error
+from .. import LCSInputError, count_modes, rollout_error, select_n_lam
 from ._args import (
+    Columns,
+    add_column_options,
+    candidates,
     check_dims,
     check_target,
+    fraction,
     horizons,
     jsonable,
-    load_data,
-    load_trajectories,
+    n_lam_or_auto,
+    nonnegative_float,
     positive_float,
     positive_int,
+    read_table,
     relative_error_for,
     require,
     reraise_for,
@@ -28,11 +34,25 @@ from ._args import (
 
 def configure_fit(p: argparse.ArgumentParser) -> None:
     # required, but checked by run_fit: every command parses with no arguments (test_cli)
-    p.add_argument("--data", help="training set, an .npz with x, u, x_next (required)")
-    p.add_argument("--n-lam", type=positive_int,
-                   help="number of complementarity variables of the learned LCS (required)")
+    p.add_argument("--data", help="training set: an .npz with x, u, x_next, a .csv of transitions "
+                   "or a trajectory file (.npz with offsets, .csv with a trajectory column) (required)")
+    p.add_argument("--n-lam", type=n_lam_or_auto, metavar="K|auto",
+                   help="number of complementarity variables of the learned LCS, or 'auto': one "
+                   "model per --candidates, the smallest within --tolerance of the lowest held-out "
+                   "error (required)")
     p.add_argument("--out", help="model file to write, with lcs_cvx.save_model (required)")
-    p.add_argument("--test", default=None, help="test set (.npz); its e_test is printed")
+    p.add_argument("--test", default=None, help="test set (as --data); its e_test is printed")
+    p.add_argument("--candidates", type=candidates, default=None, metavar="K,K,...",
+                   help="with --n-lam auto: the n_lam to try (default: 1,2,4,8)")
+    p.add_argument("--validation", default=None, metavar="FILE",
+                   help="with --n-lam auto: held-out set (as --data) the candidates are compared on "
+                   "(default: --holdout of --data)")
+    p.add_argument("--holdout", type=fraction, default=None,
+                   help="with --n-lam auto and no --validation: fraction of --data held out "
+                   "(default: 0.2)")
+    p.add_argument("--tolerance", type=nonnegative_float, default=None,
+                   help="with --n-lam auto: relative slack of the choice (default: 0.1)")
+    add_column_options(p)
     p.add_argument("--stiffness", type=positive_float, default=1.0,
                    help="s in F = G G^T + H - H^T + s I of the learned LCS (default: 1.0)")
     # None = not given: lcs_cvx.fit's own defaults and recipes decide
@@ -53,25 +73,52 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
 
 
+#: The options of lcs-cvx fit that only --n-lam auto uses.
+_AUTO_ONLY = ("candidates", "validation", "holdout", "tolerance")
+
+
 def run_fit(args: argparse.Namespace) -> int:
-    """Learn an LCS from ``--data`` with :func:`lcs_cvx.fit` and write it to ``--out``."""
+    """Learn an LCS from ``--data`` with :func:`lcs_cvx.fit` (or, with ``--n-lam auto``,
+    :func:`lcs_cvx.select_n_lam`) and write it to ``--out``."""
 
     from .. import LCS
     from .. import fit as fit_lcs  # looked up at run time: tests replace lcs_cvx.fit
     from ..io import save_model
 
     require(args, "data", "n_lam", "out")
-    train = load_data("data", args.data)
-    test = None
+    auto = args.n_lam == "auto"
+    if not auto:
+        given = [name for name in _AUTO_ONLY if getattr(args, name) is not None]
+        if given:
+            raise LCSInputError(
+                f"{given[0]}: only with --n-lam auto, received --n-lam {args.n_lam}"
+                + (" (use --test for a test set)" if given[0] == "validation" else "")
+            )
+    elif args.checkpoint is not None or args.resume:
+        raise LCSInputError(
+            f"{'checkpoint' if args.checkpoint is not None else 'resume'}: expected none with "
+            "--n-lam auto (one training run per candidate; checkpoint a run of a fixed --n-lam)"
+        )
+    if auto and args.validation is not None and args.holdout is not None:
+        raise LCSInputError(
+            f"holdout: expected none with --validation (nothing is held out of --data), "
+            f"received {args.holdout:g}"
+        )
+    cols = Columns.from_args(args)
+    train, _ = read_table("data", args.data, cols)
+    test = validation = None
     if args.test is not None:
-        test = load_data("test", args.test)
+        test, _ = read_table("test", args.test, cols)
         check_dims("test", args.test, test, train.n_x, train.n_u, f"as in {args.data!r}")
+    if auto and args.validation is not None:
+        validation, _ = read_table("validation", args.validation, cols)
+        check_dims("validation", args.validation, validation, train.n_x, train.n_u,
+                   f"as in {args.data!r}")
     check_target("out", args.out)  # fail before training, not after
     check_target("checkpoint", args.checkpoint)
     if args.resume and args.checkpoint is None:
         raise LCSInputError("resume: expected --checkpoint PATH to resume from, received none")
     seed = 0 if args.seed is None else args.seed
-    model = LCS(train.n_x, train.n_u, args.n_lam, stiffness=args.stiffness, seed=seed)
     # passed on to lcs_cvx.fit only when given: fit's defaults and recipes decide the rest
     passed = ("loss", "optimizer", "recipe", "iterations", "lr", "batch_size", "gamma", "eps",
               "seed", "checkpoint", "resume")
@@ -79,23 +126,47 @@ def run_fit(args: argparse.Namespace) -> int:
     print(
         f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
         + (f", test {len(test)} samples" if test is not None else "")
+        + (f", validation {len(validation)} samples" if validation is not None else "")
     )
-    print(f"model: n_lam={args.n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
 
     t0 = time.perf_counter()
-    try:
-        result = fit_lcs(model, train, test=test, progress=True, **options)
-    except LCSInputError as exc:  # fit names the training set "train"; here it is --data
-        if str(exc).startswith("train: "):
-            raise reraise_for("data", LCSInputError(str(exc).removeprefix("train: "))) from None
-        raise
+    selection = None
+    if auto:
+        cands = args.candidates or (1, 2, 4, 8)
+        holdout = 0.2 if args.holdout is None else args.holdout
+        tolerance = 0.1 if args.tolerance is None else args.tolerance
+        print(f"model: n_lam auto among {', '.join(map(str, sorted(cands)))}, stiffness "
+              f"{args.stiffness:g}, init seed {seed}", flush=True)
+        options.pop("seed", None)  # select_n_lam's own, passed on to fit
+        selection = _train(args, lambda: select_n_lam(
+            train, cands, validation, holdout=holdout, tolerance=tolerance,
+            stiffness=args.stiffness, seed=seed, progress=True, test=test, **options))
+        result, n_lam = selection.results[selection.n_lam], selection.n_lam
+        print("\n".join(selection.summary().splitlines()[:-1]))
+        where = (f"--validation {args.validation!r}" if validation is not None
+                 else f"{100 * holdout:g}% of --data held out")
+        print(f"chosen n_lam: {n_lam} (the smallest within {100 * tolerance:g}% of the lowest "
+              f"relative error on {where})")
+    else:
+        n_lam = args.n_lam
+        model = LCS(train.n_x, train.n_u, n_lam, stiffness=args.stiffness, seed=seed)
+        print(f"model: n_lam={n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
+        result = _train(args, lambda: fit_lcs(model, train, test=test, progress=True, **options))
     wall = time.perf_counter() - t0
 
     metadata = {
         "fit": jsonable(result.settings.flat()),
-        "init": {"n_lam": args.n_lam, "stiffness": args.stiffness, "seed": seed},
+        "init": {"n_lam": n_lam, "stiffness": args.stiffness, "seed": seed},
         "data": {"train": args.data, "test": args.test, "n_train": len(train)},
     }
+    if selection is not None:
+        metadata["data"]["validation"] = args.validation
+        metadata["selection"] = jsonable({
+            "n_lam": n_lam, "candidates": [row["n_lam"] for row in selection.table],
+            "tolerance": selection.tolerance,
+            "holdout": None if validation is not None else holdout,
+            "table": selection.table,
+        })
     try:
         save_model(result.model, args.out, metadata=metadata)
     except LCSInputError as exc:
@@ -111,15 +182,27 @@ def run_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train(args: argparse.Namespace, run: Any) -> Any:
+    """``run()``, with the library's name of the training set, ``train``, as ``--data``."""
+    try:
+        return run()
+    except LCSInputError as exc:  # fit names the training set "train"; here it is --data
+        if str(exc).startswith("train: "):
+            raise reraise_for("data", LCSInputError(str(exc).removeprefix("train: "))) from None
+        raise
+
+
 def configure_predict(p: argparse.ArgumentParser) -> None:
     # required, but checked by run_predict: every command parses with no arguments (test_cli)
     p.add_argument("--model", help="model file written by lcs-cvx fit / save_model (required)")
-    p.add_argument("--data", help="data set, an .npz with x, u, x_next or a trajectory file "
-                   "(Trajectories.save's .npz, a .csv with a trajectory column) (required)")
+    p.add_argument("--data", help="data set, an .npz with x, u, x_next, a .csv of transitions or a "
+                   "trajectory file (Trajectories.save's .npz, a .csv with a trajectory column) "
+                   "(required)")
     p.add_argument("--out", default=None,
                    help="also write the predictions (arrays x_next_pred, lam) to this .npz")
     p.add_argument("--horizons", type=horizons, default=None,
                    help="rollout horizons for trajectory files (default: 1,5,20)")
+    add_column_options(p)
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
 
 
@@ -133,13 +216,12 @@ def run_predict(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except LCSInputError as exc:
         raise reraise_for("model", exc) from None
-    trajs = load_trajectories("data", args.data)
+    data, trajs = read_table("data", args.data, Columns.from_args(args))
     if trajs is None and args.horizons is not None:
         raise LCSInputError(
             f"horizons: only for trajectory files (an .npz with offsets, a .csv with a trajectory "
             f"column), received --data {args.data!r}"
         )
-    data = load_data("data", args.data) if trajs is None else trajs.to_transitions()
     check_dims("data", args.data, data, model.n_x, model.n_u, f"the model's, {args.model!r}")
     model.requires_grad_(False)
     x, u = data.x.to(model.dtype), data.u.to(model.dtype)
