@@ -17,7 +17,7 @@ import pytest
 import torch
 
 import lcs_cvx
-from lcs_cvx import LCS, Dataset, LCSInputError, load_model
+from lcs_cvx import Dataset, LCSInputError, load_model
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:  # `studies` is a package at the repository root, not installed
@@ -100,25 +100,6 @@ def test_windows_stay_inside_one_trajectory(transitions):
 
 
 # -- models and metrics --------------------------------------------------------------------------
-def test_normalised_lcs_folds_into_the_same_lcs_in_physical_units():
-    from studies.physics.models import LCSModel, Scaling
-
-    g = np.random.default_rng(0)
-    x = g.normal([0.1, 0.2, -0.3, 1.0], [0.2, 0.3, 0.5, 2.0], size=(300, 4))
-    u = g.normal(1.0, 4.0, size=(300, 1))
-    x_next = x + g.normal(0.0, [0.01, 0.05, 0.1, 0.5], size=(300, 4))
-    sc = Scaling.fit(x, u, x_next)
-    normalised = LCS(4, 1, 3, stiffness=1.0, init_scale=0.7, seed=1)
-    physical = LCSModel.from_matrices(sc.to_physical(normalised.to_matrices()))
-    z, v = sc.encode(x, u)
-    with torch.no_grad():
-        y = normalised.step(torch.from_numpy(z), torch.from_numpy(v)).numpy()
-        lam_n = normalised.solve_lcp(torch.from_numpy(z), torch.from_numpy(v)).lam.numpy()
-    np.testing.assert_allclose(physical.predict(x, u), sc.decode(x, y), rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(physical.lam(x, u), lam_n, rtol=1e-9, atol=1e-10)
-    assert 0 < (lam_n > 0).mean() < 1  # the test exercises active and inactive units
-
-
 def test_contact_agreement_best_assignment():
     from studies.physics.evaluation import contact_agreement
 
@@ -376,9 +357,9 @@ def test_a_diverged_restart_is_reported_not_selected(monkeypatch):
 
     monkeypatch.setattr(lcs_cvx, "fit", diverge)
     g = np.random.default_rng(0)
-    z, v, y = g.normal(size=(50, 2)), g.normal(size=(50, 1)), g.normal(size=(50, 2))
-    out = models.fit_lcs({"z": z, "v": v, "y": y, "z_val": z, "v_val": v, "y_val": y, "n_lam": 2,
-                          "loss": "violation", "recipe": "best", "options": {}, "stiffness": 1.0,
-                          "init_scale": 0.1, "init": "affine", "seed": 0})
+    x, u, xn = g.normal(size=(50, 2)), g.normal(size=(50, 1)), g.normal(size=(50, 2))
+    out = models.fit_lcs({"x": x, "u": u, "x_next": xn, "x_val": x, "u_val": u, "x_next_val": xn,
+                          "n_lam": 2, "loss": "violation", "recipe": "best", "options": {},
+                          "stiffness": 1.0, "init_scale": 0.1, "init": "affine", "seed": 0})
     assert out["matrices"] is None and out["val_error"] == float("inf")
     assert "iteration 7" in out["error"]

@@ -8,24 +8,15 @@ maps states ``(N, 4)`` and inputs ``(N, 1)`` (physical units, float64 numpy) to 
   piecewise-affine model with known modes could do.
 - :class:`MLPModel` -- a small MLP (torch), ``x' = x + f(x, u)``.
 
-Learning in normalised coordinates. :class:`Scaling` maps a sample to
-``z = S_x^-1 (x - m_x)``, ``v = S_u^-1 (u - m_u)`` and the normalised increment
-``y = S_y^-1 (x' - x - m_y)`` (diagonal ``S``: the training set's standard deviations). An LCS
-learned on ``(z, v) -> y``, ``y = Â z + B̂ v + Ĉ lam + d̂``, ``0 <= lam _|_ D̂ z + Ê v + F lam + ĉ >= 0``,
-is exactly the LCS (eq. equ.lcs) in physical units with the same ``lam`` and ``F``::
-
-    A = I + S_y Â S_x^-1        B = S_y B̂ S_u^-1        C = S_y Ĉ
-    d = m_y + S_y (d̂ - Â S_x^-1 m_x - B̂ S_u^-1 m_u)
-    D = D̂ S_x^-1                E = Ê S_u^-1             c = ĉ - D̂ S_x^-1 m_x - Ê S_u^-1 m_u
-
-(:meth:`Scaling.to_physical`); the exported models are those.
+The LCS is learned by :func:`lcs_cvx.fit` in the library's normalised coordinates
+(:class:`lcs_cvx.scaling.Scaling`) and comes back in physical units; the MLP learns on the same
+normalised coordinates.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -33,14 +24,15 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCS, Dataset
+from lcs_cvx.scaling import Scaling
 
 __all__ = [
-    "Scaling",
     "LCSModel",
     "AffineModel",
     "ModeAffineModel",
     "MLPModel",
     "contact_mode",
+    "encode",
     "fit_lcs",
     "fit_mlp",
     "mlp_from_result",
@@ -51,56 +43,6 @@ def contact_mode(contact: np.ndarray) -> np.ndarray:
     """``(N, 2)`` bool (left, right) -> mode ``0`` free, ``1`` left, ``2`` right, ``3`` both."""
     contact = np.asarray(contact, dtype=bool)
     return contact[:, 0].astype(np.int64) + 2 * contact[:, 1].astype(np.int64)
-
-
-@dataclass(frozen=True)
-class Scaling:
-    """Affine normalisation of ``x``, ``u`` and the increment ``x' - x`` (see the module docstring)."""
-
-    mx: np.ndarray
-    sx: np.ndarray
-    mu: np.ndarray
-    su: np.ndarray
-    my: np.ndarray
-    sy: np.ndarray
-
-    @classmethod
-    def fit(cls, x: np.ndarray, u: np.ndarray, x_next: np.ndarray) -> Scaling:
-        def ms(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            s = a.std(axis=0)
-            return a.mean(axis=0), np.where(s > 0, s, 1.0)
-
-        (mx, sx), (mu, su), (my, sy) = ms(x), ms(u), ms(x_next - x)
-        return cls(mx, sx, mu, su, my, sy)
-
-    def encode(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray | None = None):
-        """``(z, v)`` or ``(z, v, y)``."""
-        z = (x - self.mx) / self.sx
-        v = (u - self.mu) / self.su
-        if x_next is None:
-            return z, v
-        return z, v, (x_next - x - self.my) / self.sy
-
-    def decode(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """``x' = x + m_y + S_y y``."""
-        return x + self.my + self.sy * y
-
-    def to_physical(self, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """The matrices (``LCS.to_matrices()`` keys) of the normalised LCS ``m`` in physical units."""
-        Sx_inv = np.diag(1.0 / self.sx)
-        Su_inv = np.diag(1.0 / self.su)
-        Sy = np.diag(self.sy)
-        Ah, Bh, Ch, dh, Dh, Eh, F, ch = (m[k] for k in ("A", "B", "C", "d", "D", "E", "F", "c"))
-        return {
-            "A": np.eye(len(self.sx)) + Sy @ Ah @ Sx_inv,
-            "B": Sy @ Bh @ Su_inv,
-            "C": Sy @ Ch,
-            "d": self.my + Sy @ (dh - Ah @ Sx_inv @ self.mx - Bh @ Su_inv @ self.mu),
-            "D": Dh @ Sx_inv,
-            "E": Eh @ Su_inv,
-            "F": F,
-            "c": ch - Dh @ Sx_inv @ self.mx - Eh @ Su_inv @ self.mu,
-        }
 
 
 class LCSModel:
@@ -182,6 +124,16 @@ class ModeAffineModel:
         return out
 
 
+def encode(scaling: Scaling, x: np.ndarray, u: np.ndarray, x_next: np.ndarray | None = None
+           ) -> tuple[np.ndarray, ...]:
+    """``(z, v)``, or ``(z, v, y)`` with ``x_next``, in the normalised coordinates of ``scaling``."""
+    xt, ut = torch.from_numpy(np.ascontiguousarray(x)), torch.from_numpy(np.ascontiguousarray(u))
+    xn = torch.from_numpy(np.ascontiguousarray(x_next)) if x_next is not None else xt
+    d = scaling.encode(Dataset(xt, ut, xn))
+    out = (d.x.numpy(), d.u.numpy()) + ((d.x_next.numpy(),) if x_next is not None else ())
+    return out
+
+
 class MLPModel:
     """``x' = x + m_y + S_y f(z, v)`` with ``f`` a tanh MLP on the normalised coordinates."""
 
@@ -189,10 +141,11 @@ class MLPModel:
         self.net, self.scaling = net, scaling
 
     def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
-        z, v = self.scaling.encode(x, u)
+        z, v = encode(self.scaling, x, u)
         with torch.no_grad():
             y = self.net(torch.from_numpy(np.hstack([z, v]))).numpy()
-        return self.scaling.decode(x, y)
+        s = self.scaling
+        return s.k.numpy() * x + s.my.numpy() + s.sy.numpy() * y
 
 
 def _mlp(n_in: int, n_out: int, hidden: list[int], seed: int) -> torch.nn.Module:
@@ -253,41 +206,33 @@ def mlp_from_result(result: dict[str, Any], scaling: Scaling, n_in: int, n_out: 
 
 
 def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
-    """Learn one LCS on the normalised data (a process-pool job; plain data in, plain data out).
+    """Learn one LCS (a process-pool job; plain data in, plain data out).
 
-    ``job``: ``z, v, y`` (training) and ``z_val, v_val, y_val`` (validation: monitored, and
-    scored at the end), ``n_lam``, ``loss``, ``recipe``, ``options`` (more :func:`lcs_cvx.fit`
-    options), ``stiffness``, ``init_scale``, ``init`` (``"random"``, or ``"affine"``: ``Â, B̂, d̂``
-    from least squares and the rest random), ``seed``. Returns the normalised model's
-    ``matrices``, ``val_error`` (its relative error on the validation set, normalised
-    coordinates), ``history``, ``settings`` and ``wall_time``; a run that fails with
-    :class:`lcs_cvx.SolverError` returns ``matrices = None``, ``val_error = inf`` and ``error``.
+    ``job``: ``x, u, x_next`` (training, physical units) and ``x_val, u_val, x_next_val``
+    (validation: monitored, and scored at the end), ``n_lam``, ``loss``, ``recipe``, ``options``
+    (more :func:`lcs_cvx.fit` options), ``stiffness``, ``init_scale``, ``init`` (the
+    :func:`lcs_cvx.fit` option: ``"increment"``, ``"affine"`` or ``"model"``), ``seed``. The fit
+    normalises the data itself and returns the model in physical units. Returns its
+    ``matrices``, ``val_error`` (relative error on the validation set), ``history``, ``settings``
+    and ``wall_time``; a run that fails with :class:`lcs_cvx.SolverError` returns
+    ``matrices = None``, ``val_error = inf`` and ``error``.
     """
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    train = Dataset.from_arrays(job["z"], job["v"], job["y"])
-    test = Dataset.from_arrays(job["z_val"], job["v_val"], job["y_val"])
-    n_x, n_u = train.n_x, train.n_u
-    model = LCS(n_x, n_u, job["n_lam"], stiffness=job["stiffness"], init_scale=job["init_scale"],
-                seed=job["seed"])
-    if job["init"] == "affine":
-        W = _lstsq(job["z"], job["v"], job["y"])
-        with torch.no_grad():
-            model.A.copy_(torch.from_numpy(W[:n_x].T.copy()))
-            model.B.copy_(torch.from_numpy(W[n_x:n_x + n_u].T.copy()))
-            model.d.copy_(torch.from_numpy(W[-1].copy()))
-    elif job["init"] != "random":
-        raise ValueError(f"init: expected 'random' or 'affine', received {job['init']!r}")
+    train = Dataset.from_arrays(job["x"], job["u"], job["x_next"])
+    val = Dataset.from_arrays(job["x_val"], job["u_val"], job["x_next_val"])
+    model = LCS(train.n_x, train.n_u, job["n_lam"], stiffness=job["stiffness"],
+                init_scale=job["init_scale"], seed=job["seed"])
     try:
-        result = lcs_cvx.fit(model, train, test=test, recipe=job["recipe"], loss=job["loss"],
-                             seed=job["seed"], progress=False, **job["options"])
+        result = lcs_cvx.fit(model, train, test=val, recipe=job["recipe"], loss=job["loss"],
+                             seed=job["seed"], init=job["init"], progress=False, **job["options"])
     except lcs_cvx.SolverError as exc:  # a diverged run: reported, never selected
         return {"matrices": None, "val_error": math.inf, "history": [], "settings": None,
                 "wall_time": time.perf_counter() - t0, "error": str(exc)}
     settings = result.settings.flat()
     return {
         "matrices": result.model.to_matrices(),
-        "val_error": lcs_cvx.relative_error(result.model, test),
+        "val_error": lcs_cvx.relative_error(result.model, val),
         "history": result.history,
         "settings": settings,
         "wall_time": time.perf_counter() - t0,

@@ -93,13 +93,14 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
         "",
         "## Models",
         "",
-        f"- **LCS** (`lcs_cvx.fit`), n_λ ∈ {lc['n_lam']}, learned in normalised coordinates "
-        "(x, u and the increment x' − x scaled to zero mean and unit variance on the training set) "
-        "and folded back into an exact LCS in physical units (`studies/physics/models.py`). "
+        f"- **LCS** (`lcs_cvx.fit`), n_λ ∈ {lc['n_lam']}, learned in the library's normalised "
+        "coordinates (`lcs_cvx.scaling.Scaling`: x and u centred and scaled to the spread of the "
+        "paper's data, the increment x' − x to unit variance, on the training set) and folded back "
+        "by `lcs_cvx.fit` into an exact LCS in physical units. "
         + "; ".join(f"{loss} loss: {opts[loss]}" for loss in lc["losses"])
-        + f". Initialisation `{lc['init']}` (A, B, d from the affine least-squares fit, the rest "
-        f"{lc['init_scale']}·N(0, 1); F stiffness {lc['stiffness']}); restarts with seeds "
-        f"{lc['seeds']}, the one with the lowest validation error kept.",
+        + f". Start `init=\"{lc['init']}\"` (`lcs_cvx.train.starts`; the other parameters "
+        f"{lc['init_scale']}·N(0, 1) in normalised coordinates; F stiffness {lc['stiffness']}); "
+        f"restarts with seeds {lc['seeds']}, the one with the lowest validation error kept.",
         "  Resolved `lcs_cvx.fit` settings (the recipe as it stood when the study ran): "
         + "; ".join(f"{loss}: " + ", ".join(f"{k}={v}" for k, v in (s['fit_settings'].get(loss) or {}).items()
                                                if k in _SHOWN_SETTINGS and not (
@@ -132,6 +133,10 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
     rows = {r["name"]: r for r in s["metrics"]["test"]}
     lcs_names = [n for n in rows if n.startswith("LCS")]
     base = {b: rows[b] for b in ("affine (least squares)", "MLP") if b in rows}
+    for loss, c in s.get("n_lam_choice", {}).items():
+        errs = ", ".join(f"n_λ={k}: {v:.3g}" for k, v in c["val_error"].items())
+        out.append(f"- n_λ chosen from the validation errors (`lcs_cvx.selection.choose`, {loss} "
+                   f"loss): **{c['n_lam']}** ({errs}).")
     out += ["", "## Conclusions (computed from the test set)", ""]
     if lcs_names and base:
         best = min(lcs_names, key=lambda n: rows[n]["one_step"]["contact"])
@@ -164,11 +169,11 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
             out.append(f"- Wide inputs: best LCS contact error {wide[wb]['one_step']['contact']:.3g} "
                        f"({wb}) against " + ", ".join(parts) + ".")
     out += ["", "## Restarts (model selection on the validation trajectories)", "",
-            "| model | seed | validation error (normalised) | test 1-step all | selected | time (s) |",
+            "| model | seed | validation error | test 1-step all | selected | time (s) |",
             "|---|---|---|---|---|---|"]
     for r in s["restarts"]:
         test_all = "failed: " + r["error"] if r["test_one_step"] is None else f"{r['test_one_step']['all']:.4f}"
-        out.append(f"| {r['model']} | {r['seed']} | {r['val_error']:.4f} | {test_all} | "
+        out.append(f"| {r['model']} | {r['seed']} | {r['val_error']:.3g} | {test_all} | "
                    f"{'yes' if r['selected'] else ''} | {r['wall_time']:.0f} |")
     out += ["", "## Figures", ""]
     if s["rollout_window_start"] is not None:

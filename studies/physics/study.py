@@ -44,7 +44,7 @@ _RUNNER_KEYS = ("name", "kind", "module", "description", "path", "extends")
 _DATA_DEFAULTS = {"n_train": 20000, "n_test": 5000, "n_wide": 5000, "seed_train": 0, "seed_test": 1,
                   "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
 _LCS_DEFAULTS = {"n_lam": [2, 4, 8], "losses": ["violation", "prediction"], "seeds": [0, 1, 2, 3],
-                 "init": "affine", "stiffness": 1.0, "init_scale": 0.1,
+                 "init": "increment", "stiffness": 1.0, "init_scale": 0.1,
                  "violation": {"recipe": "best", "iterations": 12000},
                  "prediction": {"recipe": "paper", "lr": 5e-3, "iterations": 12000}}
 _MLP_DEFAULTS = {"hidden": [64, 64], "iterations": 20000, "batch_size": 256, "lr": 3e-3,
@@ -126,10 +126,14 @@ def training_jobs(cfg: dict[str, Any], scaling: Any, train: Transitions, val: Tr
     largest, slowest, first), loss and seed one ``fit_lcs``, and the ``fit_mlp`` job in the
     middle of the list (index ``len(jobs) // 2``). Also returns the ``(loss, n_lam, seed)`` of
     each ``fit_lcs`` job, in order."""
+    from .models import encode
+
     lcfg = cfg["lcs"]
-    z, v, y = scaling.encode(train.x, train.u, train.x_next)
-    zv, vv, yv = scaling.encode(val.x, val.u, val.x_next)
-    data = {"z": z, "v": v, "y": y, "z_val": zv, "v_val": vv, "y_val": yv}
+    z, v, y = encode(scaling, train.x, train.u, train.x_next)
+    zv, vv, yv = encode(scaling, val.x, val.u, val.x_next)
+    normalised = {"z": z, "v": v, "y": y, "z_val": zv, "v_val": vv, "y_val": yv}  # the MLP's
+    data = {"x": train.x, "u": train.u, "x_next": train.x_next, "x_val": val.x, "u_val": val.u,
+            "x_next_val": val.x_next}
     jobs: list[dict[str, Any]] = []
     keys: list[tuple[str, int, int]] = []
     for n_lam in sorted(lcfg["n_lam"], reverse=True):  # the slow ones first
@@ -142,7 +146,7 @@ def training_jobs(cfg: dict[str, Any], scaling: Any, train: Transitions, val: Tr
                     "stiffness": lcfg["stiffness"], "init_scale": lcfg["init_scale"],
                     "init": lcfg["init"], "seed": int(seed)}))
                 keys.append((loss, int(n_lam), int(seed)))
-    jobs.insert(len(jobs) // 2, make_job("fit_mlp", {**data, **cfg["mlp"]}))
+    jobs.insert(len(jobs) // 2, make_job("fit_mlp", {**normalised, **cfg["mlp"]}))
     return jobs, keys
 
 
@@ -163,6 +167,20 @@ def _select(keys: list[tuple[str, int, int]], results: list[dict[str, Any]]
         if name not in chosen or res["val_error"] < chosen[name][0]["val_error"]:
             chosen[name] = (res, key)
     return restarts, chosen
+
+
+def _choose_n_lam(chosen: dict[str, tuple[dict[str, Any], tuple]], losses: list[str]
+                  ) -> dict[str, dict[str, Any]]:
+    """Per loss, the n_λ :func:`lcs_cvx.selection.choose` picks from the selected restarts'
+    validation errors, with those errors."""
+    from lcs_cvx.selection import choose
+
+    out = {}
+    for loss in losses:
+        errors = {key[1]: res["val_error"] for res, key in chosen.values() if key[0] == loss}
+        if errors:
+            out[loss] = {"n_lam": choose(errors), "val_error": {str(k): v for k, v in sorted(errors.items())}}
+    return out
 
 
 def _evaluate(models: dict[str, Any], sets: dict[str, Transitions], horizons: list[int],
@@ -210,9 +228,10 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
     import torch
 
     import lcs_cvx
+    from lcs_cvx.scaling import Scaling
 
     from . import evaluation as ev
-    from .models import AffineModel, LCSModel, ModeAffineModel, Scaling, mlp_from_result
+    from .models import AffineModel, LCSModel, ModeAffineModel, mlp_from_result
     from .report import write_report
 
     torch.set_num_threads(1)
@@ -232,7 +251,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
          f"({t_data:.1f} s); contact fraction "
          f"{np.concatenate([train.in_contact, val.in_contact]).mean():.3f}")
 
-    scaling = Scaling.fit(train.x, train.u, train.x_next)
+    scaling = Scaling.fit(lcs_cvx.Dataset.from_arrays(train.x, train.u, train.x_next))
     jobs, keys = training_jobs(cfg, scaling, train, val)
     t0 = time.perf_counter()
     results, run_now = run_jobs(jobs, out_dir, cfg["name"], workers, scheduler, log=_log)
@@ -245,7 +264,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
     train_time: dict[str, float] = {}
     exported: dict[str, str] = {}
     for name, (res, (loss, n_lam, seed)) in chosen.items():
-        model = LCSModel.from_matrices(scaling.to_physical(res["matrices"]))
+        model = LCSModel.from_matrices(res["matrices"])
         models[name] = model
         train_time[name] = sum(r["wall_time"] for r in restarts[name])
         path = os.path.join(out_dir, "models", f"lcs_{loss}_nlam{n_lam}.npz")
@@ -253,7 +272,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
             "study": cfg["name"], "system": "cart-pole with soft walls (MuJoCo)",
             "state": list(STATE_NAMES), "state_units": list(STATE_UNITS), "input": ["force (N)"],
             "control_period_s": phys.control_period, "loss": loss, "n_lam": n_lam, "seed": seed,
-            "val_error_normalised": res["val_error"], "fit_settings": res["settings"],
+            "val_error": res["val_error"], "fit_settings": res["settings"],
         })
         exported[name] = os.path.relpath(path, out_dir)
     t0 = time.perf_counter()
@@ -272,7 +291,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
     for name, entries in restarts.items():
         for e in entries:
             ok = e["result"]["matrices"] is not None
-            m = LCSModel.from_matrices(scaling.to_physical(e["result"]["matrices"])) if ok else None
+            m = LCSModel.from_matrices(e["result"]["matrices"]) if ok else None
             restart_rows.append({"model": name, "seed": e["seed"], "val_error": e["val_error"],
                                  "test_one_step": ev.one_step_errors(m, test) if ok else None,
                                  "selected": name in chosen and e["result"] is chosen[name][0],
@@ -304,6 +323,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
         "metrics": metrics,
         "restarts": restart_rows,
         "exported_models": exported,
+        "n_lam_choice": _choose_n_lam(chosen, lcfg["losses"]),
         "fit_settings": {loss: next((chosen[n][0]["settings"] for n in chosen if f" {loss} " in n), None)
                          for loss in lcfg["losses"]},
         "rollout_window_start": start,
