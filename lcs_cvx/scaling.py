@@ -12,7 +12,8 @@ the spread of the paper's benchmark data (Sec. 5: ``x ~ U[-10, 10]``, ``u ~ U[-5
 deviations :data:`X_SPREAD` and :data:`U_SPREAD`), where the recipes' learning rates, ``eps`` and
 ``gamma`` were tuned, and ``y`` a unit standard deviation; a constant column gets scale 1.
 Measured with ``recipe="best"`` on a random (4, 2, 3) system (5,000 samples, noise 1e-2, seeds
-0-5): unit-spread ``z`` and ``v`` left 2 of 6 seeds stuck at e_test ~2e-4, these spreads none.
+0-5): unit-spread ``z`` and ``v`` left 1 or 2 of the 6 seeds stuck at e_test ~2e-4 (depending on
+the start), these spreads none.
 An LCS on ``(z, v) -> y``,
 
     y = Â z + B̂ v + Ĉ lam + d̂,     0 <= lam  _|_  D̂ z + Ê v + F lam + ĉ >= 0,

@@ -67,6 +67,11 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eps", type=positive_float, default=None, help="epsilon of the violation loss")
     p.add_argument("--seed", type=seed, default=None,
                    help="seed of the initialisation (default: 0) and of the training")
+    p.add_argument("--init", choices=("model", "increment", "affine"), default=None,
+                   help="where training starts (lcs_cvx.fit's init; default: the recipe's)")
+    p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=None,
+                   help="learn in normalised coordinates and fold the result back into the "
+                   "data's units (default: the recipe's; on except with --recipe paper)")
     p.add_argument("--checkpoint", default=None, help="checkpoint file written during training")
     p.add_argument("--resume", action="store_true", default=None,
                    help="continue from --checkpoint")
@@ -121,7 +126,7 @@ def run_fit(args: argparse.Namespace) -> int:
     seed = 0 if args.seed is None else args.seed
     # passed on to lcs_cvx.fit only when given: fit's defaults and recipes decide the rest
     passed = ("loss", "optimizer", "recipe", "iterations", "lr", "batch_size", "gamma", "eps",
-              "seed", "checkpoint", "resume")
+              "seed", "init", "normalize", "checkpoint", "resume")
     options = {k: getattr(args, k) for k in passed if getattr(args, k) is not None}
     print(
         f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
