@@ -25,6 +25,7 @@ from .problems import convex_lcp_problem as convex_lcp_problem
 from .problems import violation_problem as violation_problem
 from .selection import Selection as Selection
 from .selection import select_n_lam as select_n_lam
+from .scaling import Scaling as Scaling
 from .system import LCS as LCS
 from .system import random_lcs as random_lcs
 from .train import RECIPES as RECIPES
