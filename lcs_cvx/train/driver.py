@@ -29,6 +29,7 @@ from .._checks import LCSInputError
 from ..data import Dataset
 from ..io import atomic_write
 from ..metrics import relative_error
+from ..structure import check_learnable, copy_structure_
 from ..system import LCS
 from .options import FitOptions
 from .phases import run_phases
@@ -208,6 +209,7 @@ def fit(
     """
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    check_learnable(model)
     opts = _options(options, recipe, overrides)
     train = _check_data("train", train, model)
     test = _check_data("test", test, model) if test is not None else None
@@ -242,7 +244,7 @@ def fit(
             else:
                 fresh = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness),
                             seed=r.seed * 7919 + restart, dtype=model.dtype).to(model.device)
-                model.load_state_dict(fresh.state_dict())
+                model.load_state_dict(copy_structure_(model, fresh).state_dict())  # keeps fixed, masks
             state = TrainState(model, fit_data, test, opts, restart)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
