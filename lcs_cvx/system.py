@@ -233,7 +233,7 @@ class LCS(nn.Module):
 
         Example:
             >>> m = LCS(2, 1, 1).mask(A=[[1, 1], [0, 1]])
-            >>> float(m.A[1, 0]), m.masks["A"].tolist()
+            >>> m.A[1, 0].item(), m.masks["A"].tolist()
             (0.0, [[True, True], [False, True]])
         """
         shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
@@ -410,12 +410,9 @@ class LCS(nn.Module):
         return {k: out[k] for k in MATRIX_NAMES}
 
     def extra_repr(self) -> str:
-        fixed = [k for k in PARAMETER_NAMES if not getattr(self, k).requires_grad]
         return (
             f"n_x={self.n_x}, n_u={self.n_u}, n_lam={self.n_lam}, "
             f"stiffness={float(self.stiffness):.3g}, dtype={self.dtype}"
-            + (f", fixed={','.join(fixed)}" if fixed else "")
-            + (f", masked={','.join(self._masks)}" if self._masks else "")
         )
 
     def to_c3(self) -> dict[str, np.ndarray]:
