@@ -69,7 +69,7 @@ def free_entries(model: LCS, name: str) -> torch.Tensor:
         return torch.zeros(p.shape, dtype=torch.bool, device=p.device)
     mask = model._masks.get(name)
     return torch.ones(p.shape, dtype=torch.bool, device=p.device) if mask is None \
-        else mask.to(p.device)
+        else mask.to(p.device, copy=True)
 
 
 def free_vector(model: LCS) -> torch.Tensor:
