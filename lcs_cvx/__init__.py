@@ -23,9 +23,9 @@ from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
 from .problems import convex_lcp_problem as convex_lcp_problem
 from .problems import violation_problem as violation_problem
+from .scaling import Scaling as Scaling
 from .selection import Selection as Selection
 from .selection import select_n_lam as select_n_lam
-from .scaling import Scaling as Scaling
 from .system import LCS as LCS
 from .system import random_lcs as random_lcs
 from .train import RECIPES as RECIPES

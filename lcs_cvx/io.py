@@ -18,7 +18,13 @@ array          shape                meaning
 ``stiffness``  ``()``               ``s`` (the model's buffer)
 ``F``          ``(n_lam, n_lam)``   derived, for readers without torch; checked on load
 ``meta``       ``()`` str           JSON, see :func:`load_metadata`
+``mask_A``...  the parameter's      bool, one per masked parameter (:attr:`LCS.masks`;
+               shape                ``meta["masks"]`` lists them)
 =============  ===================  =====================================================
+
+The known structure travels with the model (format version 2): ``meta["fixed"]`` lists the fixed
+parameters (loaded with ``requires_grad`` False) and the ``mask_*`` arrays the masks. Files of
+version 1 (no structure) load as models with every parameter learnable.
 
 All numeric arrays have the model's dtype (float32 or float64). The path is used exactly as
 given: unlike ``np.savez``, no ``.npz`` is appended when it is missing.
@@ -36,14 +42,15 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError
-from .system import LCS, PARAMETER_NAMES, parameter_shapes
+from .system import LCS, MASKABLE, PARAMETER_NAMES, parameter_shapes
 
 __all__ = ["save_model", "load_model", "load_metadata", "atomic_write", "FORMAT", "FORMAT_VERSION"]
 
 #: Value of ``meta["format"]`` in every model file.
 FORMAT = "lcs_cvx.model"
 #: Version of the file layout written by :func:`save_model`; files of a newer version are refused.
-FORMAT_VERSION = 1
+#: 2: the fixed parameters (``meta["fixed"]``) and masks (``mask_*`` arrays, ``meta["masks"]``).
+FORMAT_VERSION = 2
 #: Arrays every model file holds.
 ARRAY_NAMES = PARAMETER_NAMES + ("stiffness", "F", "meta")
 
@@ -87,6 +94,8 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         "stiffness": float(model.stiffness),
         "dtype": dtype,
         "metadata": dict(metadata) if metadata is not None else {},
+        "fixed": [k for k in PARAMETER_NAMES if not getattr(model, k).requires_grad],
+        "masks": [k for k in MASKABLE if k in model.masks],
     }
     try:
         meta_json = json.dumps(meta, allow_nan=False)
@@ -100,6 +109,7 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         arrays["stiffness"] = model.stiffness.detach().cpu().numpy()
         arrays["F"] = model.F.detach().cpu().numpy()
     arrays["meta"] = np.array(meta_json)
+    arrays.update({f"mask_{k}": m.numpy() for k, m in model.masks.items()})
     atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
@@ -145,13 +155,15 @@ def load_model(path: str | os.PathLike) -> LCS:
     """Rebuild the :class:`lcs_cvx.LCS` written by :func:`save_model`, bit-exactly.
 
     The parameters get the stored values and dtype (on the CPU; they require grad, as in a new
-    ``LCS``, so training can continue). The global torch random state is not touched.
+    ``LCS``, so training can continue, except the fixed ones), and the stored masks. The global
+    torch random state is not touched.
 
     Raises:
         LCSInputError: the file is missing or not an ``.npz``, lacks an array, has an array of
             the wrong shape or dtype for the dimensions in its metadata, holds non-finite
-            values, a stored ``F`` that does not match ``G``, ``H`` and ``stiffness``, or was
-            written in a newer format version.
+            values, a stored ``F`` that does not match ``G``, ``H`` and ``stiffness``, a
+            mask that is not a bool array of its parameter's shape, or was written in a newer
+            format version.
     """
     path_s, arrays, meta = _read(path)
     model = LCS(
@@ -177,6 +189,11 @@ def load_model(path: str | os.PathLike) -> LCS:
             f"and stiffness, received one that differs by {diff:.3g} (F is derived: change G, H "
             "or stiffness instead)"
         )
+    masks = {k: torch.from_numpy(arrays[f"mask_{k}"]) for k in meta["masks"]}
+    if masks:
+        model.mask(**masks)  # the stored values are 0 there already (checked by _read)
+    for name in meta["fixed"]:
+        getattr(model, name).requires_grad_(False)
     return model
 
 
@@ -185,8 +202,9 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
 
     Returns a dict with keys ``"format"`` (``"lcs_cvx.model"``), ``"format_version"``,
     ``"lcs_cvx_version"`` (the package that wrote it), ``"n_x"``, ``"n_u"``, ``"n_lam"``,
-    ``"stiffness"``, ``"dtype"`` (``"float32"`` or ``"float64"``) and ``"metadata"`` (the
-    user's dict given to :func:`save_model`; ``{}`` if none).
+    ``"stiffness"``, ``"dtype"`` (``"float32"`` or ``"float64"``), ``"metadata"`` (the
+    user's dict given to :func:`save_model`; ``{}`` if none), ``"fixed"`` and ``"masks"``
+    (the names of the fixed and of the masked parameters; ``[]`` in version-1 files).
     """
     return _read(path)[2]
 
@@ -257,6 +275,19 @@ def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str
     s = float(arrays["stiffness"])
     if not s > 0:
         raise LCSInputError(f"path: array 'stiffness' in {path_s!r}: expected a number > 0, received {s!r}")
+    for name in meta["masks"]:
+        where = f"path: array 'mask_{name}' in {path_s!r}"
+        m = arrays.get(f"mask_{name}")
+        if m is None:
+            raise LCSInputError(f"{where}: expected it (meta lists {name!r} as masked), missing")
+        if m.dtype != np.bool_ or m.shape != expected[name]:
+            raise LCSInputError(
+                f"{where}: expected a bool array of shape {expected[name]}, received shape "
+                f"{m.shape} and dtype {m.dtype}"
+            )
+        if (arrays[name][~m] != 0).any():
+            raise LCSInputError(f"{where}: expected {name} to be 0 where the mask is False, received "
+                                f"{int((arrays[name][~m] != 0).sum())} nonzero entries there")
     return path_s, arrays, meta
 
 
@@ -293,5 +324,13 @@ def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
     if not isinstance(meta.get("metadata", {}), dict):
         raise LCSInputError(f"{where}: expected 'metadata' a JSON object, received {meta['metadata']!r}")
     meta.setdefault("metadata", {})
+    for key, allowed in (("fixed", PARAMETER_NAMES), ("masks", MASKABLE)):  # version 1: none
+        names = meta.setdefault(key, [])
+        if not isinstance(names, list) or not all(n in allowed for n in names) \
+                or len(set(names)) != len(names):
+            raise LCSInputError(
+                f"{where}: expected {key!r} a list of distinct names among {allowed}, received "
+                f"{names!r}"
+            )
     return meta
 

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import torch
 
 from .data import Dataset
+from .structure import project_
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = ["Scaling", "X_SPREAD", "U_SPREAD"]
@@ -49,7 +50,7 @@ U_SPREAD = 5.0 / 3.0**0.5
 
 
 def _constrained(model: LCS, name: str) -> bool:
-    return not getattr(model, name).requires_grad or name in getattr(model, "masks", {})
+    return not getattr(model, name).requires_grad or name in model.masks
 
 
 def _moments(a: torch.Tensor, center: bool, spread: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -101,7 +102,7 @@ class Scaling:
         if model is not None:
             center_xu = not (_constrained(model, "d") or _constrained(model, "c"))
             center_y = not _constrained(model, "d")
-            mask_A = getattr(model, "masks", {}).get("A")
+            mask_A = model.masks.get("A")
             if mask_A is not None:
                 k = mask_A.diagonal().to(torch.float64)
         mx, sx = _moments(x, center_xu, X_SPREAD)
@@ -167,8 +168,7 @@ class Scaling:
                 param = getattr(out, name)
                 if param.requires_grad:  # a fixed parameter keeps the user's exact value
                     param.copy_(value)
-            for name, mask in getattr(out, "masks", {}).items():
-                getattr(out, name).mul_(mask.to(out.device))
+            project_(out)
         return out
 
 
@@ -180,9 +180,8 @@ def _like(model: LCS, values: dict[str, torch.Tensor]) -> LCS:
     with torch.no_grad():
         for name, value in values.items():
             getattr(new, name).copy_(value)
-    for name in PARAMETER_NAMES:
+    for name in PARAMETER_NAMES:  # the flags and masks, not the values: those are mapped
         getattr(new, name).requires_grad_(getattr(model, name).requires_grad)
-    masks = getattr(model, "masks", {})
-    if masks:
-        new.mask(**masks)
+    if model.masks:
+        new.mask(**model.masks)
     return new

@@ -19,6 +19,13 @@ Newton. The full Hessian of Lemma 4 (:func:`lcs_cvx.violation_hessian`, dense fo
 ``dense_max`` parameters) or its products (:func:`lcs_cvx.hessian.hvp_operator`, truncated
 conjugate gradients) in the model's own parameters, damped by ``mu`` until positive definite, with a
 backtracking (Armijo) line search on the regularised loss.
+
+Known structure (:mod:`lcs_cvx.structure`). Both steps move only the free coordinates ``f``
+(:func:`lcs_cvx.structure.free_vector`: not fixed, not masked): the step solves
+``(M_ff + mu I) d_f = -g_f`` -- the dense matrix indexed, or conjugate gradients on the operator
+projected onto the free coordinates -- and ``d`` is exactly 0 elsewhere, so fixed parameters come
+back bit-identical and masked entries stay 0. This is the step of the reduced problem in the free
+coordinates alone (its Gauss--Newton matrix and Hessian are the principal submatrices).
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ from .hessian import (
     violation_hessian,
 )
 from .losses import regularizer, violation_fast
+from .structure import check_learnable, free_vector
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -261,13 +269,23 @@ def _damped_step(
 ) -> StepResult:
     """Levenberg--Marquardt loop shared by both steps: solve ``(M + mu I) d = -g`` (dense
     Cholesky, or CG on ``hvp``), try ``theta + t d`` (``t = 1``, halved ``line_search`` times),
-    keep it if the regularised loss decreases (Armijo), else raise ``mu``."""
+    keep it if the regularised loss decreases (Armijo), else raise ``mu``. Only the free
+    coordinates move (module docstring)."""
+    check_learnable(model)
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     theta0 = flatten_parameters(model)
     slices = parameter_slices(model)
+    free = free_vector(model)
+    constrained = not bool(free.all())
     objective = _Objective(model, x, u, x_next, gamma, eps, reg)
     loss = objective()
-    g = torch.cat([gr.reshape(-1) for gr in torch.autograd.grad(loss, params)]).detach()
+    learned = [p for p in params if p.requires_grad]  # a fixed parameter has no gradient
+    grads = iter(torch.autograd.grad(loss, learned))
+    g = torch.cat([next(grads).reshape(-1) if p.requires_grad else torch.zeros_like(p).reshape(-1)
+                   for p in params]).detach()
+    if constrained:
+        g = torch.where(free, g, 0.0)
+        idx = free.nonzero().squeeze(1)
     loss0 = float(loss.detach())
     reg_diag = torch.zeros_like(theta0)
     reg_diag[slices["C"]] = 2.0 * reg  # Hessian of omega ||C||^2
@@ -275,7 +293,9 @@ def _damped_step(
     if matrix is not None:
         Mx = matrix() + torch.diag(reg_diag)
         Mx = 0.5 * (Mx + Mx.mT)
-        eye = torch.eye(theta0.numel(), dtype=theta0.dtype, device=theta0.device)
+        if constrained:  # the reduced problem's matrix: the principal submatrix
+            Mx = Mx[idx][:, idx]
+        eye = torch.eye(Mx.shape[0], dtype=theta0.dtype, device=theta0.device)
     old = _snapshot(model)
     mu = float(damping)
     for tries in range(1, max_tries + 1):
@@ -284,10 +304,19 @@ def _damped_step(
             if int(info) != 0:
                 mu = max(10.0 * mu, 1e-8)
                 continue
-            d = -torch.cholesky_solve(g[:, None], chol).squeeze(1)
+            if constrained:
+                d = torch.zeros_like(g)
+                d[idx] = -torch.cholesky_solve(g[idx, None], chol).squeeze(1)
+            else:
+                d = -torch.cholesky_solve(g[:, None], chol).squeeze(1)
         else:
             assert hvp is not None
-            d = _cg(lambda v, mu=mu: hvp(v) + (reg_diag + mu) * v, g, cg_iters)
+            if constrained:  # CG on the operator projected onto the free coordinates
+                d = _cg(lambda v, mu=mu: torch.where(free, hvp(v) + (reg_diag + mu) * v, 0.0),
+                        g, cg_iters)
+                d = torch.where(free, d, 0.0)
+            else:
+                d = _cg(lambda v, mu=mu: hvp(v) + (reg_diag + mu) * v, g, cg_iters)
         slope = float(g @ d)
         if not slope < 0:
             mu = max(10.0 * mu, 1e-8)
@@ -295,7 +324,8 @@ def _damped_step(
         t = 1.0
         for _ in range(12 if line_search else 1):
             theta = theta0 + t * d
-            _assign(model, {k: theta[sl].reshape(old[k].shape) for k, sl in slices.items()})
+            _assign(model, {k: theta[sl].reshape(old[k].shape) for k, sl in slices.items()
+                            if params[PARAMETER_NAMES.index(k)].requires_grad})  # fixed: untouched
             with torch.no_grad():
                 ok = model.sigma_min > gamma
                 loss1 = float(objective()) if ok else math.inf

@@ -14,6 +14,7 @@ construction, so the LCP has a unique solution for every ``(x, u)``.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -33,6 +34,7 @@ __all__ = [
     "MATRIX_NAMES",
     "ACTIVE_TOL",
     "DEFAULT_STIFFNESS",
+    "MASKABLE",
     "parameter_shapes",
     "F_matrix",
     "F_adjoint",
@@ -41,6 +43,9 @@ __all__ = [
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
+#: Parameters that take a sparsity mask (:meth:`LCS.mask`). ``G`` and ``H`` do not: they
+#: parameterise ``F`` as a whole (fix them, or ``F``, instead).
+MASKABLE = ("A", "B", "C", "d", "D", "E", "c")
 #: Matrices of the LCS as exported by :meth:`LCS.to_matrices`.
 MATRIX_NAMES = ("A", "B", "C", "d", "D", "E", "F", "c")
 
@@ -105,8 +110,16 @@ class LCS(nn.Module):
         init_scale: parameters are drawn as ``init_scale * N(0, 1)``.
         seed: seed of the initialisation (default 0; None: torch's global generator).
         dtype: floating dtype of the parameters (float64 recommended: the LCPs can be stiff).
+        mask: optional ``{name: pattern}``, applied with :meth:`mask` after the initialisation.
 
     Batched methods take ``x`` ``(N, n_x)`` and ``u`` ``(N, n_u)``; a 1-D input is one sample.
+
+    Known structure. A parameter is *fixed* iff it does not require grad (the torch convention:
+    ``model.A.requires_grad_(False)`` fixes ``A``; :meth:`fix` sets values and fixes them). A
+    *mask* (:meth:`mask`, :attr:`masks`) holds chosen entries of ``A, B, C, d, D, E, c`` at
+    exactly 0. :func:`lcs_cvx.fit` and every optimiser, pruning and re-initialisation leave fixed
+    parameters bit-identical and masked entries 0. :func:`random_lcs` returns a model with every
+    parameter fixed (a ground truth); ``.requires_grad_(True)`` makes all of it learnable.
 
     Example:
         >>> import lcs_cvx
@@ -125,8 +138,12 @@ class LCS(nn.Module):
         init_scale: float = 0.1,
         seed: int | None = 0,
         dtype: torch.dtype = torch.float64,
+        mask: Mapping[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        # name -> CPU bool tensor (True: learnable entry); a plain attribute, not a buffer, so
+        # state dicts are the same with and without masks
+        self._masks: dict[str, torch.Tensor] = {}
         self.n_x = check_positive("n_x", n_x, integer=True)
         if isinstance(n_u, bool) or not isinstance(n_u, (int, np.integer)) or n_u < 0:
             raise LCSInputError(f"n_u: expected an integer >= 0, received {n_u!r}")
@@ -143,6 +160,107 @@ class LCS(nn.Module):
             shape = parameter_shapes(self.n_x, self.n_u, self.n_lam)[name]
             value = torch.randn(shape, generator=gen, dtype=torch.float64) * float(init_scale)
             setattr(self, name, nn.Parameter(value.to(dtype)))
+        if mask is not None:
+            if not isinstance(mask, Mapping) or not all(isinstance(k, str) for k in mask):
+                raise LCSInputError(
+                    f"mask: expected a dict {{parameter name: pattern}} or None, received {mask!r}"
+                )
+            self.mask(**mask)
+
+    # -- known structure ----------------------------------------------------------------
+    def fix(self, **values: Any) -> LCS:
+        """Set parameters to known values and fix them (``requires_grad_(False)``); returns
+        ``self``.
+
+        Keywords are names of :data:`PARAMETER_NAMES` or ``F``. ``F`` sets ``G`` and ``H`` with
+        :func:`split_F` at the model's ``stiffness`` ``s`` and fixes both: its symmetric part
+        must be ``>= s I`` (else the model cannot represent it). Values are copied (arrays or
+        tensors of the parameter's exact shape; tensors of the model's dtype); a value must be 0
+        at the entries its parameter's mask holds at 0. Nothing changes unless every value is
+        valid.
+
+        Example:
+            >>> m = LCS(2, 1, 1).fix(A=[[1.0, 0.1], [0.0, 1.0]], B=[[0.0], [0.1]])
+            >>> m.A.requires_grad, m.C.requires_grad
+            (False, True)
+        """
+        shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
+        unknown = [k for k in values if k not in shapes]
+        if unknown:
+            raise LCSInputError(
+                f"{unknown[0]}: expected a parameter name among {PARAMETER_NAMES + ('F',)}, "
+                f"received {unknown[0]!r}"
+            )
+        if "F" in values and ("G" in values or "H" in values):
+            both = [k for k in ("G", "H") if k in values]
+            raise LCSInputError(
+                f"F: expected F alone or G and H, received F together with {', '.join(both)}"
+            )
+        kw = {"dtype": self.dtype, "device": self.device}
+        new = {k: as_matrix(k, v, shapes[k], **kw) for k, v in values.items()}
+        for k, v in new.items():
+            m = self._masks.get(k)
+            if m is not None and bool((v[~m.to(v.device)] != 0).any()):
+                bad = int((v[~m.to(v.device)] != 0).sum())
+                raise LCSInputError(
+                    f"{k}: expected 0 at the entries its mask holds at 0, received {bad} "
+                    "nonzero there"
+                )
+        if "F" in new:
+            F, s = new.pop("F"), float(self.stiffness)
+            low = float(torch.linalg.eigvalsh(0.5 * (F + F.mT)).min())
+            if low < s - 1e-12 * (1.0 + float(F.abs().max())):
+                raise LCSInputError(
+                    f"F: expected a symmetric part (F + F^T) / 2 >= s I with s = {s:.6g} (the "
+                    f"model's stiffness), received smallest eigenvalue {low:.6g}; build the model "
+                    "with a smaller stiffness"
+                )
+            new["G"], new["H"] = split_F(F, s)
+        with torch.no_grad():
+            for k, v in new.items():
+                getattr(self, k).copy_(v)
+                getattr(self, k).requires_grad_(False)
+        return self
+
+    def mask(self, **patterns: Any) -> LCS:
+        """Hold entries of parameters at exactly 0; returns ``self``.
+
+        Keywords are names of :data:`MASKABLE` (``A, B, C, d, D, E, c``); each pattern is a bool
+        or 0/1 array or tensor of the parameter's exact shape, True/1 where the entry may be
+        nonzero (is learned), False/0 where it is held at 0. The masked entries are set to 0
+        now and stay 0 through :func:`lcs_cvx.fit`. ``None`` removes a parameter's mask.
+        Nothing changes unless every pattern is valid.
+
+        Example:
+            >>> m = LCS(2, 1, 1).mask(A=[[1, 1], [0, 1]])
+            >>> m.A[1, 0].item(), m.masks["A"].tolist()
+            (0.0, [[True, True], [False, True]])
+        """
+        shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
+        new: dict[str, torch.Tensor | None] = {}
+        for k, v in patterns.items():
+            if k not in MASKABLE:
+                why = (" (G and H parameterise F = G G^T + H - H^T + s I as a whole: fix them, "
+                       "or F, instead)") if k in ("G", "H", "F") else ""
+                raise LCSInputError(
+                    f"{k}: expected a maskable parameter name among {MASKABLE}, received "
+                    f"{k!r}{why}"
+                )
+            new[k] = None if v is None else _as_pattern(k, v, shapes[k])
+        with torch.no_grad():
+            for k, m in new.items():
+                if m is None:
+                    self._masks.pop(k, None)
+                    continue
+                self._masks[k] = m
+                getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
+        return self
+
+    @property
+    def masks(self) -> dict[str, torch.Tensor]:
+        """``{name: bool tensor}`` (copies, on the CPU) of the masked parameters: True where
+        the entry is learned, False where it is held at 0 (:meth:`mask`)."""
+        return {k: m.clone() for k, m in self._masks.items()}
 
     # -- construction -------------------------------------------------------------------
     @classmethod
@@ -323,6 +441,37 @@ class LCS(nn.Module):
         }
 
 
+def _as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
+    """A mask pattern as a CPU bool tensor of exactly ``shape``, or a clear error."""
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu()
+    else:
+        try:
+            t = torch.from_numpy(np.array(value))
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise LCSInputError(
+                f"{name}: expected a bool or 0/1 array of shape {tuple(shape)}, received "
+                f"{type(value).__name__} {value!r}"
+            ) from exc
+    if tuple(t.shape) != tuple(shape):
+        raise LCSInputError(
+            f"{name}: expected a mask of shape {tuple(shape)}, received shape {tuple(t.shape)}"
+        )
+    if t.dtype == torch.bool:
+        return t.clone()
+    if t.is_complex() or not (t.is_floating_point() or t.dtype in (
+            torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)):
+        raise LCSInputError(f"{name}: expected a mask of bool or 0/1 values, received dtype {t.dtype}")
+    bad = t[(t != 0) & (t != 1)]
+    if bad.numel():
+        shown = sorted({float(b) for b in bad.flatten()[:5].tolist()})
+        raise LCSInputError(
+            f"{name}: expected a mask of bool or 0/1 values, received {bad.numel()} other "
+            f"values (e.g. {shown})"
+        )
+    return t != 0
+
+
 def random_lcs(
     n_x: int,
     n_u: int,
@@ -338,7 +487,9 @@ def random_lcs(
     ``g_scale`` multiplies ``G`` after the draw (the other entries are unchanged): ``g_scale=0``
     gives ``F + F^T = 2 s I`` exactly, the stiff systems of Fig. 1(c) (``sigma_min = 2 s``).
 
-    The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``).
+    The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``). Its
+    parameters do not require grad: every parameter is fixed (see :class:`LCS`), as a ground
+    truth's; ``.requires_grad_(True)`` makes them learnable (e.g. to prune or train it).
     """
     if isinstance(g_scale, bool) or not isinstance(g_scale, (int, float)) \
             or not 0 <= g_scale < float("inf"):

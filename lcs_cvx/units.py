@@ -18,6 +18,11 @@ A unit can leave in two ways, each exact in one limit (eq. equ.lcp, ``w = D x + 
 :func:`prune` tries both for every unit, refits ``(A, B, C, d)`` by least squares on each
 candidate (:func:`refit_output`, exact for the prediction loss at fixed ``lam``) and keeps the
 best; ``repair`` (a few Gauss--Newton steps in :func:`lcs_cvx.fit`) then adjusts the survivor.
+
+Known structure (:mod:`lcs_cvx.structure`) carries over: the new models keep the fixed flags and
+masks (restricted to the kept units, or copied to the grown ones), :func:`refit_output` fits only
+the free entries, and :func:`prune` drops an elimination that would change a fixed parameter or
+fill a masked entry.
 """
 
 from __future__ import annotations
@@ -29,6 +34,13 @@ import torch
 
 from ._checks import LCSInputError
 from .lcp import solve_lcp_fast
+from .structure import (
+    free_entries,
+    grow_structure_,
+    keeps_structure,
+    restrict_structure_,
+    row_lstsq,
+)
 from .system import LCS, split_F
 
 __all__ = ["submodel", "pivot", "grow", "prune", "refit_output"]
@@ -47,23 +59,25 @@ def _check_keep(model: LCS, keep: Sequence[int]) -> list[int]:
     return out
 
 
-def _build(model: LCS, F: torch.Tensor, **matrices: torch.Tensor) -> LCS:
+def _build(model: LCS, keep: list[int], F: torch.Tensor, **matrices: torch.Tensor) -> LCS:
+    """A new LCS of the units ``keep`` of ``model`` with these matrices and its structure."""
     G, H = split_F(F, float(model.stiffness))
     new = LCS(model.n_x, model.n_u, F.shape[0], stiffness=float(model.stiffness),
               init_scale=0.0, dtype=model.dtype).to(model.device)
     with torch.no_grad():
         for name, value in (*matrices.items(), ("G", G), ("H", H)):
             getattr(new, name).copy_(value)
+    restrict_structure_(model, new, keep)
     return new
 
 
 def submodel(model: LCS, keep: Sequence[int]) -> LCS:
     """A new LCS with only the units ``keep`` (in that order) of ``model`` (the others deleted:
-    ``lam_j = 0``)."""
+    ``lam_j = 0``); fixed flags and masks carried over (restricted to ``keep``)."""
     keep = _check_keep(model, keep)
     idx = torch.tensor(keep, device=model.device)
     with torch.no_grad():
-        return _build(model, model.F[idx][:, idx], A=model.A, B=model.B, d=model.d,
+        return _build(model, keep, model.F[idx][:, idx], A=model.A, B=model.B, d=model.d,
                       C=model.C[:, idx], D=model.D[idx], E=model.E[idx], c=model.c[idx])
 
 
@@ -78,20 +92,24 @@ def pivot(model: LCS, j: int) -> LCS:
     On samples where the unit is active the result predicts exactly what ``model`` does. ``F'``
     stays in the model's set: with ``x = (y, -f^T y)``, ``F x = (F' y, 0)``, so
     ``y^T F' y = x^T F x >= s |x|^2 >= s |y|^2`` (Assumption 1 carries over).
+
+    The result carries ``model``'s fixed flags and masks (restricted to the other units);
+    :func:`lcs_cvx.structure.keeps_structure` says whether it also kept their values.
     """
     if isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < model.n_lam or model.n_lam < 2:
         raise LCSInputError(
             f"j: expected a unit index in [0, {model.n_lam}) of a model with n_lam >= 2, "
             f"received {j!r} (n_lam = {model.n_lam})"
         )
-    r = torch.tensor([i for i in range(model.n_lam) if i != j], device=model.device)
+    rest = [i for i in range(model.n_lam) if i != j]
+    r = torch.tensor(rest, device=model.device)
     with torch.no_grad():
         F = model.F
         fjj = F[j, j]
         f = F[r, j] / fjj
         cj = model.C[:, j] / fjj
         return _build(
-            model, F[r][:, r] - torch.outer(f, F[j, r]),
+            model, rest, F[r][:, r] - torch.outer(f, F[j, r]),
             A=model.A - torch.outer(cj, model.D[j]), B=model.B - torch.outer(cj, model.E[j]),
             d=model.d - cj * model.c[j], C=model.C[:, r] - torch.outer(cj, F[j, r]),
             D=model.D[r] - torch.outer(f, model.D[j]), E=model.E[r] - torch.outer(f, model.E[j]),
@@ -107,21 +125,27 @@ def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Ten
     at fixed ``lam``; this is its exact minimiser (normal equations with a ``1e-12`` relative
     ridge so that units inactive on every sample stay well posed). Returns the loss after the
     refit. ``warm_start``: a first guess of the LCP's free sets (:func:`lcs_cvx.lcp.solve_lcp_fast`).
+
+    Only the free entries are fitted (:func:`lcs_cvx.structure.row_lstsq`): fixed parameters
+    and masked entries keep their values, each row of ``[A B C d]`` is the least-squares fit of
+    its free columns.
     """
     with torch.no_grad():
         lam = solve_lcp_fast(model.F, model.lcp_offset(x, u), warm_start=warm_start, residual=False).lam
         n = x.shape[0]
         phi = torch.cat([x, u, lam, torch.ones(n, 1, dtype=x.dtype, device=x.device)], 1)
-        gram = phi.mT @ phi / n
-        ridge = torch.zeros(gram.shape[0], dtype=x.dtype, device=x.device)
+        ridge = torch.zeros(phi.shape[1], dtype=x.dtype, device=x.device)
         c0 = model.n_x + model.n_u
         ridge[c0:c0 + model.n_lam] = 2.0 * reg
-        ridge += 1e-12 * gram.diagonal().max()  # no host sync per candidate
-        W = torch.linalg.solve(gram + torch.diag(ridge), phi.mT @ x_next / n).mT
-        model.A.copy_(W[:, :model.n_x])
-        model.B.copy_(W[:, model.n_x:c0])
-        model.C.copy_(W[:, c0:c0 + model.n_lam])
-        model.d.copy_(W[:, -1])
+        ridge += 1e-12 * (phi * phi).sum(0).max() / n  # phi^T phi / n's largest diagonal entry
+        names = ("A", "B", "C", "d")
+        free = torch.cat([free_entries(model, k).reshape(model.n_x, -1) for k in names], 1)
+        fixed = torch.cat([getattr(model, k).detach().reshape(model.n_x, -1) for k in names], 1)
+        W = row_lstsq(phi, x_next, free, fixed, ridge)
+        for name, value in (("A", W[:, :model.n_x]), ("B", W[:, model.n_x:c0]),
+                            ("C", W[:, c0:c0 + model.n_lam]), ("d", W[:, -1])):
+            if getattr(model, name).requires_grad:  # a fixed one: W holds its value already
+                getattr(model, name).copy_(value)
         fit_err = 0.5 * ((phi @ W.mT - x_next) ** 2).sum(-1).mean() + reg * (model.C ** 2).sum()
         return float(fit_err)
 
@@ -130,7 +154,10 @@ def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1)
     """``model`` with ``extra`` new units appended, their parameters ``scale * N(0, 1)``.
 
     The original units' ``F`` block is kept exactly; the new rows and columns of ``F`` come from
-    new rows of ``G`` and ``H`` (so ``F`` stays in the model's set).
+    new rows of ``G`` and ``H`` (so ``F`` stays in the model's set). Fixed flags and masks carry
+    over, the new units copying the units' common mask pattern; a fixed unit-indexed parameter
+    or a pattern that differs between units is an error when ``extra > 0``
+    (:func:`lcs_cvx.structure.grow_structure_`).
     """
     n, k = model.n_lam, int(extra)
     if k < 0:
@@ -158,6 +185,10 @@ def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1)
         H[n:, :] = draw(k, n + k)
         new.G.copy_(G)
         new.H.copy_(H)
+    if k:
+        grow_structure_(model, new)
+    else:
+        restrict_structure_(model, new, list(range(n)))
     return new
 
 
@@ -174,7 +205,8 @@ def prune(
 
     Each removal tries, for every unit, deleting it (:func:`submodel`) and eliminating it
     (:func:`pivot`), refits ``(A, B, C, d)`` on each candidate (:func:`refit_output`) and keeps
-    the one with the lowest prediction loss (plus ``reg ||C||^2``) on ``(x, u, x_next)``;
+    the one with the lowest prediction loss (plus ``reg ||C||^2``) on ``(x, u, x_next)`` (an
+    elimination that would change a fixed parameter or fill a masked entry is not a candidate);
     ``repair(model)``, if given, then improves the kept one in place (e.g. a Gauss--Newton step)
     before the next removal.
 
@@ -193,7 +225,12 @@ def prune(
             free = solve_lcp_fast(current.F, current.lcp_offset(x, u), residual=False).free
         for j in range(current.n_lam):
             rest = [i for i in range(current.n_lam) if i != j]
-            for cand in (submodel(current, rest), pivot(current, j)):
+            eliminated = pivot(current, j)
+            if keeps_structure(eliminated, current, rest):
+                cands: tuple[LCS, ...] = (submodel(current, rest), eliminated)
+            else:  # it would change a fixed parameter or fill a masked entry
+                cands = (submodel(current, rest),)
+            for cand in cands:
                 value = refit_output(cand, x, u, x_next, reg=reg, warm_start=free[:, rest])
                 if best is None or value < best[0]:
                     best = (value, cand)

@@ -46,6 +46,7 @@ APPROX_TINY = 1e-9
 #: Modules documented as a whole in the API reference (besides every top-level name).
 DOCUMENTED_MODULES = (
     "lcs_cvx.units",
+    "lcs_cvx.structure",
     "lcs_cvx.second_order",
     "lcs_cvx.hessian",
     "lcs_cvx.problems",

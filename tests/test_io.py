@@ -135,6 +135,8 @@ def test_metadata(tmp_path):
         "stiffness": float(torch.tensor(0.3173, dtype=torch.float32)),
         "dtype": "float32",
         "metadata": {"fit": settings},
+        "fixed": [],
+        "masks": [],
     }
     save_model(model, tmp_path / "plain.npz")
     assert load_metadata(tmp_path / "plain.npz")["metadata"] == {}

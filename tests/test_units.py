@@ -25,7 +25,7 @@ def test_submodel_permutes_units():
 
 
 def test_grow_keeps_the_old_block_and_submodel_recovers_it():
-    sys = lcs_cvx.random_lcs(4, 2, 3, seed=0)
+    sys = lcs_cvx.random_lcs(4, 2, 3, seed=0).requires_grad_(True)  # learnable: no fixed units
     big = grow(sys, 2, torch.Generator().manual_seed(0))
     assert big.n_lam == 5 and big.sigma_min >= 2 * float(sys.stiffness) - 1e-12
     assert torch.allclose(big.F[:3, :3], sys.F, atol=1e-12)
@@ -113,6 +113,7 @@ def test_prune_eliminates_an_always_active_unit():
     """Deleting any unit of this system loses its predictions; eliminating unit 3 keeps them."""
     sys = _always_active(seed=5)
     data = lcs_cvx.make_dataset(sys, 300, seed=1)
+    sys.requires_grad_(True)  # random_lcs fixes every parameter; an elimination changes A, B, d
     calls = []
     small = prune(sys, 3, data.x, data.u, data.x_next, repair=lambda m: calls.append(m.n_lam))
     assert small.n_lam == 3 and calls == [3]

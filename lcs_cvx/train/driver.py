@@ -29,6 +29,7 @@ from ..data import Dataset
 from ..io import atomic_write
 from ..metrics import relative_error
 from ..scaling import Scaling
+from ..structure import check_learnable
 from ..system import LCS
 from .options import FitOptions
 from .phases import run_phases
@@ -213,6 +214,7 @@ def fit(
     """
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    check_learnable(model)
     opts = _options(options, recipe, overrides)
     train = _check_data("train", train, model)
     test = _check_data("test", test, model) if test is not None else None

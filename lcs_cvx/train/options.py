@@ -116,7 +116,9 @@ class AdamOptions:
         reinit_every: see ``reinit_saturated``.
         extra_units: Adam trains ``n_lam + extra_units`` units (``"auto"``: :func:`extra_units`),
             which the pruning phase removes again -- the escape from the permutation trap
-            (two units on one mode boundary, another boundary unmodelled).
+            (two units on one mode boundary, another boundary unmodelled). Not with a fixed
+            ``C, D, E, c, G, H`` or one masked differently per unit: ``"auto"`` then means 0
+            and a number > 0 is an error (:func:`lcs_cvx.structure.allowed_extra_units`).
     """
 
     iterations: int = 10_000

@@ -24,6 +24,7 @@ import torch
 from .._checks import SolverError
 from ..losses import prediction_fast, regularizer, violation_fast
 from ..second_order import gauss_newton_step, newton_step
+from ..structure import free_entries, mask_gradients_, project_
 from ..system import LCS
 from ..units import prune
 from .options import FitOptions
@@ -35,10 +36,13 @@ __all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "phases", "r
 def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteration: int,
                lr: float) -> float:
     """One Adam step on ``value``; a clear error once the loss or ``F`` is no longer finite
-    (``F = G G^T + ...`` overflows first when the parameters blow up)."""
+    (``F = G G^T + ...`` overflows first when the parameters blow up). Fixed parameters get no
+    gradient; masked entries get a zero one and are held at 0 (:mod:`lcs_cvx.structure`)."""
     adam.zero_grad()
     value.backward()
+    mask_gradients_(model)
     adam.step()
+    project_(model)
     loss = float(value.detach())
     with torch.no_grad():
         finite_F = bool(torch.isfinite(model.F).all())
@@ -126,7 +130,8 @@ class AdamPhase(Phase):
 
 def reinit_saturated(state: TrainState) -> None:
     """Re-draw the hyperplane ``(D_i, E_i, c_i)`` and ``C[:, i]`` of the units active on >= 98 %
-    of a sample of the data (no gradient reaches their boundary) and zero their Adam moments."""
+    of a sample of the data (no gradient reaches their boundary) and zero their Adam moments.
+    Only free entries are re-drawn (fixed parameters and masked entries keep their values)."""
     m = state.work
     idx = state.perm[: min(2000, len(state.perm))]
     with torch.no_grad():
@@ -138,10 +143,11 @@ def reinit_saturated(state: TrainState) -> None:
             p = getattr(m, name)
             shape = (sat.numel(),) + tuple(p.shape[1:]) if rows else (p.shape[0], sat.numel())
             new = 0.1 * torch.randn(shape, generator=state.generator, dtype=torch.float64).to(p.dtype)
+            free = free_entries(m, name)
             if rows:
-                p[sat] = new
+                p[sat] = torch.where(free[sat], new, p[sat])
             else:
-                p[:, sat] = new
+                p[:, sat] = torch.where(free[:, sat], new, p[:, sat])
             moments = state.adam.state.get(p)
             for key in ("exp_avg", "exp_avg_sq") if moments else ():
                 if rows:

@@ -24,18 +24,10 @@ import torch
 
 from ..data import Dataset
 from ..scaling import Scaling
+from ..structure import copy_structure_, free_entries, row_lstsq
 from ..system import LCS, PARAMETER_NAMES
 
 __all__ = ["start", "fresh_like", "affine_start_"]
-
-
-def _free(model: LCS, name: str) -> torch.Tensor:
-    """Bool, the parameter's shape: True where the entry is learned."""
-    p = getattr(model, name)
-    if not p.requires_grad:
-        return torch.zeros(p.shape, dtype=torch.bool, device=p.device)
-    mask = getattr(model, "masks", {}).get(name)
-    return torch.ones(p.shape, dtype=torch.bool, device=p.device) if mask is None else mask.to(p.device)
 
 
 def affine_start_(model: LCS, data: Dataset) -> None:
@@ -45,21 +37,20 @@ def affine_start_(model: LCS, data: Dataset) -> None:
     with torch.no_grad():
         x, u, xn = data.x.to(model.dtype), data.u.to(model.dtype), data.x_next.to(model.dtype)
         phi = torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=x.dtype, device=x.device)], 1)
-        W = torch.cat([model.A, model.B, model.d[:, None]], 1).detach().clone()
-        free = torch.cat([_free(model, "A"), _free(model, "B"), _free(model, "d")[:, None]], 1)
-        scale = phi.abs().amax(0).clamp(min=1e-300)  # column scaling: a well-conditioned solve
-        for i in range(model.n_x):
-            f = free[i]
-            if not bool(f.any()):
-                continue
-            rhs = xn[:, i] - phi[:, ~f] @ W[i, ~f]
-            cols = phi[:, f] / scale[f]
-            W[i, f] = torch.linalg.lstsq(cols, rhs[:, None]).solution[:, 0] / scale[f]
+        # the normal equations want columns of one scale: solve for W * scale on phi / scale
+        scale = phi.abs().amax(0).clamp(min=torch.finfo(phi.dtype).tiny)
+        names = ("A", "B", "d")
+        W = torch.cat([model.A, model.B, model.d[:, None]], 1).detach()
+        free = torch.cat([free_entries(model, "A"), free_entries(model, "B"),
+                          free_entries(model, "d")[:, None]], 1)
+        phi_s = phi / scale
+        ridge = 1e-12 * (phi_s * phi_s).mean(0).max() * torch.ones_like(scale)
+        W = row_lstsq(phi_s, xn, free, W * scale, ridge) / scale
         n_x, n_u = model.n_x, model.n_u
-        for name, value in (("A", W[:, :n_x]), ("B", W[:, n_x:n_x + n_u]), ("d", W[:, -1])):
+        for name, value in zip(names, (W[:, :n_x], W[:, n_x:n_x + n_u], W[:, -1]), strict=True):
             p = getattr(model, name)
             if p.requires_grad:
-                p.copy_(value)
+                p.copy_(torch.where(free_entries(model, name), value, p))
 
 
 def _increment_start_(model: LCS, data: Dataset, normalised: bool) -> None:
@@ -75,8 +66,7 @@ def _increment_start_(model: LCS, data: Dataset, normalised: bool) -> None:
     for name, value in target.items():
         p = getattr(model, name)
         if p.requires_grad:
-            free = _free(model, name)
-            p.copy_(torch.where(free, value, p))
+            p.copy_(torch.where(free_entries(model, name), value, p))
 
 
 def fresh_like(model: LCS, seed: int) -> LCS:
@@ -84,16 +74,7 @@ def fresh_like(model: LCS, seed: int) -> LCS:
     seed=seed)``) with ``model``'s fixed parameters (their values) and masks."""
     new = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness), seed=seed,
               dtype=model.dtype).to(model.device)
-    with torch.no_grad():
-        for name in PARAMETER_NAMES:
-            p = getattr(model, name)
-            if not p.requires_grad:
-                getattr(new, name).copy_(p)
-                getattr(new, name).requires_grad_(False)
-    masks = getattr(model, "masks", {})
-    if masks:
-        new.mask(**masks)
-    return new
+    return copy_structure_(model, new)
 
 
 def start(base: LCS, init: str, scaling: Scaling | None, train: Dataset,

@@ -18,6 +18,7 @@ import torch
 
 from ..data import Dataset
 from ..metrics import relative_error
+from ..structure import allowed_extra_units
 from ..system import LCS, PARAMETER_NAMES
 from ..units import grow
 from .options import FitOptions, extra_units
@@ -54,7 +55,7 @@ class TrainState:
         a = options.adam
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
-        self.n_extra = extra_units(a.extra_units, model.n_lam)
+        self.n_extra = allowed_extra_units(model, a.extra_units, extra_units(a.extra_units, model.n_lam))
         self.work = grow(model, self.n_extra, self.generator) if self.n_extra else model
         self.adam = torch.optim.Adam(self.work.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
         self.polish_adam = torch.optim.Adam(model.parameters(), lr=options.polish.lr,
