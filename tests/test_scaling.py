@@ -156,3 +156,26 @@ def test_resume_under_normalisation_gives_the_uninterrupted_result(system, tmp_p
     lcs_cvx.fit(resumed, data, checkpoint=path, resume=True, **kw)
     for name in lcs_cvx.system.PARAMETER_NAMES:
         assert torch.equal(getattr(resumed, name), getattr(full, name)), name
+
+
+def test_structure_survives_the_change_of_coordinates(system):
+    """Masks keep their pattern (an A_ii masked to 0 drops the identity from that row's
+    target), a fixed or masked d or c switches centring off, fixed values come back bit for bit."""
+    truth, train, test = system
+    mask_A = torch.ones(4, 4, dtype=torch.bool)
+    mask_A[0, 0] = mask_A[2, 1] = False
+    mask_C = torch.tensor([[1, 0, 0], [1, 1, 0], [0, 1, 1], [0, 0, 1]], dtype=torch.bool)
+    model = lcs_cvx.LCS(4, 2, 3, seed=4, mask={"A": mask_A, "C": mask_C}).fix(c=truth.c, B=truth.B)
+    data = rescaled(train)
+    s = Scaling.fit(data, model)
+    assert s.k.tolist() == [0.0, 1.0, 1.0, 1.0]
+    assert bool((s.mx == 0).all()) and bool((s.mu == 0).all())  # c is fixed: no centring
+    normalised = s.to_normalised(model)
+    assert not normalised.B.requires_grad and not normalised.c.requires_grad
+    assert normalised.A[0, 0] == 0 and normalised.A[2, 1] == 0
+    assert bool((normalised.C[~mask_C] == 0).all())
+    lcs_cvx.fit(model, data, iterations=200, eval_every=100, progress=False)
+    assert torch.equal(model.B, truth.B) and torch.equal(model.c, truth.c)
+    assert model.A[0, 0].item() == 0.0 and model.A[2, 1].item() == 0.0
+    assert bool((model.C[~mask_C] == 0).all())
+    assert model.masks.keys() == {"A", "C"}

@@ -13,6 +13,7 @@ uninterrupted one (wall times aside).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -231,8 +232,11 @@ def fit(
     test_data = scaling.encode(test) if scaling is not None and test is not None else test
 
     def in_units(m: LCS) -> LCS:
-        """A model being learned, in the user's units."""
-        return scaling.to_physical(m) if scaling is not None else m
+        """A model being learned, in the user's units (a copy of ``model``'s structure: its
+        fixed parameters bit for bit)."""
+        if scaling is None:
+            return m
+        return scaling.to_physical(m, out=copy.deepcopy(model) if m.n_lam == model.n_lam else None)
 
     def score_on(data: Dataset) -> Callable[[LCS], float]:
         return lambda m: relative_error(in_units(m), data)
