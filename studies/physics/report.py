@@ -98,9 +98,10 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
         "paper's data, the increment x' − x to unit variance, on the training set) and folded back "
         "by `lcs_cvx.fit` into an exact LCS in physical units. "
         + "; ".join(f"{loss} loss: {opts[loss]}" for loss in lc["losses"])
-        + f". Start `init=\"{lc['init']}\"` (`lcs_cvx.train.starts`; the other parameters "
-        f"{lc['init_scale']}·N(0, 1) in normalised coordinates; F stiffness {lc['stiffness']}); "
-        f"restarts with seeds {lc['seeds']}, the one with the lowest validation error kept.",
+        + f". Restarts: every start `init` in {lc['init']} (`lcs_cvx.fit`'s option, "
+        f"`lcs_cvx.train.starts`; the other parameters {lc['init_scale']}·N(0, 1) in normalised "
+        f"coordinates; F stiffness {lc['stiffness']}) with every seed in {lc['seeds']}, the one "
+        "with the lowest validation error kept.",
         "  Resolved `lcs_cvx.fit` settings (the recipe as it stood when the study ran): "
         + "; ".join(f"{loss}: " + ", ".join(f"{k}={v}" for k, v in (s['fit_settings'].get(loss) or {}).items()
                                                if k in _SHOWN_SETTINGS and not (
@@ -169,11 +170,11 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
             out.append(f"- Wide inputs: best LCS contact error {wide[wb]['one_step']['contact']:.3g} "
                        f"({wb}) against " + ", ".join(parts) + ".")
     out += ["", "## Restarts (model selection on the validation trajectories)", "",
-            "| model | seed | validation error | test 1-step all | selected | time (s) |",
-            "|---|---|---|---|---|---|"]
+            "| model | init | seed | validation error | test 1-step all | selected | time (s) |",
+            "|---|---|---|---|---|---|---|"]
     for r in s["restarts"]:
         test_all = "failed: " + r["error"] if r["test_one_step"] is None else f"{r['test_one_step']['all']:.4f}"
-        out.append(f"| {r['model']} | {r['seed']} | {r['val_error']:.3g} | {test_all} | "
+        out.append(f"| {r['model']} | {r.get('init', '')} | {r['seed']} | {r['val_error']:.3g} | {test_all} | "
                    f"{'yes' if r['selected'] else ''} | {r['wall_time']:.0f} |")
     out += ["", "## Figures", ""]
     if s["rollout_window_start"] is not None:

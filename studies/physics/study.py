@@ -44,9 +44,9 @@ _RUNNER_KEYS = ("name", "kind", "module", "description", "path", "extends")
 _DATA_DEFAULTS = {"n_train": 20000, "n_test": 5000, "n_wide": 5000, "seed_train": 0, "seed_test": 1,
                   "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
 _LCS_DEFAULTS = {"n_lam": [2, 4, 8], "losses": ["violation", "prediction"], "seeds": [0, 1, 2, 3],
-                 "init": "increment", "stiffness": 1.0, "init_scale": 0.1,
+                 "init": ["increment"], "stiffness": 1.0, "init_scale": 0.1,
                  "violation": {"recipe": "best", "iterations": 12000},
-                 "prediction": {"recipe": "paper", "lr": 5e-3, "iterations": 12000}}
+                 "prediction": {"recipe": "paper", "normalize": True, "lr": 5e-3, "iterations": 12000}}
 _MLP_DEFAULTS = {"hidden": [64, 64], "iterations": 20000, "batch_size": 256, "lr": 3e-3,
                  "weight_decay": 0.0, "seed": 0}
 _EVAL_DEFAULTS = {"horizons": [1, 5, 20], "active_tol": 1e-9}
@@ -81,7 +81,9 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"config: {unknown[0]}: unknown key; expected sections {list(CONFIG_SECTIONS)}")
     lcs = _section(config, "lcs", _LCS_DEFAULTS)
-    for key in ("n_lam", "seeds", "losses"):  # each value is one job: a repeat would be one too
+    if isinstance(lcs["init"], str):
+        lcs["init"] = [lcs["init"]]
+    for key in ("n_lam", "seeds", "losses", "init"):  # each value is one job: a repeat would be one too
         v = lcs[key]
         if not isinstance(v, list) or not v or len(set(v)) != len(v):
             raise ValueError(f"config: lcs.{key}: expected a non-empty list of distinct values, "
@@ -121,11 +123,12 @@ def _data(cfg: dict[str, Any]) -> dict[str, Transitions]:
 
 
 def training_jobs(cfg: dict[str, Any], scaling: Any, train: Transitions, val: Transitions
-                  ) -> tuple[list[dict[str, Any]], list[tuple[str, int, int]]]:
+                  ) -> tuple[list[dict[str, Any]], list[tuple[str, int, str, int]]]:
     """The jobs (:func:`studies.physics.jobs.make_job`) of a parsed config: per ``n_lam`` (the
-    largest, slowest, first), loss and seed one ``fit_lcs``, and the ``fit_mlp`` job in the
-    middle of the list (index ``len(jobs) // 2``). Also returns the ``(loss, n_lam, seed)`` of
-    each ``fit_lcs`` job, in order."""
+    largest, slowest, first), loss, start (``init``) and seed one ``fit_lcs`` -- the restarts of
+    that ``(loss, n_lam)`` -- and the ``fit_mlp`` job in the middle of the list (index
+    ``len(jobs) // 2``). Also returns the ``(loss, n_lam, init, seed)`` of each ``fit_lcs`` job,
+    in order."""
     from .models import encode
 
     lcfg = cfg["lcs"]
@@ -135,34 +138,35 @@ def training_jobs(cfg: dict[str, Any], scaling: Any, train: Transitions, val: Tr
     data = {"x": train.x, "u": train.u, "x_next": train.x_next, "x_val": val.x, "u_val": val.u,
             "x_next_val": val.x_next}
     jobs: list[dict[str, Any]] = []
-    keys: list[tuple[str, int, int]] = []
+    keys: list[tuple[str, int, str, int]] = []
     for n_lam in sorted(lcfg["n_lam"], reverse=True):  # the slow ones first
         for loss in lcfg["losses"]:
             opts = {k: (tuple(v_) if isinstance(v_, list) else v_) for k, v_ in lcfg[loss].items()}
             recipe = opts.pop("recipe")
-            for seed in lcfg["seeds"]:
-                jobs.append(make_job("fit_lcs", {
-                    **data, "n_lam": int(n_lam), "loss": loss, "recipe": recipe, "options": opts,
-                    "stiffness": lcfg["stiffness"], "init_scale": lcfg["init_scale"],
-                    "init": lcfg["init"], "seed": int(seed)}))
-                keys.append((loss, int(n_lam), int(seed)))
+            for init in lcfg["init"]:
+                for seed in lcfg["seeds"]:
+                    jobs.append(make_job("fit_lcs", {
+                        **data, "n_lam": int(n_lam), "loss": loss, "recipe": recipe,
+                        "options": opts, "stiffness": lcfg["stiffness"],
+                        "init_scale": lcfg["init_scale"], "init": init, "seed": int(seed)}))
+                    keys.append((loss, int(n_lam), init, int(seed)))
     jobs.insert(len(jobs) // 2, make_job("fit_mlp", {**normalised, **cfg["mlp"]}))
     return jobs, keys
 
 
-def _select(keys: list[tuple[str, int, int]], results: list[dict[str, Any]]
+def _select(keys: list[tuple[str, int, str, int]], results: list[dict[str, Any]]
             ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, tuple[dict[str, Any], tuple]]]:
     """Per model name ``"LCS <loss> n_λ=<k>"``: every restart, and the one with the lowest
     validation error (a failed restart is never chosen)."""
     restarts: dict[str, list[dict[str, Any]]] = {}
     chosen: dict[str, tuple[dict[str, Any], tuple[str, int, int]]] = {}
     for key, res in zip(keys, results, strict=True):
-        loss, n_lam, seed = key
+        loss, n_lam, init, seed = key
         name = f"LCS {loss} n_λ={n_lam}"
-        restarts.setdefault(name, []).append({"seed": seed, "val_error": res["val_error"],
+        restarts.setdefault(name, []).append({"seed": seed, "init": init, "val_error": res["val_error"],
                                               "wall_time": res["wall_time"], "result": res})
         if res["matrices"] is None:
-            _log(f"{name}, seed {seed} failed: {res['error']}")
+            _log(f"{name}, init {init}, seed {seed} failed: {res['error']}")
             continue
         if name not in chosen or res["val_error"] < chosen[name][0]["val_error"]:
             chosen[name] = (res, key)
@@ -263,7 +267,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
     models: dict[str, Any] = {}
     train_time: dict[str, float] = {}
     exported: dict[str, str] = {}
-    for name, (res, (loss, n_lam, seed)) in chosen.items():
+    for name, (res, (loss, n_lam, init, seed)) in chosen.items():
         model = LCSModel.from_matrices(res["matrices"])
         models[name] = model
         train_time[name] = sum(r["wall_time"] for r in restarts[name])
@@ -271,7 +275,8 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
         lcs_cvx.save_model(model.lcs, path, metadata={
             "study": cfg["name"], "system": "cart-pole with soft walls (MuJoCo)",
             "state": list(STATE_NAMES), "state_units": list(STATE_UNITS), "input": ["force (N)"],
-            "control_period_s": phys.control_period, "loss": loss, "n_lam": n_lam, "seed": seed,
+            "control_period_s": phys.control_period, "loss": loss, "n_lam": n_lam, "init": init,
+            "seed": seed,
             "val_error": res["val_error"], "fit_settings": res["settings"],
         })
         exported[name] = os.path.relpath(path, out_dir)
@@ -292,7 +297,8 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
         for e in entries:
             ok = e["result"]["matrices"] is not None
             m = LCSModel.from_matrices(e["result"]["matrices"]) if ok else None
-            restart_rows.append({"model": name, "seed": e["seed"], "val_error": e["val_error"],
+            restart_rows.append({"model": name, "init": e["init"], "seed": e["seed"],
+                                 "val_error": e["val_error"],
                                  "test_one_step": ev.one_step_errors(m, test) if ok else None,
                                  "selected": name in chosen and e["result"] is chosen[name][0],
                                  "error": e["result"].get("error"), "wall_time": e["wall_time"]})
