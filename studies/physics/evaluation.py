@@ -32,12 +32,14 @@ import numpy as np
 __all__ = [
     "relative_error",
     "one_step_errors",
+    "mode_errors",
     "rollout",
     "rollout_errors",
     "contact_agreement",
     "plot_rollouts",
     "plot_error_vs_horizon",
     "markdown_table",
+    "fmt",
 ]
 
 
@@ -58,6 +60,19 @@ def one_step_errors(model: Any, data: Any) -> dict[str, float]:
         "contact": relative_error(pred[c], data.x_next[c]),
         "all": relative_error(pred, data.x_next),
     }
+
+
+def mode_errors(model: Any, data: Any, modes: Sequence[str]) -> dict[str, float]:
+    """One-step relative errors per true contact mode: ``{modes[k]: error on the samples whose
+    label (``data.contact``, ``(N,)`` int) is k}``, and ``"contact"`` (every label but 0) and
+    ``"all"``; NaN for a mode without samples."""
+    pred = model.predict(data.x, data.u, data.contact)
+    out = {name: relative_error(pred[data.contact == k], data.x_next[data.contact == k])
+           for k, name in enumerate(modes)}
+    c = data.in_contact
+    out["contact"] = relative_error(pred[c], data.x_next[c])
+    out["all"] = relative_error(pred, data.x_next)
+    return out
 
 
 def rollout(model: Any, data: Any, starts: np.ndarray, horizon: int) -> np.ndarray:
@@ -188,8 +203,9 @@ def plot_rollouts(models: dict[str, Any], data: Any, start: int, horizon: int, p
     plt.close(fig)
 
 
-def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -> None:
-    """``curves[test_set][model] = (H,)`` rollout errors; one panel per test set."""
+def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str, period: float = 0.04) -> None:
+    """``curves[test_set][model] = (H,)`` rollout errors; one panel per test set; ``period``:
+    the control period (s), for the axis label."""
     plt = _plt()
     fig, axes = plt.subplots(1, len(curves), figsize=(6.5 * len(curves), 4.5), sharey=True)
     axes = np.atleast_1d(axes)
@@ -200,7 +216,7 @@ def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -
                     ms=3, lw=1.4, label=name)
         ax.set_yscale("log")
         ax.set_xticks([1, *range(5, len(errs) + 1, 5)])
-        ax.set_xlabel("horizon H (control periods of 0.04 s)")
+        ax.set_xlabel(f"horizon H (control periods of {period:g} s)")
         ax.set_title(set_name)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("open-loop relative error at H")
@@ -211,7 +227,9 @@ def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -
 
 
 # -- table -------------------------------------------------------------------------------------
-def _fmt(v: Any) -> str:
+def fmt(v: Any) -> str:
+    """A number for a markdown table: ``1.23e-04`` below 0.01 and from 1,000 on, else four
+    decimals; "–" for None, "diverged" for inf/NaN."""
     if v is None:
         return "–"
     if isinstance(v, str):
@@ -231,8 +249,8 @@ def markdown_table(rows: Sequence[dict[str, Any]], horizons: Sequence[int]) -> s
     for r in rows:
         ag = r.get("agreement")
         ag_s = ["–", "–"] if ag is None else [f"{ag['agreement']:.3f}", f"{ag['either_sign']:.3f}"]
-        cells = [r["name"], _fmt(r["one_step"]["free"]), _fmt(r["one_step"]["contact"]),
-                 _fmt(r["one_step"]["all"])] + [_fmt(r["rollout"][str(h)]) for h in horizons]
+        cells = [r["name"], fmt(r["one_step"]["free"]), fmt(r["one_step"]["contact"]),
+                 fmt(r["one_step"]["all"])] + [fmt(r["rollout"][str(h)]) for h in horizons]
         cells += [*ag_s, "–" if r.get("train_s") is None else f"{r['train_s']:.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
