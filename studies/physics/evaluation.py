@@ -36,6 +36,8 @@ __all__ = [
     "rollout",
     "rollout_errors",
     "contact_agreement",
+    "pyplot",
+    "draw_rollout_panels",
     "plot_rollouts",
     "plot_error_vs_horizon",
     "markdown_table",
@@ -142,7 +144,8 @@ def contact_agreement(active: np.ndarray, contact: np.ndarray) -> dict[str, Any]
 
 
 # -- figures ---------------------------------------------------------------------------------
-def _plt():
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (figures go to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -167,29 +170,37 @@ def pick_contact_window(data: Any, horizon: int) -> int | None:
     return fallback
 
 
+def draw_rollout_panels(axes: Any, panels: Sequence[tuple[str, Any]], t: np.ndarray, true: np.ndarray,
+                        preds: dict[str, np.ndarray], shade: Sequence[tuple[int, str]]) -> None:
+    """On each axis, the panel ``(label, f)``: ``f`` of the true states ``(H + 1, n_x)`` and of
+    each model's rollout (LCSs dashed, the others dotted) against the times ``t``, and the
+    periods ``k`` of ``shade = [(k, colour)]`` shaded."""
+    for ax, (label, f) in zip(axes, panels, strict=True):
+        ax.plot(t, f(true), "k-", lw=3, label="MuJoCo (true)")
+        for name, pred in preds.items():
+            ax.plot(t, f(pred), "--" if "LCS" in name else ":", lw=1.6, label=name)
+        for k, colour in shade:
+            ax.axvspan(t[k], t[k + 1], color=colour, alpha=0.15, lw=0)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+
+
 def plot_rollouts(models: dict[str, Any], data: Any, start: int, horizon: int, physics: Any,
                   path: str, title: str) -> None:
     """True vs each model's open-loop rollout of one window: tip position (with the walls) and
     pole angular velocity."""
-    plt = _plt()
+    plt = pyplot()
     t = np.arange(horizon + 1) * physics.control_period
     idx = np.array([start])
     true = np.concatenate([data.x[start : start + 1], data.x_next[start : start + horizon]])
     L = physics.pole_length
     tip = lambda xs: xs[:, 0] + L * np.sin(xs[:, 1])  # noqa: E731
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for ax, (label, f) in zip(axes, [("pole tip x (m)", tip), ("pole angle θ (rad)", lambda xs: xs[:, 1]),
-                                     ("θ' (rad/s)", lambda xs: xs[:, 3])], strict=True):
-        ax.plot(t, f(true), "k-", lw=3, label="MuJoCo (true)")
-        for name, model in models.items():
-            pred = rollout(model, data, idx, horizon)[0]
-            ax.plot(t, f(pred), "--" if "LCS" in name else ":", lw=1.6, label=name)
-        contact_steps = np.nonzero(data.in_contact[start : start + horizon])[0]
-        for k in contact_steps:
-            ax.axvspan(t[k], t[k + 1], color="orange", alpha=0.15, lw=0)
-        ax.set_xlabel("time (s)")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
+    preds = {name: rollout(model, data, idx, horizon)[0] for name, model in models.items()}
+    shade = [(int(k), "orange") for k in np.nonzero(data.in_contact[start : start + horizon])[0]]
+    draw_rollout_panels(axes, [("pole tip x (m)", tip), ("pole angle θ (rad)", lambda xs: xs[:, 1]),
+                               ("θ' (rad/s)", lambda xs: xs[:, 3])], t, true, preds, shade)
     inner = physics.wall_distance - physics.tip_radius
     for s in (-1, 1):
         axes[0].axhline(s * inner, color="gray", lw=1)
@@ -206,7 +217,7 @@ def plot_rollouts(models: dict[str, Any], data: Any, start: int, horizon: int, p
 def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str, period: float = 0.04) -> None:
     """``curves[test_set][model] = (H,)`` rollout errors; one panel per test set; ``period``:
     the control period (s), for the axis label."""
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(curves), figsize=(6.5 * len(curves), 4.5), sharey=True)
     axes = np.atleast_1d(axes)
     for ax, (set_name, per_model) in zip(axes, curves.items(), strict=True):
