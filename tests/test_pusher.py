@@ -6,24 +6,16 @@ its store."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
 
 import numpy as np
 import pytest
+from conftest import ROOT, needs_mujoco
 
 from lcs_cvx import load_model
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-if ROOT not in sys.path:  # `studies` is a package at the repository root, not installed
-    sys.path.insert(0, ROOT)
-
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("mujoco") is None,
-    reason="mujoco is not installed (the physics extra: pip install 'lcs_cvx[physics]')",
-)
+pytestmark = needs_mujoco
 SMOKE = os.path.join(ROOT, "studies", "configs", "pusher_slider_smoke.toml")
 
 
@@ -142,6 +134,21 @@ def test_training_sizes_are_nested_with_interleaved_validation(transitions):
     assert np.array_equal(splits[700][0].x[:200], splits[200][0].x)  # nested
     with pytest.raises(ValueError, match=r"data.sizes: the stream holds \d+ training samples, fewer than"):
         split_sizes(transitions, [5000], val_every=5)
+
+
+def test_the_full_config_spells_out_the_defaults():
+    """pusher_slider.toml says its values are the code's defaults: parsing it gives the same
+    study as parsing an empty config."""
+    import dataclasses
+    import tomllib
+
+    from studies.physics.pusher_study import parse_config
+
+    with open(os.path.join(ROOT, "studies", "configs", "pusher_slider.toml"), "rb") as f:
+        full = parse_config(tomllib.load(f))
+    empty = parse_config({"name": "pusher_slider"})
+    plain = lambda c: {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in c.items()}  # noqa: E731
+    assert plain(full) == plain(empty)
 
 
 def test_config_errors_name_the_section_and_the_key():

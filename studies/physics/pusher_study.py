@@ -63,13 +63,13 @@ PENDING = ("PARC (piecewise-affine regression)",)
 
 _DATA_DEFAULTS = {"sizes": [500, 2000, 10000, 20000], "n_test": 5000, "n_wide": 5000, "seed_train": 0,
                   "seed_test": 1, "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
-_LCS_DEFAULTS = {"n_lam": [2, 4, 8], "losses": ["violation", "prediction"], "seeds": [0, 1],
+_LCS_DEFAULTS = {"n_lam": [4, 8, 16, 24], "losses": ["violation", "prediction"], "seeds": [0, 1, 2],
                  "tolerance": 0.1, "init": "increment", "stiffness": 1.0, "init_scale": 0.1,
-                 "violation": {"recipe": "best", "iterations": 4000, "keep_best": True},
-                 "prediction": {"recipe": "paper", "normalize": True, "lr": 5e-3, "iterations": 4000,
+                 "violation": {"recipe": "best", "iterations": 16000, "keep_best": True},
+                 "prediction": {"recipe": "paper", "normalize": True, "lr": 5e-3, "iterations": 16000,
                                 "keep_best": True}}
 _MLP_DEFAULTS = {"hidden": [[64, 64], [128, 128], [64, 64, 64]], "weight_decay": [0.0, 1e-4],
-                 "iterations": 10000, "batch_size": 256, "lr": 3e-3, "seed": 0}
+                 "iterations": 20000, "batch_size": 256, "lr": 3e-3, "seed": 0}
 _EVAL_DEFAULTS = {"horizons": [1, 5, 20], "target": 1.5}
 
 
