@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, needs_mujoco
 
+import lcs_cvx
 from lcs_cvx import load_model
 
 pytestmark = needs_mujoco
@@ -195,6 +196,12 @@ def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path):
     assert sel["chosen"] == choose({int(k): v for k, v in sel["val_error"].items()}, 0.1)
     model = load_model(tmp_path / "models" / "lcs_violation_n400.npz")
     assert (model.n_x, model.n_u, model.n_lam) == (5, 2, sel["chosen"])
+    # the study's rollout error is the library's (lcs_cvx.rollout_error) at the longest horizon
+    from studies.physics.pusher_plant import sample_transitions
+
+    test = sample_transitions(300, seed=1)  # the smoke config's test set
+    library = lcs_cvx.rollout_error(model, test.to_trajectories(), [20])[20]
+    assert library == pytest.approx(rows[0]["rollout"]["20"], rel=1e-9)
     report = (tmp_path / "report.md").read_text()
     assert "## Target: the LCS 1.5× below the MLP" in report and "| PARC (piecewise-affine regression) | not run |" in report
     # a second run reads every job from the store: the same numbers, nothing trained

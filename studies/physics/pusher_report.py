@@ -100,7 +100,7 @@ def _models(s: dict[str, Any], cfg: dict[str, Any], H: int) -> list[str]:
         "over the samples in contact (every mode but separated) and over all. Rollout error at H: open-loop from "
         f"the true state over the recorded inputs, Σ‖x̂_H − x_H‖² / Σ‖x_H‖² over all {H}-step windows "
         "(`studies.physics.evaluation.rollout_errors`; the same windows for every H and every model, the oracle "
-        "given the true mode of each step).",
+        "given the true mode of each step; at the longest H equal to `lcs_cvx.rollout_error`).",
     ]
 
 

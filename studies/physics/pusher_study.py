@@ -21,7 +21,10 @@ curve.
    one-step validation error (the same relative error as the LCS's). The affine least-squares
    model and the per-mode oracle are fitted here;
 4. evaluation (:mod:`studies.physics.evaluation`): one-step error per true contact mode and
-   open-loop rollout errors on the test and wide-input sets, for every size; the target check
+   open-loop rollout errors on the test and wide-input sets, for every size (the rollouts are
+   :func:`studies.physics.evaluation.rollout_errors` rather than :func:`lcs_cvx.rollout_error`
+   because the mode oracle must be told the true mode of every step; at the longest horizon the
+   two agree, the tests check it); the target check
    (LCS against MLP), the figures (:mod:`studies.physics.pusher_figures`), ``metrics.json`` and
    ``report.md`` (:mod:`studies.physics.pusher_report`).
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from lcs_cvx import Dataset
+from lcs_cvx import Dataset, Trajectories
 
 __all__ = ["Transitions"]
 
@@ -64,6 +64,14 @@ class Transitions:
     def dataset(self) -> Dataset:
         """The transitions as an :class:`lcs_cvx.Dataset` (``lam`` = the contact forces)."""
         return Dataset.from_arrays(self.x, self.u, self.x_next, lam=self.force)
+
+    def to_trajectories(self) -> Trajectories:
+        """The samples as :class:`lcs_cvx.Trajectories`: per trajectory the states
+        ``x_0, ..., x_T`` (its first ``x`` and every ``x_next``) and the inputs ``u_0 .. u_{T-1}``."""
+        starts = np.flatnonzero(np.r_[True, self.traj[1:] != self.traj[:-1]])
+        ends = np.r_[starts[1:], len(self)]
+        return Trajectories([np.vstack([self.x[a : a + 1], self.x_next[a:b]]) for a, b in zip(starts, ends, strict=True)],
+                            [self.u[a:b] for a, b in zip(starts, ends, strict=True)])
 
     def windows(self, horizon: int) -> np.ndarray:
         """Start indices ``i`` of every ``horizon``-step window inside one trajectory."""
