@@ -6,6 +6,10 @@ tests can call them with drawn arguments.
 
 from __future__ import annotations
 
+import importlib.util
+import os
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -14,6 +18,18 @@ from lcs_cvx import random_lcs
 
 # Oversubscribing the 2 shared cores made batched solves ~100x slower (DESIGN.md).
 torch.set_num_threads(1)
+
+#: The repository root; on the import path, because the studies (``studies.physics``) are a
+#: package there, not installed.
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+#: Skips a test of the physics studies where MuJoCo (the ``physics`` extra) is not installed.
+needs_mujoco = pytest.mark.skipif(
+    importlib.util.find_spec("mujoco") is None,
+    reason="mujoco is not installed (the physics extra: pip install 'lcs_cvx[physics]')",
+)
 
 F64 = torch.float64
 

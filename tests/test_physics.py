@@ -6,27 +6,18 @@ user data in: Dataset.load / Dataset.from_csv on good and bad files."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
-import sys
 import tomllib
 
 import numpy as np
 import pytest
 import torch
+from conftest import ROOT, needs_mujoco
 
 import lcs_cvx
 from lcs_cvx import Dataset, LCSInputError, load_model
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-if ROOT not in sys.path:  # `studies` is a package at the repository root, not installed
-    sys.path.insert(0, ROOT)
-
-needs_mujoco = pytest.mark.skipif(
-    importlib.util.find_spec("mujoco") is None,
-    reason="mujoco is not installed (the physics extra: pip install 'lcs_cvx[physics]')",
-)
 F64 = torch.float64
 
 

@@ -32,12 +32,16 @@ import numpy as np
 __all__ = [
     "relative_error",
     "one_step_errors",
+    "mode_errors",
     "rollout",
     "rollout_errors",
     "contact_agreement",
+    "pyplot",
+    "draw_rollout_panels",
     "plot_rollouts",
     "plot_error_vs_horizon",
     "markdown_table",
+    "fmt",
 ]
 
 
@@ -58,6 +62,19 @@ def one_step_errors(model: Any, data: Any) -> dict[str, float]:
         "contact": relative_error(pred[c], data.x_next[c]),
         "all": relative_error(pred, data.x_next),
     }
+
+
+def mode_errors(model: Any, data: Any, modes: Sequence[str]) -> dict[str, float]:
+    """One-step relative errors per true contact mode: ``{modes[k]: error on the samples whose
+    label (``data.contact``, ``(N,)`` int) is k}``, and ``"contact"`` (every label but 0) and
+    ``"all"``; NaN for a mode without samples."""
+    pred = model.predict(data.x, data.u, data.contact)
+    out = {name: relative_error(pred[data.contact == k], data.x_next[data.contact == k])
+           for k, name in enumerate(modes)}
+    c = data.in_contact
+    out["contact"] = relative_error(pred[c], data.x_next[c])
+    out["all"] = relative_error(pred, data.x_next)
+    return out
 
 
 def rollout(model: Any, data: Any, starts: np.ndarray, horizon: int) -> np.ndarray:
@@ -127,7 +144,8 @@ def contact_agreement(active: np.ndarray, contact: np.ndarray) -> dict[str, Any]
 
 
 # -- figures ---------------------------------------------------------------------------------
-def _plt():
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (figures go to files)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -152,29 +170,37 @@ def pick_contact_window(data: Any, horizon: int) -> int | None:
     return fallback
 
 
+def draw_rollout_panels(axes: Any, panels: Sequence[tuple[str, Any]], t: np.ndarray, true: np.ndarray,
+                        preds: dict[str, np.ndarray], shade: Sequence[tuple[int, str]]) -> None:
+    """On each axis, the panel ``(label, f)``: ``f`` of the true states ``(H + 1, n_x)`` and of
+    each model's rollout (LCSs dashed, the others dotted) against the times ``t``, and the
+    periods ``k`` of ``shade = [(k, colour)]`` shaded."""
+    for ax, (label, f) in zip(axes, panels, strict=True):
+        ax.plot(t, f(true), "k-", lw=3, label="MuJoCo (true)")
+        for name, pred in preds.items():
+            ax.plot(t, f(pred), "--" if "LCS" in name else ":", lw=1.6, label=name)
+        for k, colour in shade:
+            ax.axvspan(t[k], t[k + 1], color=colour, alpha=0.15, lw=0)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+
+
 def plot_rollouts(models: dict[str, Any], data: Any, start: int, horizon: int, physics: Any,
                   path: str, title: str) -> None:
     """True vs each model's open-loop rollout of one window: tip position (with the walls) and
     pole angular velocity."""
-    plt = _plt()
+    plt = pyplot()
     t = np.arange(horizon + 1) * physics.control_period
     idx = np.array([start])
     true = np.concatenate([data.x[start : start + 1], data.x_next[start : start + horizon]])
     L = physics.pole_length
     tip = lambda xs: xs[:, 0] + L * np.sin(xs[:, 1])  # noqa: E731
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    for ax, (label, f) in zip(axes, [("pole tip x (m)", tip), ("pole angle θ (rad)", lambda xs: xs[:, 1]),
-                                     ("θ' (rad/s)", lambda xs: xs[:, 3])], strict=True):
-        ax.plot(t, f(true), "k-", lw=3, label="MuJoCo (true)")
-        for name, model in models.items():
-            pred = rollout(model, data, idx, horizon)[0]
-            ax.plot(t, f(pred), "--" if "LCS" in name else ":", lw=1.6, label=name)
-        contact_steps = np.nonzero(data.in_contact[start : start + horizon])[0]
-        for k in contact_steps:
-            ax.axvspan(t[k], t[k + 1], color="orange", alpha=0.15, lw=0)
-        ax.set_xlabel("time (s)")
-        ax.set_ylabel(label)
-        ax.grid(alpha=0.3)
+    preds = {name: rollout(model, data, idx, horizon)[0] for name, model in models.items()}
+    shade = [(int(k), "orange") for k in np.nonzero(data.in_contact[start : start + horizon])[0]]
+    draw_rollout_panels(axes, [("pole tip x (m)", tip), ("pole angle θ (rad)", lambda xs: xs[:, 1]),
+                               ("θ' (rad/s)", lambda xs: xs[:, 3])], t, true, preds, shade)
     inner = physics.wall_distance - physics.tip_radius
     for s in (-1, 1):
         axes[0].axhline(s * inner, color="gray", lw=1)
@@ -188,9 +214,10 @@ def plot_rollouts(models: dict[str, Any], data: Any, start: int, horizon: int, p
     plt.close(fig)
 
 
-def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -> None:
-    """``curves[test_set][model] = (H,)`` rollout errors; one panel per test set."""
-    plt = _plt()
+def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str, period: float = 0.04) -> None:
+    """``curves[test_set][model] = (H,)`` rollout errors; one panel per test set; ``period``:
+    the control period (s), for the axis label."""
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(curves), figsize=(6.5 * len(curves), 4.5), sharey=True)
     axes = np.atleast_1d(axes)
     for ax, (set_name, per_model) in zip(axes, curves.items(), strict=True):
@@ -200,7 +227,7 @@ def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -
                     ms=3, lw=1.4, label=name)
         ax.set_yscale("log")
         ax.set_xticks([1, *range(5, len(errs) + 1, 5)])
-        ax.set_xlabel("horizon H (control periods of 0.04 s)")
+        ax.set_xlabel(f"horizon H (control periods of {period:g} s)")
         ax.set_title(set_name)
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("open-loop relative error at H")
@@ -211,7 +238,9 @@ def plot_error_vs_horizon(curves: dict[str, dict[str, np.ndarray]], path: str) -
 
 
 # -- table -------------------------------------------------------------------------------------
-def _fmt(v: Any) -> str:
+def fmt(v: Any) -> str:
+    """A number for a markdown table: ``1.23e-04`` below 0.01 and from 1,000 on, else four
+    decimals; "–" for None, "diverged" for inf/NaN."""
     if v is None:
         return "–"
     if isinstance(v, str):
@@ -231,8 +260,8 @@ def markdown_table(rows: Sequence[dict[str, Any]], horizons: Sequence[int]) -> s
     for r in rows:
         ag = r.get("agreement")
         ag_s = ["–", "–"] if ag is None else [f"{ag['agreement']:.3f}", f"{ag['either_sign']:.3f}"]
-        cells = [r["name"], _fmt(r["one_step"]["free"]), _fmt(r["one_step"]["contact"]),
-                 _fmt(r["one_step"]["all"])] + [_fmt(r["rollout"][str(h)]) for h in horizons]
+        cells = [r["name"], fmt(r["one_step"]["free"]), fmt(r["one_step"]["contact"]),
+                 fmt(r["one_step"]["all"])] + [fmt(r["rollout"][str(h)]) for h in horizons]
         cells += [*ag_s, "–" if r.get("train_s") is None else f"{r['train_s']:.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

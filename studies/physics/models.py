@@ -1,10 +1,11 @@
 r"""The models the physics study compares, behind one interface: ``predict(x, u, contact=None)``
-maps states ``(N, 4)`` and inputs ``(N, 1)`` (physical units, float64 numpy) to next states.
+maps states ``(N, n_x)`` and inputs ``(N, n_u)`` (physical units, float64 numpy) to next states.
 
 - :class:`LCSModel` -- a learned :class:`lcs_cvx.LCS` in physical units.
 - :class:`AffineModel` -- ``x' = A x + B u + d`` by least squares.
 - :class:`ModeAffineModel` -- the affine model fitted separately on each true contact mode
-  (free / left wall / right wall) and told the true mode when it predicts: an oracle, the best a
+  (cart-pole: free / left wall / right wall; pusher-slider: separated / sticking / sliding either
+  way) and told the true mode when it predicts: an oracle, the best a
   piecewise-affine model with known modes could do.
 - :class:`MLPModel` -- a small MLP (torch), ``x' = x + f(x, u)``.
 
@@ -40,9 +41,16 @@ __all__ = [
 
 
 def contact_mode(contact: np.ndarray) -> np.ndarray:
-    """``(N, 2)`` bool (left, right) -> mode ``0`` free, ``1`` left, ``2`` right, ``3`` both."""
-    contact = np.asarray(contact, dtype=bool)
-    return contact[:, 0].astype(np.int64) + 2 * contact[:, 1].astype(np.int64)
+    """The mode label ``(N,)`` int64 of a contact state: ``(N, k)`` bool (one column per
+    contact) -> ``sum_j 2^j contact_j`` (cart-pole: ``0`` free, ``1`` left, ``2`` right, ``3``
+    both); an ``(N,)`` array of integer labels is returned as it is."""
+    contact = np.asarray(contact)
+    if contact.ndim == 1:
+        if not np.issubdtype(contact.dtype, np.integer):
+            raise ValueError(f"contact: expected integer mode labels, received dtype {contact.dtype}")
+        return contact.astype(np.int64)
+    bits = contact.astype(bool).astype(np.int64)
+    return bits @ (2 ** np.arange(bits.shape[1], dtype=np.int64))
 
 
 class LCSModel:
@@ -64,7 +72,7 @@ class LCSModel:
         return out
 
     def lam(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
-        """``lam = LCP(F, D x + E u + c)`` ``(N, n_lam)`` for states ``(N, 4)``, inputs ``(N, 1)``."""
+        """``lam = LCP(F, D x + E u + c)`` ``(N, n_lam)`` for states ``(N, n_x)``, inputs ``(N, n_u)``."""
         with torch.no_grad():
             return self.lcs.solve_lcp(torch.from_numpy(np.ascontiguousarray(x)),
                                       torch.from_numpy(np.ascontiguousarray(u))).lam.numpy()

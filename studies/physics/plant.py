@@ -47,14 +47,13 @@ The study that learns an LCS of it is :mod:`studies.physics.study`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from lcs_cvx import Dataset
+from .transitions import Transitions
 
 __all__ = [
     "Physics",
@@ -209,49 +208,6 @@ class CartPoleWalls:
         return self.state, impulse / self.physics.substeps, contact
 
 
-@dataclass(frozen=True)
-class Transitions:
-    """Samples ``(x, u, x')`` with their trajectory structure and the true contact state.
-
-    Attributes:
-        x, x_next: ``(N, 4)``; u: ``(N, 1)``; force: ``(N, 2)`` mean wall forces (left, right),
-        contact: ``(N, 2)`` bool; traj: ``(N,)`` trajectory index; step: ``(N,)`` index in it.
-    """
-
-    x: np.ndarray
-    u: np.ndarray
-    x_next: np.ndarray
-    force: np.ndarray
-    contact: np.ndarray
-    traj: np.ndarray
-    step: np.ndarray
-
-    def __len__(self) -> int:
-        return self.x.shape[0]
-
-    @property
-    def in_contact(self) -> np.ndarray:
-        """``(N,)`` bool: some wall pushed during the sample's control period."""
-        return self.contact.any(axis=1)
-
-    def select(self, mask: np.ndarray) -> Transitions:
-        """The samples where ``mask`` is true (select whole trajectories to keep windows intact)."""
-        return Transitions(*(getattr(self, f.name)[mask] for f in dataclasses.fields(self)))
-
-    def dataset(self) -> Dataset:
-        """The transitions as an :class:`lcs_cvx.Dataset` (``lam`` = the wall forces)."""
-        return Dataset.from_arrays(self.x, self.u, self.x_next, lam=self.force)
-
-    def windows(self, horizon: int) -> np.ndarray:
-        """Start indices ``i`` of every ``horizon``-step window inside one trajectory."""
-        n = len(self)
-        if horizon < 1 or n < horizon:
-            return np.zeros(0, dtype=np.int64)
-        i = np.arange(n - horizon + 1)
-        same = self.traj[i + horizon - 1] == self.traj[i]
-        return i[same]
-
-
 def sample_transitions(
     n: int,
     seed: int,
@@ -287,9 +243,6 @@ def sample_transitions(
             if len(cols["x"]) >= n or abs(x[0]) > sampling.x_limit or abs(x[1]) > sampling.theta_limit:
                 break
         traj += 1
-    out = {k: np.asarray(v) for k, v in cols.items()}
-    for k in ("x", "u", "x_next", "force"):
-        out[k] = out[k].astype(np.float64)
-    return Transitions(**out)
+    return Transitions.from_lists(cols)
 
 

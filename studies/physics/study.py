@@ -24,22 +24,22 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import platform
 import sys
 import time
 from typing import Any
 
 import numpy as np
 
+from .config import check_sections, from_table, lcs_section, section
 from .jobs import make_job, run_jobs
 from .plant import STATE_NAMES, STATE_UNITS, Physics, Sampling, Transitions, sample_transitions
+from .provenance import code_version, json_default, machine
 
 __all__ = ["CONFIG_SECTIONS", "parse_config", "training_jobs", "run_study"]
 
 # -- the config --------------------------------------------------------------------------------
 #: Keys of a study config (besides the runner's ``name``, ``kind``, ``module``, ``description``).
 CONFIG_SECTIONS = ("physics", "sampling", "data", "lcs", "mlp", "eval")
-_RUNNER_KEYS = ("name", "kind", "module", "description", "path", "extends")
 
 _DATA_DEFAULTS = {"n_train": 20000, "n_test": 5000, "n_wide": 5000, "seed_train": 0, "seed_test": 1,
                   "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
@@ -52,57 +52,18 @@ _MLP_DEFAULTS = {"hidden": [64, 64], "iterations": 20000, "batch_size": 256, "lr
 _EVAL_DEFAULTS = {"horizons": [1, 5, 20], "active_tol": 1e-9}
 
 
-def _from_table(cls: type, table: dict[str, Any] | None, where: str) -> Any:
-    """Build the dataclass ``cls`` from a config table, refusing unknown keys."""
-    table = dict(table or {})
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(table) - names)
-    if unknown:
-        raise ValueError(f"{where}: unknown key {unknown[0]!r}; expected one of {sorted(names)}")
-    for k, v in list(table.items()):
-        if isinstance(v, list):
-            table[k] = tuple(float(e) for e in v)
-    return cls(**table)
-
-
-def _section(config: dict[str, Any], name: str, defaults: dict[str, Any]) -> dict[str, Any]:
-    table = config.get(name, {})
-    if not isinstance(table, dict):
-        raise ValueError(f"config: [{name}] must be a table, received {table!r}")
-    unknown = sorted(set(table) - set(defaults))
-    if unknown:
-        raise ValueError(f"config: {name}.{unknown[0]}: unknown key; expected one of {sorted(defaults)}")
-    return {**defaults, **table}
-
-
 def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     """Check a study config (a dict as TOML reads it) and fill in the defaults."""
-    unknown = sorted(set(config) - set(CONFIG_SECTIONS) - set(_RUNNER_KEYS))
-    if unknown:
-        raise ValueError(f"config: {unknown[0]}: unknown key; expected sections {list(CONFIG_SECTIONS)}")
-    lcs = _section(config, "lcs", _LCS_DEFAULTS)
-    if isinstance(lcs["init"], str):
-        lcs["init"] = [lcs["init"]]
-    for key in ("n_lam", "seeds", "losses", "init"):  # each value is one job: a repeat would be one too
-        v = lcs[key]
-        if not isinstance(v, list) or not v or len(set(v)) != len(v):
-            raise ValueError(f"config: lcs.{key}: expected a non-empty list of distinct values, "
-                             f"received {v!r}")
-    for loss in lcs["losses"]:
-        if loss not in ("violation", "prediction"):
-            raise ValueError(f"config: lcs.losses: expected 'violation' or 'prediction', received {loss!r}")
-        given = config.get("lcs", {}).get(loss, {})
-        if not isinstance(given, dict):
-            raise ValueError(f"config: [lcs.{loss}] must be a table, received {given!r}")
-        lcs[loss] = {**_LCS_DEFAULTS[loss], **given}  # per key: a table may set only some options
+    check_sections(config, CONFIG_SECTIONS)
+    lcs = lcs_section(config, _LCS_DEFAULTS)
     return {
         "name": config.get("name", "physics_cartpole"),
-        "physics": _from_table(Physics, config.get("physics"), "config: [physics]"),
-        "sampling": _from_table(Sampling, config.get("sampling"), "config: [sampling]"),
-        "data": _section(config, "data", _DATA_DEFAULTS),
+        "physics": from_table(Physics, config.get("physics"), "config: [physics]"),
+        "sampling": from_table(Sampling, config.get("sampling"), "config: [sampling]"),
+        "data": section(config, "data", _DATA_DEFAULTS),
         "lcs": lcs,
-        "mlp": _section(config, "mlp", _MLP_DEFAULTS),
-        "eval": _section(config, "eval", _EVAL_DEFAULTS),
+        "mlp": section(config, "mlp", _MLP_DEFAULTS),
+        "eval": section(config, "eval", _EVAL_DEFAULTS),
     }
 
 
@@ -240,7 +201,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
 
     torch.set_num_threads(1)
     t_start = time.perf_counter()
-    code = _code_version()
+    code = code_version()
     cfg = parse_config(config)
     phys, lcfg = cfg["physics"], cfg["lcs"]
     horizons = [int(h) for h in cfg["eval"]["horizons"]]
@@ -316,7 +277,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
     if start is not None:
         ev.plot_rollouts(fig_models, test, start, H, phys, os.path.join(out_dir, "rollouts.png"),
                          f"Open-loop rollout of {H} steps through a wall contact (test window {start})")
-    ev.plot_error_vs_horizon(curves, os.path.join(out_dir, "error_vs_horizon.png"))
+    ev.plot_error_vs_horizon(curves, os.path.join(out_dir, "error_vs_horizon.png"), phys.control_period)
     t_eval = time.perf_counter() - t0
 
     wall = time.perf_counter() - t_start
@@ -338,49 +299,10 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2,
         "scheduler": scheduler,
         "jobs": {"total": len(jobs), "run_now": run_now},
         "code": code,
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
-                   f"torch {torch.__version__}, mujoco {_mujoco_version()}",
+        "machine": machine(),
     }
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump(summary, f, indent=1, default=_json_default)
+        json.dump(summary, f, indent=1, default=json_default)
     with open(os.path.join(out_dir, "report.md"), "w") as f:
         f.write(write_report(summary, cfg, horizons, best_of, config.get("name", cfg["name"])))
     _log(f"done in {wall:.0f} s; wrote {out_dir}/report.md")
-
-
-def _code_version() -> dict[str, Any]:
-    """The git commit the study ran on and the files of ``lcs_cvx/`` changed since (the fit
-    recipes evolve: the results belong to this snapshot)."""
-    import subprocess
-
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-    def git(*args: str) -> str | None:
-        try:
-            out = subprocess.run(["git", "-C", root, *args], capture_output=True, text=True, timeout=10)
-        except (OSError, subprocess.SubprocessError):
-            return None
-        return out.stdout if out.returncode == 0 else None
-
-    commit = git("rev-parse", "--short", "HEAD")
-    dirty = git("status", "--porcelain", "--", "lcs_cvx")  # lines "XY path"
-    return {"commit": None if commit is None else commit.strip(),
-            "lcs_cvx_changed": None if dirty is None else [ln[3:] for ln in dirty.splitlines() if ln]}
-
-
-def _mujoco_version() -> str:
-    import mujoco
-
-    return mujoco.__version__
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON-serialisable: {type(o).__name__}")
-
-

@@ -1,0 +1,211 @@
+"""The pusher-slider study (studies/physics/pusher_*.py): the MuJoCo plant (sticking, sliding
+either way and separation all occur, the friction force stays in the Coulomb cone and points
+against the slip, the slider's frame, reproducible by seed), the nested training sizes, the
+config's errors, and the smoke config run end to end through the study runner and resumed from
+its store."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from conftest import ROOT, needs_mujoco
+
+import lcs_cvx
+from lcs_cvx import load_model
+
+pytestmark = needs_mujoco
+SMOKE = os.path.join(ROOT, "studies", "configs", "pusher_slider_smoke.toml")
+
+
+@pytest.fixture(scope="module")
+def transitions():
+    from studies.physics.pusher_plant import sample_transitions
+
+    return sample_transitions(1500, seed=0)
+
+
+# -- the plant -----------------------------------------------------------------------------------
+def test_shapes_chaining_and_every_mode_occurs(transitions):
+    from studies.physics.pusher_plant import MODES
+
+    tr = transitions
+    assert tr.x.shape == (1500, 5) and tr.x_next.shape == (1500, 5) and tr.u.shape == (1500, 2)
+    assert tr.force.shape == (1500, 2) and tr.contact.shape == (1500,) and tr.pose.shape == (1500, 3)
+    assert all(np.isfinite(a).all() for a in (tr.x, tr.u, tr.x_next, tr.force, tr.pose))
+    fractions = np.bincount(tr.contact, minlength=len(MODES)) / len(tr)
+    assert len(fractions) == len(MODES) and (fractions >= 0.08).all(), fractions  # all four modes, often
+    same = tr.traj[1:] == tr.traj[:-1]
+    assert np.array_equal(tr.x[1:][same], tr.x_next[:-1][same])  # a trajectory chains
+    assert (tr.step[1:][same] == tr.step[:-1][same] + 1).all()
+    assert np.array_equal(tr.in_contact, tr.contact != 0)
+    assert tr.select(tr.traj < 3).pose.shape[1] == 3  # selecting keeps the pusher's fields
+
+
+def test_friction_stays_in_the_coulomb_cone_and_opposes_the_slip(transitions):
+    from studies.physics.pusher_plant import Physics
+
+    mu = Physics().mu_pusher
+    f_n, f_t, mode = transitions.force[:, 0], transitions.force[:, 1], transitions.contact
+    assert (f_n[mode == 0] == 0).all() and (f_t[mode == 0] == 0).all()  # separated: no force
+    assert (f_n[mode != 0] > 0).all()  # the pusher pushes, never pulls
+    assert (np.abs(f_t) <= mu * f_n * (1 + 1e-9) + 1e-12).all()  # the period mean of forces in the cone
+    ratio = np.abs(f_t) / np.where(f_n > 0, f_n, 1.0)
+    assert np.median(ratio[mode == 1]) < 0.5 * mu  # sticking: inside the cone
+    # sliding: on its boundary while it slides (the mean over a period that also sticks or
+    # separates for a few substeps is inside)
+    assert np.median(ratio[mode >= 2]) > 0.75 * mu and np.quantile(ratio[mode >= 2], 0.75) > 0.99 * mu
+    # sliding +y (the pusher slips towards +y on the face): friction drags the slider along +y
+    assert np.median(f_t[mode == 2]) > 0 > np.median(f_t[mode == 3])
+
+
+def test_hand_made_pushes_stick_slide_and_separate():
+    from studies.physics.pusher_plant import MODES, PusherSlider
+
+    sim = PusherSlider()
+    sim.reset(p_x=sim.physics.touching_x, p_y=0.0)
+    for _ in range(4):  # a centred push: the slider follows the pusher, no turn, no slip
+        x, force, mode = sim.step([10.0, 0.0])
+        assert MODES[mode] == "sticking"
+    assert abs(x[2] - 10.0) < 0.5 and abs(x[4]) < 1e-3 and abs(x[1]) < 0.01
+    assert sim.pose[0] == pytest.approx(4 * 0.05 * 10.0, rel=0.1)  # ~2 cm forward in the world
+    x, force, mode = sim.step([5.0, 12.0])  # sideways faster than friction holds
+    assert MODES[mode] == "sliding +y" and x[1] > 0.3
+    x, force, mode = sim.step([-5.0, 0.0])  # retreat
+    assert MODES[mode] == "separated" and (force == 0).all()
+    assert x[0] < sim.physics.touching_x - 0.1
+
+    sim.reset(p_x=sim.physics.touching_x, p_y=3.0)  # off-centre: the slider turns away from the pusher
+    for _ in range(10):
+        x, _, _ = sim.step([10.0, 0.0])
+    assert x[4] < 0 and sim.pose[2] < -0.01
+    with pytest.raises(ValueError, match=r"p_x, p_y: expected finite numbers with p_x <= -6 cm"):
+        sim.reset(p_x=-5.0, p_y=0.0)
+    with pytest.raises(ValueError, match=r"u: expected 2 finite numbers"):
+        sim.step([1.0, np.nan])
+
+
+def test_the_slider_frame_makes_the_state_independent_of_the_heading():
+    """After a turn, the same command from the same slider-frame state gives the same next
+    state: the simulation is re-expressed in the slider's frame every period."""
+    from studies.physics.pusher_plant import PusherSlider
+
+    a, b = PusherSlider(), PusherSlider()
+    a.reset(p_x=a.physics.touching_x, p_y=3.0)
+    b.reset(p_x=b.physics.touching_x, p_y=3.0)
+    for _ in range(12):
+        a.step([10.0, 0.0])
+    for _ in range(12):
+        b.step([10.0, 0.0])
+    assert abs(a.pose[2]) > 0.02  # it has turned ...
+    xa, _, _ = a.step([6.0, -2.0])
+    xb, _, _ = b.step([6.0, -2.0])
+    assert np.array_equal(xa, xb)  # ... deterministic, and the world pose only accumulates
+
+
+def test_reproducible_by_seed_and_wide_inputs(transitions):
+    from studies.physics.pusher_plant import Sampling, sample_transitions
+
+    again = sample_transitions(1500, seed=0)
+    for name in ("x", "u", "x_next", "force", "contact", "pose"):
+        assert np.array_equal(getattr(again, name), getattr(transitions, name))
+    assert not np.array_equal(sample_transitions(100, seed=1).u, transitions.u[:100])
+    s = Sampling()
+    lo, hi = s.ux_range
+    assert lo <= transitions.u[:, 0].min() and transitions.u[:, 0].max() <= hi
+    wide = sample_transitions(1500, seed=2, wide_factor=1.5)
+    mid, half = (lo + hi) / 2, (hi - lo) / 2
+    assert wide.u[:, 0].min() < lo or wide.u[:, 0].max() > hi
+    assert (np.abs(wide.u[:, 0] - mid) <= 1.5 * half + 1e-9).all()
+    w = transitions.u[:, 1] + s.uy_gain * transitions.x[:, 1]
+    assert np.abs(w).max() <= s.uy_noise + 1e-9
+
+
+# -- data splits and config ----------------------------------------------------------------------
+def test_training_sizes_are_nested_with_interleaved_validation(transitions):
+    from studies.physics.pusher_study import split_sizes
+
+    splits = split_sizes(transitions, [200, 700, 1200], val_every=5)
+    for n, (train, val) in splits.items():
+        assert len(train) == n and len(val) > 0
+        assert (train.traj % 5 != 4).all() and (val.traj % 5 == 4).all()
+        assert val.traj.max() < train.traj.max() + 5  # interleaved with the training trajectories
+    assert np.array_equal(splits[700][0].x[:200], splits[200][0].x)  # nested
+    with pytest.raises(ValueError, match=r"data.sizes: the stream holds \d+ training samples, fewer than"):
+        split_sizes(transitions, [5000], val_every=5)
+
+
+def test_the_full_config_spells_out_the_defaults():
+    """pusher_slider.toml says its values are the code's defaults: parsing it gives the same
+    study as parsing an empty config."""
+    import dataclasses
+    import tomllib
+
+    from studies.physics.pusher_study import parse_config
+
+    with open(os.path.join(ROOT, "studies", "configs", "pusher_slider.toml"), "rb") as f:
+        full = parse_config(tomllib.load(f))
+    empty = parse_config({"name": "pusher_slider"})
+    plain = lambda c: {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in c.items()}  # noqa: E731
+    assert plain(full) == plain(empty)
+
+
+def test_config_errors_name_the_section_and_the_key():
+    from studies.physics.pusher_study import parse_config
+
+    cfg = parse_config({"name": "p"})
+    assert cfg["data"]["sizes"] == [500, 2000, 10000, 20000] and cfg["lcs"]["tolerance"] == 0.1
+    assert cfg["lcs"]["prediction"]["normalize"] is True
+    for bad, match in (({"data": {"sizes": [500, 500]}}, r"data\.sizes: expected a non-empty list of distinct integers"),
+                       ({"data": {"sizes": [0.5]}}, r"data\.sizes"),
+                       ({"mlp": {"hidden": [64, 64]}}, r"mlp\.hidden: expected a list of layer-width lists"),
+                       ({"mlp": {"weight_decay": [-1.0]}}, r"mlp\.weight_decay"),
+                       ({"physics": {"mu": 0.3}}, r"\[physics\]: unknown key 'mu'"),
+                       ({"lcs": {"losses": ["hinge"]}}, r"lcs\.losses: expected 'violation' or 'prediction'"),
+                       ({"plots": {}}, r"plots: unknown key")):
+        with pytest.raises(ValueError, match=match):
+            parse_config({"name": "p", **bad})
+
+
+# -- the study, end to end -------------------------------------------------------------------------
+def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path):
+    from lcs_cvx.study.runner import run_config
+
+    run_config(SMOKE, out=tmp_path, workers=1, progress=False)
+    for name in ("report.md", "metrics.json", "learning_curve.png", "error_vs_horizon.png", "rollouts.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert list(m["sizes"]) == ["200", "400"] and m["jobs"] == {"total": 12, "run_now": 12}
+    rows = m["sizes"]["400"]["sets"]["test"]
+    assert [r["name"] for r in rows] == ["LCS, violation loss", "LCS, prediction loss", "affine (least squares)",
+                                         "MLP", "affine per true mode (oracle)", "PARC (piecewise-affine regression)"]
+    for r in rows[:-1]:
+        assert set(r["one_step"]) == {"separated", "sticking", "sliding +y", "sliding -y", "contact", "all"}
+        assert np.isfinite(r["one_step"]["all"]) and set(r["rollout"]) == {"1", "5", "20"}
+    assert rows[-1]["pending"] and rows[-1]["one_step"] is None
+    # every (size, set, loss) has a target row, computed from the rows
+    assert len(m["target"]) == 2 * 2 * 2
+    t = next(t for t in m["target"] if t["size"] == 400 and t["set"] == "test" and t["loss"] == "violation")
+    assert t["contact_ratio"] == pytest.approx(rows[3]["one_step"]["contact"] / rows[0]["one_step"]["contact"])
+    # the chosen n_lam is the selection rule's on the recorded validation errors
+    from lcs_cvx.selection import choose
+
+    sel = m["sizes"]["400"]["selection"]["n_lam"]["violation"]
+    assert sel["chosen"] == choose({int(k): v for k, v in sel["val_error"].items()}, 0.1)
+    model = load_model(tmp_path / "models" / "lcs_violation_n400.npz")
+    assert (model.n_x, model.n_u, model.n_lam) == (5, 2, sel["chosen"])
+    # the study's rollout error is the library's (lcs_cvx.rollout_error) at the longest horizon
+    from studies.physics.pusher_plant import sample_transitions
+
+    test = sample_transitions(300, seed=1)  # the smoke config's test set
+    library = lcs_cvx.rollout_error(model, test.to_trajectories(), [20])[20]
+    assert library == pytest.approx(rows[0]["rollout"]["20"], rel=1e-9)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Target: the LCS 1.5× below the MLP" in report and "| PARC (piecewise-affine regression) | not run |" in report
+    # a second run reads every job from the store: the same numbers, nothing trained
+    run_config(SMOKE, out=tmp_path, workers=1, progress=False)
+    again = json.loads((tmp_path / "metrics.json").read_text())
+    assert again["jobs"] == {"total": 12, "run_now": 0}
+    assert again["sizes"] == m["sizes"] and again["target"] == m["target"]
