@@ -64,7 +64,7 @@ _SEPARATION = _Check('"Voronoi" or "Softmax"', lambda v: v in ("Voronoi", "Softm
 #: number of k-means++ starts of its initial clustering (its own default, 10).
 OPTIONS: dict[str, dict[str, tuple[Any, _Check]]] = {
     "affine": {},
-    "mlp": {"hidden": ([[64, 64], [128, 128]], _HIDDEN), "lr": ([1e-3, 3e-3], _RATES),
+    "mlp": {"hidden": ([[64, 64], [128, 128]], _HIDDEN), "lr": ([3e-3, 1e-2, 3e-2], _RATES),
             "iterations": (5000, _POS_INT), "batch_size": (256, _POS_INT),
             "weight_decay": (0.0, _NONNEG), "val_fraction": (0.1, _FRACTION),
             "eval_every": (250, _POS_INT)},
