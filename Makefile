@@ -1,5 +1,5 @@
 # Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
-# package and every extra (studies, physics, docs, dev) installed.
+# package and every extra (studies, physics, docs, dev, baselines) installed.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	# torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
 	# `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[studies,physics,docs,dev]'
+	$(PY) -m pip install --quiet -e '.[studies,physics,docs,dev,baselines]'
 	touch $(STAMP)
 
 demo: $(STAMP)

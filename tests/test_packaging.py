@@ -1,8 +1,8 @@
 """The package's declared dependencies, and that importing it needs none of the extras.
 
-The core dependencies are the solver stack; Dask, matplotlib and MuJoCo come with the extras
-``studies`` and ``physics`` and are imported only by the functions that need them, which name
-the extra when it is missing.
+The core dependencies are the solver stack; Dask, matplotlib, MuJoCo and PARC (pyparc) come with
+the extras ``studies``, ``physics`` and ``baselines`` and are imported only by the functions that
+need them, which name the extra when it is missing.
 """
 
 from __future__ import annotations
@@ -27,8 +27,10 @@ EXTRAS = {
     "physics": {"mujoco"},
     "docs": {"mkdocs-material", "mkdocstrings"},
     "dev": {"pytest", "hypothesis", "ruff", "pytest-timeout"},
+    "baselines": {"pyparc", "pycddlib", "pypoman", "mip", "faiss-cpu", "scikit-learn"},
 }
-OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib")
+OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib", "pyparc", "sklearn", "faiss",
+                    "mip", "pypoman", "cdd")
 
 
 def _name(requirement: str) -> str:
@@ -68,7 +70,7 @@ EVERY_MODULE = (
 @pytest.mark.parametrize("module", ["lcs_cvx", "lcs_cvx.cli", "lcs_cvx.study", "every module"])
 def test_import_loads_no_optional_dependency(module):
     """In a fresh interpreter, importing the package (and its command line, its studies, every
-    module) leaves Dask, distributed, MuJoCo and matplotlib unimported."""
+    module) leaves Dask, distributed, MuJoCo, matplotlib and PARC's stack unimported."""
     code = (
         "import json, sys\n"
         + (EVERY_MODULE if module == "every module" else f"import {module}") + "\n"

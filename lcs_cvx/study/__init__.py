@@ -6,6 +6,8 @@
 - :mod:`~lcs_cvx.study.executors` -- local process pool, Dask distributed cluster, or this process.
 - :mod:`~lcs_cvx.study.runner` -- ``lcs-cvx study run``: resume, skip finished cells.
 - :mod:`~lcs_cvx.study.report` -- ``lcs-cvx study report``: figures and tables with anchors.
+- :mod:`~lcs_cvx.study.baselines` -- methods besides the losses: affine, MLP, PARC.
+- :mod:`~lcs_cvx.study.limits` -- a cell's time limit: a child process killed at the limit.
 """
 
 from .cells import cell_seeds as cell_seeds

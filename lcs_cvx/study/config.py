@@ -10,10 +10,13 @@ paper's Fig. 1 (Sec. 5.1, panels (a)-(e)). Its keys::
                                     # file); tables are merged key by key, other values replaced
     seed = 0                        # root of every seed (see lcs_cvx.study.cells.cell_seeds)
     trials = 30                     # training rounds per swept value
-    methods = ["prediction", "violation"]    # losses trained at every swept value
-    reference_methods = []          # losses trained once per trial, independent of the value
+    methods = ["prediction", "violation"]    # methods trained at every swept value
+    reference_methods = []          # methods trained once per trial, independent of the value
                                     # (needs sweep.shared_truth: a fit-option sweep)
     recipe = "paper"                # lcs_cvx.fit's recipe: "paper" or "best"
+    time_limit = 3600               # optional: seconds per cell; a cell still running then is
+                                    # killed and recorded as timed out (lcs_cvx.study.limits)
+    method_trials = { parc = 3 }    # optional: fewer trials for a method (its first n trials)
     convention = "paper"            # "authors": gamma, eps (and reg for the violation loss) are
                                     # given in the authors' code's scaling and converted
     [sweep]   param = "system.n_lam", values = [...], shared_truth = false, label = "n_lam"
@@ -23,6 +26,12 @@ paper's Fig. 1 (Sec. 5.1, panels (a)-(e)). Its keys::
     [fit]     any flat option of lcs_cvx.fit (lcs_cvx.train.FLAT_OPTIONS) but loss, recipe and seed; a value may be a table
               keyed by method ([fit.lr] prediction = 1e-3, violation = 5e-3). Sub-tables
               [fit.paper] / [fit.best] hold options used only under that recipe.
+    [baselines.<name>]  options of a baseline method (lcs_cvx.study.baselines.OPTIONS)
+
+A method is a loss (``"prediction"``, ``"violation"``: :func:`lcs_cvx.fit` with the config's
+``recipe``), a loss with its own recipe (``"violation@best"``: ``[fit.best]`` and per-method
+values keyed ``"violation@best"``, else ``"violation"``, apply to it), or a baseline
+(``"affine"``, ``"mlp"``, ``"parc"``: :mod:`lcs_cvx.study.baselines`).
 
 A *module* study (``kind = "module"``, ``module = "dotted.path"``) is run by that module's
 ``run_study(config: dict, out_dir: str, workers: int) -> None`` (called with a ``scheduler=``
@@ -45,8 +54,9 @@ from typing import Any
 from .._checks import LCSInputError
 from ..train.options import LOSSES
 from ..train.recipes import FLAT_OPTIONS, RECIPES, resolve_options
+from .baselines import BASELINES, baseline_options
 
-__all__ = ["load_config", "config_hash", "fit_options", "CONVENTIONS", "SWEEPABLE"]
+__all__ = ["load_config", "config_hash", "fit_options", "method_parts", "CONVENTIONS", "SWEEPABLE"]
 
 CONVENTIONS = ("paper", "authors")
 KINDS = ("grid", "module")
@@ -60,7 +70,10 @@ _FIT_KEYS = tuple(k for k in FLAT_OPTIONS if k not in _FIT_RESERVED)
 _VIOLATION_ONLY = {"refine": None, "extra_units": 0}
 
 _TOP = {"name", "panel", "description", "kind", "module", "extends", "seed", "trials", "methods",
-        "reference_methods", "recipe", "convention", "sweep", "system", "data", "learner", "fit"}
+        "reference_methods", "recipe", "convention", "sweep", "system", "data", "learner", "fit",
+        "time_limit", "method_trials", "baselines"}
+#: ``"violation@best"``: the loss, the separator, the recipe.
+RECIPE_SEP = "@"
 # section -> {key: (default or REQUIRED, check)}
 _REQUIRED = object()
 
@@ -142,10 +155,28 @@ def _check_keys(where: str, prefix: str, table: Any, allowed: Any) -> None:
                     f"unknown key; expected one of {sorted(allowed)}")
 
 
+def method_parts(method: str, recipe: str | None) -> tuple[str, str | None]:
+    """``(loss, recipe)`` of an LCS method -- ``"violation"`` -> ``("violation", recipe)``,
+    ``"violation@best"`` -> ``("violation", "best")`` -- and ``(name, None)`` of a baseline."""
+    if method in BASELINES:
+        return method, None
+    loss, sep, own = method.partition(RECIPE_SEP)
+    return loss, (own if sep else recipe)
+
+
+def _is_method(m: Any) -> bool:
+    if not isinstance(m, str):
+        return False
+    loss, sep, recipe = m.partition(RECIPE_SEP)
+    return m in BASELINES or (loss in LOSSES and (not sep or recipe in RECIPES))
+
+
 def _method_list(where: str, key: str, v: Any, allow_empty: bool) -> list[str]:
-    if not isinstance(v, list) or (not v and not allow_empty) or any(m not in LOSSES for m in v) \
+    if not isinstance(v, list) or (not v and not allow_empty) or not all(map(_is_method, v)) \
             or len(set(v)) != len(v):
-        raise _fail(where, key, f"expected a list of distinct methods from {LOSSES}, received {v!r}")
+        raise _fail(where, key, f"expected a list of distinct methods: a loss {LOSSES}, a loss "
+                    f"with a recipe ('violation{RECIPE_SEP}best', recipes {tuple(RECIPES)}) or a "
+                    f"baseline {BASELINES}; received {v!r}")
     return list(v)
 
 
@@ -176,7 +207,7 @@ def _section(where: str, name: str, raw: dict, swept: str | None) -> dict[str, A
     return out
 
 
-def _fit_section(where: str, raw: dict, swept: str | None) -> dict[str, Any]:
+def _fit_section(where: str, raw: dict, swept: str | None, methods: list[str]) -> dict[str, Any]:
     table = raw.get("fit", {})
     _check_keys(where, "fit.", table, (*_FIT_KEYS, *RECIPES))
     for r in RECIPES:
@@ -189,7 +220,8 @@ def _fit_section(where: str, raw: dict, swept: str | None) -> dict[str, Any]:
             if f"fit.{key}" == swept:
                 raise _fail(where, prefix + key, "is set by sweep.param; remove it here")
             if isinstance(v, dict):
-                _check_keys(where, f"{prefix}{key}.", v, LOSSES)
+                _check_keys(where, f"{prefix}{key}.", v,
+                            (*LOSSES, *(m for m in methods if RECIPE_SEP in m)))
     return copy.deepcopy(table)
 
 
@@ -232,26 +264,35 @@ def fit_options(config: dict[str, Any], method: str, value: Any = None) -> dict[
     Under a recipe with violation-only parts (``"best"``: Gauss--Newton refinement, extra units),
     the prediction loss gets ``refine = None`` and ``extra_units = 0`` unless the config says.
     """
+    loss, recipe = method_parts(method, config["recipe"])
+    if recipe is None:
+        raise LCSInputError(f"method: {method!r} is a baseline; it takes no lcs_cvx.fit options")
     table = config["fit"]
     opts = {k: v for k, v in table.items() if k not in RECIPES}
-    opts.update(table.get(config["recipe"], {}))
+    opts.update(table.get(recipe, {}))
     sweep = config["sweep"]
     if value is not None and sweep["param"].startswith("fit."):
         opts[sweep["param"][4:]] = value
-    opts = {k: (v[method] if isinstance(v, dict) else v) for k, v in opts.items()
-            if not (isinstance(v, dict) and method not in v)}
+    # a per-method table: the value for the method's full name, else for its loss, else unset
+    picked = {}
+    for k, v in opts.items():
+        if not isinstance(v, dict):
+            picked[k] = v
+        elif method in v or loss in v:
+            picked[k] = v[method] if method in v else v[loss]
+    opts = picked
     for k, v in opts.items():  # TOML arrays -> the tuples FitOptions expects
         if isinstance(v, list):
             opts[k] = tuple(v)
-    if method == "violation" and config["convention"] == "authors":
+    if loss == "violation" and config["convention"] == "authors":
         for k, factor in (("eps", 2.0), ("eps_start", 2.0), ("gamma", 0.5), ("reg", 0.5)):
             if opts.get(k) is not None:
                 opts[k] = opts[k] * factor
-    if method == "prediction":  # drop the recipe's violation-only parts (see _VIOLATION_ONLY)
-        recipe = RECIPES[config["recipe"]].flat()
+    if loss == "prediction":  # drop the recipe's violation-only parts (see _VIOLATION_ONLY)
+        flat = RECIPES[recipe].flat()
         opts.update({k: v for k, v in _VIOLATION_ONLY.items()
-                     if k in _FIT_KEYS and recipe.get(k) and k not in opts})
-    return {**opts, "loss": method}
+                     if k in _FIT_KEYS and flat.get(k) and k not in opts})
+    return {**opts, "loss": loss}
 
 
 def _check_fit(where: str, config: dict[str, Any]) -> None:
@@ -261,9 +302,12 @@ def _check_fit(where: str, config: dict[str, Any]) -> None:
     cases += [(m, None) for m in config["reference_methods"]]
     two_s = 2.0 * config["learner"]["stiffness"]
     for method, value in cases:
+        loss, recipe = method_parts(method, config["recipe"])
+        if recipe is None:  # a baseline: its options are checked by _baselines
+            continue
         opts = fit_options(config, method, value)
         try:
-            settings = resolve_options(config["recipe"], **opts)
+            settings = resolve_options(recipe, **opts)
         except TypeError:  # a comparison with a value of the wrong type: find the option
             for key, v in opts.items():
                 try:
@@ -278,10 +322,43 @@ def _check_fit(where: str, config: dict[str, Any]) -> None:
             swept = config["sweep"]["param"] == f"fit.{key}"
             raise _fail(where, "sweep.values" if swept else f"fit.{key}",
                         f"{str(exc).split(':', 1)[-1].strip()} (method {method!r})") from None
-        if method == "violation" and not settings.objective.gamma < two_s:
+        if loss == "violation" and not settings.objective.gamma < two_s:
             # sigma_min(F + F^T) of the learner is >= 2 s for every G, H (Sec. 5); Lemma 2
             raise _fail(where, "fit.gamma", f"expected gamma < 2 * learner.stiffness = {two_s:g} "
                         f"(Lemma 2: gamma < sigma_min(F + F^T)), received {settings.objective.gamma:g}")
+
+
+def _limits(where: str, raw: dict, cfg: dict[str, Any]) -> None:
+    """``time_limit``, ``method_trials`` and ``[baselines]`` into ``cfg``, each only when it
+    applies (a config without them keeps the hash it had before they existed)."""
+    limit = raw.get("time_limit")
+    if limit is not None:
+        if not _num(0, True)(limit):
+            raise _fail(where, "time_limit", f"expected a number of seconds > 0, received {limit!r}")
+        cfg["time_limit"] = limit
+    trials = raw.get("method_trials")
+    every = cfg["methods"] + cfg["reference_methods"]
+    if trials is not None:  # a method this config does not run is allowed (a config it extends may)
+        if not isinstance(trials, dict):
+            raise _fail(where, "method_trials", f"expected a table method = trials, received {trials!r}")
+        for m, n in trials.items():
+            if not _is_method(m):
+                raise _fail(where, f"method_trials.{m}", "unknown method")
+            if not _int(1)(n) or (m in every and n > cfg["trials"]):
+                raise _fail(where, f"method_trials.{m}",
+                            f"expected an integer in [1, trials = {cfg['trials']}], received {n!r}")
+        used = {m: n for m, n in trials.items() if m in every}
+        if used:
+            cfg["method_trials"] = used
+    table = raw.get("baselines", {})
+    _check_keys(where, "baselines.", table, BASELINES)
+    try:
+        options = {m: baseline_options(m, table.get(m)) for m in BASELINES}
+    except LCSInputError as exc:
+        raise LCSInputError(f"{where}: {exc}") from None
+    used_baselines = [m for m in every if m in BASELINES]
+    if used_baselines:
+        cfg["baselines"] = {m: options[m] for m in used_baselines}
 
 
 def load_config(path: str | os.PathLike) -> dict[str, Any]:
@@ -332,7 +409,8 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
         raise _fail(where, "reference_methods", f"{sorted(clash)} also in methods")
     for name_ in _SECTIONS:
         cfg[name_] = _section(where, name_, raw, sweep["param"])
-    cfg["fit"] = _fit_section(where, raw, sweep["param"])
+    cfg["fit"] = _fit_section(where, raw, sweep["param"], cfg["methods"] + cfg["reference_methods"])
+    _limits(where, raw, cfg)
     swept_section, swept_key = sweep["param"].split(".", 1)
     if swept_section in _SECTIONS:
         check = _SECTIONS[swept_section][swept_key][1]

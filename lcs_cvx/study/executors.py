@@ -11,8 +11,9 @@ torch thread, so a cell's result does not depend on where it ran.
   method (``spawn`` where there is none), the study modules preloaded, ``torch.set_num_threads(1)``
   in the initializer, and workers that end when the client process is gone.
 - :func:`dask_cluster`: ``address="local"`` starts a ``LocalCluster`` on this machine
-  (``n_workers=workers``, one thread each, processes); any other address (``tcp://host:8786``)
-  connects to an existing scheduler. The workers need ``lcs_cvx`` installed and, for a module
+  (``n_workers=workers``, one thread each, non-daemonic processes, so that a cell with a time
+  limit can start its child process); any other address (``tcp://host:8786``) connects to an
+  existing scheduler (for time limits, its workers need ``distributed.worker.daemon: False``). The workers need ``lcs_cvx`` installed and, for a module
   study, its package importable (started from the repository root with ``PYTHONPATH=.``).
 - :func:`in_process`: the cells one after another in this process (a module study's
   ``workers = 1``).
@@ -24,12 +25,12 @@ import concurrent.futures as cf
 import multiprocessing as mp
 import os
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 from .cells import run_cell
+from .limits import exit_with
 
 __all__ = ["process_pool", "dask_cluster", "in_process"]
 
@@ -42,20 +43,7 @@ def _init_worker(client: int) -> None:
     import torch
 
     torch.set_num_threads(1)
-    threading.Thread(target=_exit_with, args=(client,), daemon=True).start()
-
-
-def _exit_with(client: int, every: float = 2.0) -> None:
-    """End this worker once the client process ``client`` is gone (killed with SIGKILL, the
-    pool's own shutdown never comes, and an idle worker would wait on its queue for ever)."""
-    while True:
-        time.sleep(every)
-        try:
-            os.kill(client, 0)
-        except ProcessLookupError:
-            os._exit(1)
-        except PermissionError:  # it exists
-            pass
+    threading.Thread(target=exit_with, args=(client,), daemon=True).start()
 
 
 def _context() -> mp.context.BaseContext:
@@ -109,8 +97,12 @@ def dask_cluster(cells: list[dict[str, Any]], address: str, workers: int,
 
     cluster = None
     if address == "local":
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                               host="127.0.0.1", dashboard_address=None)
+        import dask
+
+        # non-daemonic workers: a cell with a time limit runs in a child process
+        with dask.config.set({"distributed.worker.daemon": False}):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   host="127.0.0.1", dashboard_address=None)
         client = Client(cluster)
     else:
         try:

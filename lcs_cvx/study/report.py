@@ -6,7 +6,9 @@ axis, log x axis where the values span decades; means as white markers; a refere
 horizontal line at its median; the authors' published means as crosses), the layout of Fig. 1 --
 and ``DIR/<name>.md``: per swept value the hybrid modes of the data (mean), sigma_min(F + F^T) of
 the truth (mean), mean and median e_test of each method and, where ``studies/anchors.toml`` has
-them for the study's panel and swept parameter, the authors' numbers beside ours.
+them for the study's panel and swept parameter, the authors' numbers beside ours. Cells killed at
+the config's time limit have no e_test: they are left out of the statistics and counted in a
+line of the table's notes.
 """
 
 from __future__ import annotations
@@ -26,7 +28,9 @@ __all__ = ["report", "load_anchors", "summarize", "default_anchors_path"]
 
 #: The swept values span "decades" (log x axis) when max / min reaches this.
 LOG_X_RATIO = 30.0
-_COLORS = {"prediction": "tab:blue", "violation": "tab:orange"}
+_COLORS = {"prediction": "tab:blue", "violation": "tab:orange", "violation@best": "tab:red",
+           "prediction@best": "tab:cyan", "parc": "tab:green", "mlp": "tab:purple",
+           "affine": "tab:gray"}
 
 
 def default_anchors_path() -> str | None:
@@ -139,6 +143,15 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
     for k, s in enumerate(sets):
         note = " " + " ".join(s["note"].split()) if s.get("note") else ""
         lines.append(f"- Authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {s['label']}.{note}")
+    timed_out: dict[str, int] = {}
+    for (_, m), rows in summary["per"].items():
+        for r in rows:
+            if r.get("status") == "timeout":
+                timed_out[m] = timed_out.get(m, 0) + 1
+    if timed_out:
+        lines.append("- Timed out (killed at the config's time limit; no e_test, left out of the "
+                     "statistics): " + ", ".join(f"{m} {n}" for m, n in sorted(timed_out.items()))
+                     + " cells.")
     failed = {f["key"] for f in summary["failures"]}
     if failed:
         lines.append(f"- Failures logged: {len(failed)} cells (see the `failures` table); "
@@ -207,7 +220,8 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[st
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="major", axis="y", alpha=0.3)
     # below the axes: inside, "best" still hid the medians of some boxes
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+    if ax.get_legend_handles_labels()[0]:  # none when every cell timed out
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
     fig.tight_layout()
     out = [f"{stem}.png", f"{stem}.pdf"]
     fig.savefig(out[0], dpi=150)

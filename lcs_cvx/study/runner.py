@@ -3,7 +3,9 @@
 The client process expands the grid (:func:`lcs_cvx.study.cells.expand`), reads which cell keys
 the database already holds, sends the others to an executor and writes every result to the
 database the moment it arrives. Running a config again therefore resumes where it stopped and
-redoes nothing finished. A failed cell is logged in ``failures`` and retried on the next run.
+redoes nothing finished. A failed cell is logged in ``failures`` and retried on the next run. A
+cell killed at the config's ``time_limit`` is stored with ``status = "timeout"`` and counts as
+finished until the config asks for a larger limit (then it runs again).
 
 A ``kind = "module"`` config is handed to its module's ``run_study(config, out_dir, workers)``
 (with ``scheduler=`` when one is given), which may use the same executors and store
@@ -41,7 +43,8 @@ class StudyError(RuntimeError):
 
 @dataclass(frozen=True)
 class RunSummary:
-    """What one ``study run`` did: cells in the grid, already finished, run now, failed."""
+    """What one ``study run`` did: cells in the grid, already finished, run now (``timed_out``
+    of them killed at the time limit), failed."""
 
     study: str
     config_hash: str
@@ -51,6 +54,7 @@ class RunSummary:
     executed: int
     failed: int
     wall_time: float
+    timed_out: int = 0
 
 
 def parse_only(text: str) -> dict[str, Any]:
@@ -175,7 +179,7 @@ def run_config(
         raise LCSInputError(f"only: no cell of {config['name']} matches {only}")
     with Store(out) as store:
         store.add_study(h, config)
-        finished = store.finished_keys()
+        finished = store.finished_keys(config.get("time_limit"))
         todo, seen = [], set()
         for c in cells:
             if c["key"] not in finished and c["key"] not in seen and _matches(c, only or {}):
@@ -185,6 +189,7 @@ def run_config(
         if max_cells is not None:
             todo = todo[:max_cells]
         bar = _Progress(config["name"], len(cells), skipped, len(todo), progress)
+        timed_out = 0
         if todo:
             executor = (process_pool(todo, workers) if scheduler is None
                         else dask_cluster(todo, scheduler, workers))
@@ -203,10 +208,16 @@ def run_config(
                                   f"{type(result).__name__}: {result}", file=sys.stderr, flush=True)
                         else:
                             store.add_cell(cell, config["seed"], result)
+                            if result.get("status") == "timeout":
+                                timed_out += 1
+                                print(f"{config['name']}: cell timed out after "
+                                      f"{result['wall_time']:.0f} s (value {cell['value']}, trial "
+                                      f"{cell['trial']}, {cell['method']}); recorded as "
+                                      "'timeout'", file=sys.stderr, flush=True)
                         bar.update(not isinstance(result, BaseException))
             finally:
                 bar.close()
         if progress and bar.bar is None:
             bar.line()
     return RunSummary(config["name"], h, store.path, len(cells), skipped, bar.done - skipped,
-                      bar.failed, time.perf_counter() - t0)
+                      bar.failed, time.perf_counter() - t0, timed_out)

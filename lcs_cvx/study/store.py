@@ -6,7 +6,7 @@ Tables (schema version 2)::
     cells    (id PK, key UNIQUE, config_hash, study, value_index, value, trial, method,
               seed, seed_truth, seed_train, seed_test, seed_init, seed_fit,
               e_test, final_loss, modes, sigma_min, fit_wall_time, wall_time,
-              settings_json, cell_json, warnings_json, host, finished)
+              settings_json, cell_json, warnings_json, host, finished, status, time_limit)
     curves   (cell_id PK -> cells.id, data: zlib-compressed JSON of the cell's fit history, the
               records of ``lcs_cvx.FitResult.history``; read with :meth:`Store.curve`)
     failures (id PK, key, config_hash, study, value_index, trial, method, error, at)
@@ -19,7 +19,14 @@ is in WAL mode with ``synchronous = FULL``, so a Ctrl-C or a killed process lose
 in flight, and a finished cell is never lost or written twice (``key`` is unique).
 
 The ``jobs`` table came after version 2 without changing the others: opening a database that
-lacks it adds it, empty.
+lacks it adds it, empty. So did the columns ``cells.status`` (``"ok"``, or ``"timeout"`` for a
+cell killed at its config's ``time_limit``: e_test NULL, the seconds it ran in the wall times)
+and ``cells.time_limit`` (the limit it ran under, NULL for none): opening an older database adds
+them, every existing row ``"ok"`` with no limit.
+
+Timed-out cells count as finished (:meth:`Store.finished_keys`) as long as the limit asked for
+is not larger than the one they were killed at; a run with a larger limit (or none) runs them
+again and its result replaces theirs.
 
 Schema version 1 stored one row per curve record (~100 bytes each, 100 records a cell at the
 paper's 10,000 iterations: 6.7 MB for Fig. 1(a), (d), (e)); a version-1 database is converted
@@ -58,7 +65,7 @@ CREATE TABLE IF NOT EXISTS cells (
     seed_test INTEGER NOT NULL, seed_init INTEGER NOT NULL, seed_fit INTEGER NOT NULL,
     e_test REAL, final_loss REAL, modes INTEGER, sigma_min REAL, fit_wall_time REAL,
     wall_time REAL, settings_json TEXT NOT NULL, cell_json TEXT NOT NULL, warnings_json TEXT,
-    host TEXT, finished TEXT NOT NULL);
+    host TEXT, finished TEXT NOT NULL, status TEXT NOT NULL DEFAULT 'ok', time_limit REAL);
 CREATE TABLE IF NOT EXISTS curves (
     cell_id INTEGER PRIMARY KEY REFERENCES cells(id), data BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS failures (
@@ -147,6 +154,11 @@ class Store:
             self.conn.executescript(_SCHEMA)
             self.conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)",
                               (str(SCHEMA_VERSION),))
+            cols = {r[1] for r in self.conn.execute("PRAGMA table_info(cells)")}
+            if "status" not in cols:  # a database from before time limits
+                self.conn.execute("ALTER TABLE cells ADD COLUMN status TEXT NOT NULL DEFAULT 'ok'")
+            if "time_limit" not in cols:
+                self.conn.execute("ALTER TABLE cells ADD COLUMN time_limit REAL")
 
     def close(self) -> None:
         self.conn.close()
@@ -171,21 +183,28 @@ class Store:
             )
 
     def add_cell(self, cell: dict[str, Any], seed: int, result: dict[str, Any]) -> bool:
-        """Write one finished cell and its curve in one transaction; False if it was there."""
+        """Write one finished (or timed-out: ``result["status"] == "timeout"``) cell and its
+        curve in one transaction; False if it was there. A timed-out row of the same cell is
+        replaced (a run with a larger time limit)."""
         s = cell["seeds"]
+        status = result.get("status", "ok")
         with self.conn:
+            self.conn.execute("DELETE FROM curves WHERE cell_id IN (SELECT id FROM cells WHERE "
+                              "key = ? AND status = 'timeout')", (cell["key"],))
+            self.conn.execute("DELETE FROM cells WHERE key = ? AND status = 'timeout'", (cell["key"],))
             cur = self.conn.execute(
                 "INSERT OR IGNORE INTO cells (key, config_hash, study, value_index, value, trial, "
                 "method, seed, seed_truth, seed_train, seed_test, seed_init, seed_fit, e_test, "
                 "final_loss, modes, sigma_min, fit_wall_time, wall_time, settings_json, cell_json, "
-                "warnings_json, host, finished) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                "warnings_json, host, finished, status, time_limit) "
+                "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
                 (cell["key"], cell["config_hash"], cell["study"], cell["value_index"],
                  _real(cell["value"]), cell["trial"], cell["method"], seed, s["truth"], s["train"],
                  s["test"], s["init"], s["fit"], _real(result["e_test"]), _real(result["final_loss"]),
-                 result["modes"], _real(result["sigma_min"]), result["fit_wall_time"],
+                 result["modes"], _real(result["sigma_min"]), _real(result["fit_wall_time"]),
                  result["wall_time"], json.dumps(result["settings"], sort_keys=True),
                  json.dumps(cell, sort_keys=True), json.dumps(result["warnings"]),
-                 result["host"], _now()),
+                 result["host"], _now(), status, _real(cell.get("time_limit"))),
             )
             if cur.rowcount == 0:
                 return False
@@ -218,8 +237,13 @@ class Store:
         return cur.rowcount == 1
 
     # -- reading ------------------------------------------------------------------------
-    def finished_keys(self) -> set[str]:
-        return {k for (k,) in self.conn.execute("SELECT key FROM cells")}
+    def finished_keys(self, time_limit: float | None = None) -> set[str]:
+        """The keys of the cells a run under ``time_limit`` (s; None: no limit) need not run:
+        every finished cell, and every timed-out one whose limit was at least ``time_limit``."""
+        rows = self.conn.execute("SELECT key, status, time_limit FROM cells")
+        return {k for k, status, limit in rows
+                if status != "timeout" or (time_limit is not None and limit is not None
+                                           and limit >= time_limit)}
 
     def studies(self) -> list[dict[str, Any]]:
         rows = self.conn.execute(
@@ -228,9 +252,11 @@ class Store:
                  "created": t} for h, n, p, c, path, t in rows]
 
     def cells(self, keys: list[str]) -> dict[str, dict[str, Any]]:
-        """The finished cells among ``keys``, by key (metrics and seeds; no curves)."""
+        """The finished (and timed-out) cells among ``keys``, by key (metrics, seeds, status,
+        settings; no curves)."""
         cols = ("id", "key", "e_test", "final_loss", "modes", "sigma_min", "fit_wall_time",
-                "wall_time", "seed_truth", "seed_init", "host", "warnings_json")
+                "wall_time", "seed_truth", "seed_init", "host", "warnings_json", "status",
+                "time_limit", "settings_json")
         out: dict[str, dict[str, Any]] = {}
         for i in range(0, len(keys), 500):
             chunk = keys[i : i + 500]
