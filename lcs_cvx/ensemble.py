@@ -33,7 +33,8 @@ from ._kernels import losses as kernel
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH, array_ops
 from .lcp import finish as finish_lcp
-from .losses import MAX_ITER, _EnvelopeLoss, _ImplicitLoss
+from . import losses as _losses
+from .losses import _EnvelopeLoss, _ImplicitLoss
 from .problems import check_gamma, violation_problem
 from .system import LCS, PARAMETER_NAMES
 from .violation import finish as finish_violation
@@ -185,7 +186,7 @@ def violation_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: to
         flat = {"LtL": normal["LtL"], "K": normal["K"], "Ltb": normal["Ltb"].reshape(K * B, n),
                 "h": normal["h"].reshape(K * B, n)}
         cold = xp.unwrap(xp.concat([flat["h"] < 0, flat["h"] < 0]))
-        pivoted = kernel_violation.solve_arrays(xp, flat, device=x.device, max_iter=MAX_ITER,
+        pivoted = kernel_violation.solve_arrays(xp, flat, device=x.device, max_iter=_losses.MAX_ITER,
                                                 warm_start=_initial(cold, warm_start, warm))
         n_fb, worst = [0] * K, [0.0] * K
         for k, rows in _model_rows(pivoted.unconverged, K, B).items():
@@ -198,7 +199,7 @@ def violation_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: to
 
             own = kernel_violation.Pivoted(pivoted.lam[part], pivoted.active[part], rows,
                                            pivoted.iterations)
-            sol = finish_violation(own, values, max_iter=MAX_ITER, residual=False)  # in place
+            sol = finish_violation(own, values, max_iter=_losses.MAX_ITER, residual=False)  # in place
             n_fb[k], worst[k] = sol.n_fallback, sol.fallback_residual
         lam = xp.wrap(pivoted.lam).reshape(K, B, n)
         phi = kernel_violation.phi(xp, lam, b.F, b.q, gamma)
@@ -219,14 +220,14 @@ def prediction_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: t
         b = kernel.batch(xp, params, x, u, x_next, xp.wrap(ens.stiffness)[:, None, None])
         F, q = xp.unwrap(b.F), xp.unwrap(b.q).reshape(K * B, n)
         with torch.no_grad():
-            pivoted = kernel_lcp.solve(F, q, max_iter=MAX_ITER, arrays=arrays,
+            pivoted = kernel_lcp.solve(F, q, max_iter=_losses.MAX_ITER, arrays=arrays,
                                        warm_start=_initial(q < 0, warm_start, warm))
             n_fb, worst = [0] * K, [0.0] * K
             for k, rows in _model_rows(pivoted.unconverged, K, B).items():
                 part = slice(k * B, (k + 1) * B)
                 own = kernel_lcp.Pivoted(pivoted.lam[part], pivoted.w[part], pivoted.free[part],
                                          rows, pivoted.iterations)
-                sol = finish_lcp(F[k], q[part], own, max_iter=MAX_ITER, residual=False)  # in place
+                sol = finish_lcp(F[k], q[part], own, max_iter=_losses.MAX_ITER, residual=False)  # in place
                 n_fb[k], worst[k] = sol.n_fallback, sol.fallback_residual
         lam = xp.wrap(pivoted.lam).reshape(K, B, n)
         loss = _ImplicitLoss.apply(b, lam, xp.wrap(pivoted.free).reshape(K, B, n), *params)

@@ -22,7 +22,6 @@ model as it would a cell of its own).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 import sys
 import time
@@ -60,20 +59,6 @@ def _check_supported(opts: FitOptions) -> None:
             raise LCSInputError(
                 f"{name}: fit_ensemble runs the Adam phase only; expected {allowed!r}, received "
                 f"{value!r} (train such models one by one with lcs_cvx.fit)"
-            )
-
-
-def _same_but_seed(opts: list[FitOptions]) -> None:
-    def unseeded(o: FitOptions) -> FitOptions:
-        return dataclasses.replace(o, run=dataclasses.replace(o.run, seed=0))
-
-    for k, o in enumerate(opts[1:], 1):
-        if unseeded(o) != unseeded(opts[0]):
-            mine, first = o.flat(), opts[0].flat()
-            diff = sorted(n for n in mine if n != "seed" and mine[n] != first[n])
-            raise LCSInputError(
-                f"options[{k}]: expected the options of options[0] but for the seed, received "
-                f"other values of {diff}"
             )
 
 
@@ -160,8 +145,8 @@ def fit_ensemble(
         >>> models = [lcs_cvx.LCS(2, 1, 2, seed=10 + k) for k in range(3)]
         >>> results = lcs_cvx.fit_ensemble(models, data, recipe="paper", iterations=20,
         ...                                seeds=[0, 1, 2], progress=False)
-        >>> [len(r.history) for r in results]
-        [1, 1, 1]
+        >>> tuple(len(r.history) for r in results), results[0].n_fallback
+        ((1, 1, 1), 0)
     """
     models, trains = list(models), list(trains)
     K = len(models)
@@ -177,7 +162,6 @@ def fit_ensemble(
     opts = [_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
             for k in range(K)]
     _check_supported(opts[0])
-    _same_but_seed(opts)
     members = [
         _Member(m, _check_data(f"trains[{k}]", trains[k], m),
                 None if tests is None else _check_data(f"tests[{k}]", tests[k], m), opts[k])
@@ -233,10 +217,10 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
         for group in adam.param_groups:
             group["lr"] = lr
         idx = torch.stack([members[k].state.next_batch(batch) for k in alive])
-        rows = idx + starts[alive][:, None]
-        x, u, x_next = X[rows], U[rows], XN[rows]
-        warm_start = active[rows] if active is not None else None
-        warm = seen[rows].all(1)
+        rows = (idx + starts[alive][:, None]).reshape(-1)  # (K * B,), model-major
+        x, u, x_next = (T.index_select(0, rows).reshape(len(alive), batch, -1) for T in (X, U, XN))
+        warm_start = None if active is None else active.index_select(0, rows).reshape(len(alive), batch, -1)
+        warm = seen.index_select(0, rows).reshape(len(alive), batch).all(1)
         if obj.loss == "violation":
             info = violation_losses(ens, x, u, x_next, gamma=obj.gamma, eps=eps,
                                     warm_start=warm_start, warm=warm)
@@ -244,7 +228,7 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
             info = prediction_losses(ens, x, u, x_next, warm_start=warm_start, warm=warm)
         if active is None:
             active = torch.zeros(len(X), info.active.shape[2], dtype=torch.bool)
-        active[rows] = info.active.to(active.device)
+        active[rows] = info.active.reshape(len(rows), -1).to(active.device)
         seen[rows] = True
         value = info.loss + obj.reg * (ens.C**2).sum((1, 2))
         adam.zero_grad()
