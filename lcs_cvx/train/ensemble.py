@@ -210,7 +210,9 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
     trains = [mb.state.train for mb in members]
     X, U, XN = (torch.cat([getattr(d, f) for d in trains]) for f in ("x", "u", "x_next"))
     starts = torch.tensor([0] + [len(d) for d in trains]).cumsum(0)[:-1]
-    active: torch.Tensor | None = None  # the last active sets of every sample (warm starts)
+    # the last active sets of every sample (warm starts) and whether it was seen, on CPU (as in
+    # TrainState)
+    active: torch.Tensor | None = None
     seen = torch.zeros(len(X), dtype=torch.bool)
     for it in range(a.iterations):
         eps, lr = phase.eps_at(it), phase.lr_at(it)
@@ -218,7 +220,8 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
             group["lr"] = lr
         idx = torch.stack([members[k].state.next_batch(batch) for k in alive])
         rows = (idx + starts[alive][:, None]).reshape(-1)  # (K * B,), model-major
-        x, u, x_next = (T.index_select(0, rows).reshape(len(alive), batch, -1) for T in (X, U, XN))
+        on_device = rows.to(X.device)
+        x, u, x_next = (T.index_select(0, on_device).reshape(len(alive), batch, -1) for T in (X, U, XN))
         warm_start = None if active is None else active.index_select(0, rows).reshape(len(alive), batch, -1)
         warm = seen.index_select(0, rows).reshape(len(alive), batch).all(1)
         if obj.loss == "violation":
