@@ -230,3 +230,33 @@ def test_fit_ensemble_refuses_what_it_does_not_run():
         lcs_cvx.fit_ensemble([], [], progress=False)
     with pytest.raises(LCSInputError, match=r"trains\[1\]: expected an lcs_cvx.Dataset"):
         lcs_cvx.fit_ensemble(models, [trains[0], "data"], progress=False)
+
+
+@pytest.mark.parametrize("options", [{"recipe": "paper", "lr": 5e-3}, {"keep_best": True}],
+                         ids=["paper", "normalised-keep-best"])
+def test_fit_restarts_together_are_the_restarts_one_after_another(options, tmp_path):
+    """``fit(restarts=3, ensemble=True)`` trains the restarts in one batched loop: the same
+    model, history, held-out scores and settings as one after the other; its checkpoint, written
+    at the end, resumes to the same result."""
+    train, test, model = _cells(1, 3, n=300)[0]
+    kw = {"restarts": 3, "iterations": 30, "batch_size": 50, "eval_every": 10, "seed": 4,
+          "progress": False, **options}
+    one_by_one = lcs_cvx.fit(copy.deepcopy(model), train, test=test, **kw)
+    ckpt = tmp_path / "run.ckpt"
+    together = lcs_cvx.fit(copy.deepcopy(model), train, test=test, ensemble=True, checkpoint=ckpt, **kw)
+    assert _strip(together.history) == _strip(one_by_one.history) and len(together.history) == 9
+    assert together.restart_scores == one_by_one.restart_scores and together.settings == one_by_one.settings
+    for name in PARAMETER_NAMES:
+        assert torch.equal(getattr(together.model, name), getattr(one_by_one.model, name)), name
+    again = lcs_cvx.fit(copy.deepcopy(model), train, test=test, ensemble=True, checkpoint=ckpt,
+                        resume=True, **kw)
+    assert _strip(again.history) == _strip(together.history)
+    assert torch.equal(again.model.G, together.model.G)
+
+
+def test_fit_restarts_together_refuse_what_they_do_not_run():
+    train, _, model = _cells(1, 2, n=100)[0]
+    with pytest.raises(LCSInputError, match=r"callbacks: expected none with ensemble=True"):
+        lcs_cvx.fit(model, train, restarts=2, ensemble=True, callbacks=[lambda rec, m: None], progress=False)
+    with pytest.raises(LCSInputError, match=r"extra_units: fit_ensemble runs the Adam phase only"):
+        lcs_cvx.fit(model, train, recipe="best", restarts=2, ensemble=True, progress=False)

@@ -11,6 +11,9 @@ model's own Adam step (Adam is elementwise, and slice ``k`` of the sum's gradien
 ``k``'s gradient). On CPU tensors each model's numbers are those of its own :func:`fit` bit for
 bit (tested); on other devices (torch kernels) to round-off.
 
+:func:`lcs_cvx.fit`'s ``ensemble=True`` trains a run's restarts the same way
+(:func:`train_together`).
+
 Scope: the Adam phase with its learning-rate and ``eps`` schedules, ``keep_best``,
 ``normalize`` and ``init`` -- the "paper" recipe and the plain defaults. The parts that change
 a model's shape or step it differently (extra units and pruning, refinement, polish,
@@ -46,14 +49,16 @@ from .state import Outcome, TrainState
 __all__ = ["fit_ensemble"]
 
 
-def _check_supported(opts: FitOptions) -> None:
-    """:class:`LCSInputError` for an option the ensemble loop does not run (module docstring)."""
+def _check_supported(opts: FitOptions, restarts: bool = False) -> None:
+    """:class:`LCSInputError` for an option the ensemble loop does not run (module docstring);
+    ``restarts``: the runs are a :func:`lcs_cvx.fit`'s restarts (``restarts > 1`` allowed)."""
     a = opts.adam
     refused = {
         "extra_units": (a.extra_units, 0), "reinit_saturated": (a.reinit_saturated, False),
         "refine": (opts.refine.method, None), "polish_iterations": (opts.polish.iterations, 0),
-        "restarts": (opts.run.restarts, 1),
     }
+    if not restarts:
+        refused["restarts"] = (opts.run.restarts, 1)
     for name, (value, allowed) in refused.items():
         if value != allowed:
             raise LCSInputError(
@@ -167,58 +172,71 @@ def fit_ensemble(
                 None if tests is None else _check_data(f"tests[{k}]", tests[k], m), opts[k])
         for k, m in enumerate(models)
     ]
-    results: list[FitResult | SolverError | None] = [None] * K
-    o = opts[0]
-    sizes = {min(o.adam.batch_size, len(mb.state.train)) for mb in members}
-    if len(sizes) > 1:
-        raise LCSInputError(
-            f"trains: expected the same minibatch size for every model (min(batch_size, len(train))), "
-            f"received {sorted(sizes)}"
-        )
-    batch = sizes.pop()
     t_start = time.perf_counter()
 
     def elapsed() -> float:
         return time.perf_counter() - t_start
 
+    errors = train_together([mb.state for mb in members], throw=throw, elapsed=elapsed,
+                            progress=progress, label=lambda k: f"models[{k}]: ")
+    return [mb.finish(elapsed()) if err is None else err for mb, err in zip(members, errors, strict=True)]
+
+
+def train_together(states: list[TrainState], *, throw: bool, elapsed: Callable[[], float],
+                   progress: bool = False, label: Callable[[int], str] = lambda k: "") -> list[SolverError | None]:
+    """The Adam phase of every run of ``states`` (one :class:`TrainState` each, options equal
+    but for the seed, checked by the callers; each state's ``model`` is what it trains), in one
+    batched loop: each state ends as its run alone would leave it after the phase.
+
+    Returns, per state, None or the :class:`lcs_cvx.SolverError` of its divergence (with
+    ``throw=False``; with ``throw=True`` the first one is raised). ``label(k)`` prefixes state
+    ``k``'s error message. Package-internal: :func:`fit_ensemble` and :func:`lcs_cvx.fit`'s
+    ``ensemble=True`` restarts end here."""
+    o = states[0].options
+    _check_supported(o, restarts=True)
+    sizes = {min(o.adam.batch_size, len(st.train)) for st in states}
+    if len(sizes) > 1:
+        raise LCSInputError(
+            f"trains: expected the same minibatch size for every model (min(batch_size, len(train))), "
+            f"received {sorted(sizes)}"
+        )
+    errors: list[SolverError | None] = [None] * len(states)
     bar = None
     if progress and sys.stderr.isatty():
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=o.adam.iterations, desc=f"fit_ensemble ({K})", unit="it", dynamic_ncols=True)
+        bar = tqdm(total=o.adam.iterations, desc=f"fit ({len(states)} together)", unit="it",
+                   dynamic_ncols=True)
     try:
-        _adam_loop(members, o, batch, results, throw, elapsed, bar)
+        _adam_loop(states, o, sizes.pop(), errors, throw, elapsed, bar, label)
     finally:
         if bar is not None:
             bar.close()
-    for k, mb in enumerate(members):
-        if results[k] is None:
-            results[k] = mb.finish(elapsed())
-    return results  # type: ignore[return-value]
+    return errors
 
 
-def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list, throw: bool,
-               elapsed: Callable[[], float], bar: Any) -> None:
-    """The Adam phase of every member, one stacked step at a time (:class:`AdamPhase`'s step and
+def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list, throw: bool,
+               elapsed: Callable[[], float], bar: Any, label: Callable[[int], str]) -> None:
+    """The Adam phase of every state, one stacked step at a time (:class:`AdamPhase`'s step and
     :func:`~lcs_cvx.train.phases.run_phases`'s records, for all models at once)."""
     a, obj = o.adam, o.objective
     phase = AdamPhase(o)
-    alive = list(range(len(members)))  # the members still training, in stack order
-    ens = Ensemble([mb.learner for mb in members])
+    alive = list(range(len(states)))  # the states still training, in stack order
+    ens = Ensemble([st.model for st in states])
     adam = torch.optim.Adam(ens.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
-    # every member's training set, end to end; member k's samples start at offsets[k]
-    trains = [mb.state.train for mb in members]
+    # every state's training set, end to end; state k's samples start at starts[k]
+    trains = [st.train for st in states]
     X, U, XN = (torch.cat([getattr(d, f) for d in trains]) for f in ("x", "u", "x_next"))
     starts = torch.tensor([0] + [len(d) for d in trains]).cumsum(0)[:-1]
     # the last active sets of every sample (warm starts) and whether it was seen, on CPU (as in
     # TrainState)
     active: torch.Tensor | None = None
     seen = torch.zeros(len(X), dtype=torch.bool)
-    for it in range(a.iterations):
+    for it in range(states[0].steps["adam"], a.iterations):
         eps, lr = phase.eps_at(it), phase.lr_at(it)
         for group in adam.param_groups:
             group["lr"] = lr
-        idx = torch.stack([members[k].state.next_batch(batch) for k in alive])
+        idx = torch.stack([states[k].next_batch(batch) for k in alive])
         rows = (idx + starts[alive][:, None]).reshape(-1)  # (K * B,), model-major
         on_device = rows.to(X.device)
         x, u, x_next = (T.index_select(0, on_device).reshape(len(alive), batch, -1) for T in (X, U, XN))
@@ -242,15 +260,15 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
             finite_F = torch.isfinite(ens.F).all(2).all(1).tolist()
         failed = []
         for j, k in enumerate(alive):
-            st = members[k].state
+            st = states[k]
             if not (math.isfinite(losses[j]) and finite_F[j]):
                 error = SolverError(
-                    f"models[{k}]: training diverged at iteration {st.iteration + 1}: loss = "
+                    f"{label(k)}training diverged at iteration {st.iteration + 1}: loss = "
                     f"{losses[j]}, F {'finite' if finite_F[j] else 'not finite'}; lower lr (now {lr:g})"
                 )
                 if throw:
                     raise error
-                results[k] = error
+                errors[k] = error
                 failed.append(j)
                 continue
             st.steps["adam"] += 1
@@ -271,4 +289,4 @@ def _adam_loop(members: list[_Member], o: FitOptions, batch: int, results: list,
             new = ens.select(keep)
             adam, ens = _moved_adam(adam, ens, new, keep), new
     for j, k in enumerate(alive):
-        ens.copy_to(j, members[k].state.model)
+        ens.copy_to(j, states[k].model)
