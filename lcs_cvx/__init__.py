@@ -6,6 +6,7 @@ from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
 from .data import Dataset as Dataset
 from .data import make_dataset as make_dataset
+from .ensemble import Ensemble as Ensemble
 from .hessian import violation_hessian as violation_hessian
 from .hessian import violation_hvp as violation_hvp
 from .io import load_metadata as load_metadata
@@ -38,6 +39,7 @@ from .train import PruneOptions as PruneOptions
 from .train import RefineOptions as RefineOptions
 from .train import RunOptions as RunOptions
 from .train import fit as fit
+from .train import fit_ensemble as fit_ensemble
 from .trajectories import Trajectories as Trajectories
 from .trajectories import rollout_error as rollout_error
 

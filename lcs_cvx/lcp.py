@@ -136,20 +136,30 @@ def solve_lcp_fast(
     with torch.no_grad():
         F = F.detach()
         q = q.detach()
-        n = q.shape[1]
         sol = kernel.solve(F, q, tol=tol, max_iter=max_iter, warm_start=warm_start, arrays=arrays)
-        lam, w, free, bad_idx = sol.lam, sol.w, sol.free, sol.unconverged
-        n_fb, worst = 0, 0.0
-        if bad_idx is not None:
-            brute = n <= BRUTE_MAX
-            n_fb = int(bad_idx.numel())
-            report_unconverged(n_fb, q.shape[0], "LCP", max_iter, fallback,
-                               f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
-            lam[bad_idx], free[bad_idx] = _reference(F, q[bad_idx], brute)
-            w[bad_idx] = lam[bad_idx] @ F.mT + q[bad_idx]
-            worst = float(lcp_residual(F, q[bad_idx], lam[bad_idx]).max())
-        resid = lcp_residual(F, q, lam, w) if residual else None
-        return LCPSolution(lam, w, free, sol.iterations, n_fb, resid, worst)
+        return finish(F, q, sol, max_iter=max_iter, fallback=fallback, residual=residual)
+
+
+def finish(F: torch.Tensor, q: torch.Tensor, sol: kernel.Pivoted, *, max_iter: int,
+           fallback: bool = True, residual: bool = True) -> LCPSolution:
+    """The :class:`LCPSolution` of the kernel's answer ``sol`` for ``(F, q)`` (detached): its
+    unconverged samples reported (:func:`lcs_cvx._checks.report_unconverged`) and solved by a
+    reference (in place in ``sol``'s tensors), and the residual if asked for. Package-internal:
+    :func:`solve_lcp_fast` and the stacked prediction loss (:mod:`lcs_cvx.ensemble`, per model)
+    end here."""
+    n = q.shape[1]
+    lam, w, free, bad_idx = sol.lam, sol.w, sol.free, sol.unconverged
+    n_fb, worst = 0, 0.0
+    if bad_idx is not None:
+        brute = n <= BRUTE_MAX
+        n_fb = int(bad_idx.numel())
+        report_unconverged(n_fb, q.shape[0], "LCP", max_iter, fallback,
+                           f"enumeration of the 2^{n} free sets" if brute else "the Clarabel reference")
+        lam[bad_idx], free[bad_idx] = _reference(F, q[bad_idx], brute)
+        w[bad_idx] = lam[bad_idx] @ F.mT + q[bad_idx]
+        worst = float(lcp_residual(F, q[bad_idx], lam[bad_idx]).max())
+    resid = lcp_residual(F, q, lam, w) if residual else None
+    return LCPSolution(lam, w, free, sol.iterations, n_fb, resid, worst)
 
 
 def _reference(F: torch.Tensor, q: torch.Tensor, brute: bool) -> tuple[torch.Tensor, torch.Tensor]:

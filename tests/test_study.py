@@ -398,6 +398,45 @@ def test_recipe_best_runs_both_methods(tmp_path):
     assert settings["violation"]["lr_schedule"] == settings["prediction"]["lr_schedule"] == "cosine"
 
 
+def test_ensembles_give_every_cell_its_own_result(tmp_path):
+    """``ensemble=True`` trains a swept value's trials of one method together; every cell's
+    e_test, curve (wall times aside) and settings are those of the cell run on its own, and a
+    second run finds every cell finished."""
+    path = tmp_path / "three_trials.toml"
+    path.write_text(f'extends = "{CONFIGS / "fig1a_n_lam_smoke.toml"}"\nname = "three"\ntrials = 3\n')
+    alone = run_config(path, out=tmp_path / "alone", workers=2, progress=False)
+    together = run_config(path, out=tmp_path / "together", workers=2, progress=False, ensemble=True)
+    assert (together.total, together.executed, together.failed) == (12, 12, 0)
+    rows_alone, rows_together = _rows(tmp_path / "alone"), _rows(tmp_path / "together")
+    assert [r["key"] for r in rows_alone] == [r["key"] for r in rows_together] and alone.failed == 0
+    same = ("e_test", "final_loss", "modes", "sigma_min", "settings_json", "cell_json", "seed_fit")
+    curves = []
+    for out in ("alone", "together"):
+        with Store(tmp_path / out) as store:
+            curves.append([[{k: v for k, v in rec.items() if k != "wall_time"} for rec in store.curve(r["id"])]
+                           for r in _rows(tmp_path / out)])
+    for a, b, ca, cb in zip(rows_alone, rows_together, *curves, strict=True):
+        assert all(a[f] == b[f] for f in same), a["key"]
+        assert ca == cb and len(ca) == 2
+    again = run_config(path, out=tmp_path / "together", workers=2, progress=False, ensemble=True)
+    assert (again.skipped, again.executed) == (12, 0)
+
+
+def test_ensembles_group_the_cells_that_differ_in_their_seeds_only():
+    from lcs_cvx.study.ensembles import ensembles
+
+    config = load_config(CONFIGS / "fig1a_n_lam_smoke.toml")
+    config["trials"] = 5
+    cells = expand(config)
+    jobs = ensembles(cells)
+    assert len(jobs) == 4  # 2 values x 2 methods
+    for job in jobs:
+        assert len(job["cells"]) == 5 and {c["trial"] for c in job["cells"]} == set(range(5))
+        assert len({(c["value"], c["method"]) for c in job["cells"]}) == 1
+    assert [len(j["cells"]) for j in ensembles(cells, size=2)] == [2, 2, 1] * 4
+    assert sorted(c["key"] for j in jobs for c in j["cells"]) == sorted(c["key"] for c in cells)
+
+
 #: Calls of :func:`run_study` below (a ``kind = "module"`` study runs in this process).
 MODULE_CALLS: list[tuple] = []
 

@@ -66,7 +66,7 @@ class ArrayOps:
 
     :func:`lcs_cvx._kernels.pivoting.block_pivoting` and the kernels of :mod:`.lcp`,
     :mod:`.violation` and :mod:`.losses` are written once, against Python's operators
-    (``@ + * < & | ^ ~``, indexing, ``.sum``, ``.any``, ``.all``, ``.reshape``, ``.T`` of a
+    (``@ + * < & | ^ ~``, indexing, ``.sum``, ``.any``, ``.all``, ``.reshape``, ``.swapaxes`` of a
     matrix) and the methods below, which NumPy arrays and torch tensors share through this
     adapter. Two instances:
 
@@ -149,9 +149,38 @@ class ArrayOps:
             return np.eye(n, dtype=like.dtype)
         return torch.eye(n, dtype=like.dtype, device=like.device)
 
+    def empty(self, shape: tuple[int, ...], like: Any) -> Any:
+        """An uninitialised array of ``shape`` with ``like``'s dtype (and device)."""
+        if self.np:
+            return np.empty(shape, dtype=like.dtype)
+        return torch.empty(shape, dtype=like.dtype, device=like.device)
+
     def ones_bool(self, n: int, like: Any) -> Any:
         """``n`` True values beside ``like``."""
         return np.ones(n, dtype=bool) if self.np else torch.ones(n, dtype=torch.bool, device=like.device)
+
+    def zeros_bool(self, n: int, like: Any) -> Any:
+        """``n`` False values beside ``like``."""
+        return np.zeros(n, dtype=bool) if self.np else torch.zeros(n, dtype=torch.bool, device=like.device)
+
+    def repeat(self, a: Any, times: int) -> Any:
+        """Each entry of the 1-D ``a`` ``times`` times in a row: ``[a0, a0, ..., a1, a1, ...]``."""
+        return np.repeat(a, times) if self.np else a.repeat_interleave(times)
+
+    def concat_index(self, spans: list[tuple[int, int]], like: Any) -> Any:
+        """The int64 indices ``i:j`` of each ``(i, j)`` of ``spans``, one after the other (beside
+        ``like``)."""
+        if self.np:
+            return np.concatenate([np.arange(i, j) for i, j in spans])
+        return torch.cat([torch.arange(i, j, device=like.device) for i, j in spans])
+
+    def searchsorted(self, a: Any, v: Any) -> Any:
+        """Where each entry of ``v`` would go in the sorted 1-D ``a`` (to the left of equals)."""
+        return np.searchsorted(a, v) if self.np else torch.searchsorted(a, v)
+
+    def to_list(self, a: Any) -> list:
+        """The 1-D ``a`` as a list of Python numbers."""
+        return a.tolist()
 
     def free_block(self, M: Any, free: Any) -> Any:
         """The batch of matrices of a linear solve on the free sets: ``M`` (row-major
@@ -187,6 +216,16 @@ class ArrayOps:
         """``sum(a * b)`` over every entry (a 0-dim array or tensor)."""
         return np.vdot(a, b) if self.np else torch.vdot(a.reshape(-1), b.reshape(-1))
 
+    def inner(self, a: Any, b: Any) -> Any:
+        """``sum(a * b)`` over a batch ``(B, m)`` (a 0-dim array or tensor), or per model over
+        a stack ``(K, B, m)`` (``(K,)``; NumPy: each model's :meth:`vdot`, the number of its own
+        batch)."""
+        if a.ndim == 2:
+            return self.vdot(a, b)
+        if self.np:
+            return np.array([np.vdot(a[k], b[k]) for k in range(a.shape[0])])
+        return (a * b).reshape(a.shape[0], -1).sum(1)
+
     def count_rows(self, a: Any) -> Any:
         """The number of True entries of each row of the bool ``(B, k)`` ``a``, ``(B,)`` (as
         floating numbers for NumPy: a product with ones, which NumPy does faster than a row
@@ -196,8 +235,9 @@ class ArrayOps:
         return a.sum(1)
 
     def colsum(self, a: Any) -> Any:
-        """``a.sum(0)`` (NumPy: a product with ones, faster than its column sum)."""
-        return _ones(a.shape[0], a.dtype) @ a if self.np else a.sum(0)
+        """``a.sum(-2)``: the column sums of ``(B, m)``, or of each model's ``(B, m)`` of a stack
+        ``(K, B, m)`` (NumPy: a product with ones, faster than its column sum)."""
+        return _ones(a.shape[-2], a.dtype) @ a if self.np else a.sum(-2)
 
     def count(self, a: Any) -> int:
         """The number of nonzero entries of ``a``."""
@@ -208,19 +248,22 @@ class ArrayOps:
         return np.flatnonzero(a) if self.np else a.nonzero().squeeze(1)
 
     # -- linear algebra
-    def solve(self, M: Any, rhs: Any, spd: bool = True) -> tuple[Any, Any | None]:
+    def solve(self, M: Any, rhs: Any, spd: bool = True, batch: int | None = None) -> tuple[Any, Any | None]:
         """:func:`spd_solve` on the kernel's arrays.
 
         NumPy: a batch of at most :data:`NUMPY_SOLVE_WORK` ``b * n * n`` goes to NumPy's
         batched LU (``numpy.linalg.solve``), cheaper to call than torch's -- and inside a kernel
         of NumPy operations a call into torch costs more than in a loop of its own. A larger
         batch, or one with an exactly singular matrix (NumPy raises for the whole batch), goes
-        to :func:`spd_solve`, which says which one failed.
+        to :func:`spd_solve`, which says which one failed. ``batch`` (default: the rows of
+        ``rhs``) is the ``b`` of that choice: a call that solves several models' systems at once
+        passes one model's (:class:`lcs_cvx._kernels.stacks.Stacked`), so that each model's
+        systems go to the library its own call would use.
         """
         if not self.np:
             return spd_solve(M, rhs, spd)
         b, n = rhs.shape
-        if b * n * n <= NUMPY_SOLVE_WORK:
+        if (b if batch is None else batch) * n * n <= NUMPY_SOLVE_WORK:
             try:
                 return np.linalg.solve(M, rhs[..., None])[..., 0], None
             except np.linalg.LinAlgError:

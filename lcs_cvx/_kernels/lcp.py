@@ -14,6 +14,7 @@ import torch
 
 from .arrays import ArrayOps, array_ops
 from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
+from .stacks import matrices
 
 __all__ = ["PIVOT_TOL", "Pivoted", "pivot", "solve"]
 
@@ -42,18 +43,21 @@ class Pivoted(NamedTuple):
 
 def pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
           warm_start: torch.Tensor | None, device: torch.device) -> PivotResult:
-    """Block pivoting on the LCP in the kernel's arrays: ``F`` ``(n, n)``, ``q`` ``(B, n)``;
-    the initial free set is ``q < 0`` (the guess of ``lam = 0``) or ``warm_start``."""
+    """Block pivoting on the LCP in the kernel's arrays: ``F`` ``(n, n)`` (or a stack
+    ``(K, n, n)``, :mod:`.stacks`), ``q`` ``(B, n)``; the initial free set is ``q < 0`` (the guess
+    of ``lam = 0``) or ``warm_start``."""
     n = q.shape[1]
-    F_flat, FT = F.reshape(1, n * n), xp.contiguous(F.T)
+    mats = matrices(xp, F, q.shape[0])
+    F_flat, FT = F.reshape(-1, n * n), xp.contiguous(F.swapaxes(-1, -2))
     data = xp.concat([q, -tol * (1.0 + xp.amax_abs(q))])  # one gather when the work set shrinks
 
     def solve(free: Any, idx: Any):
         d = data if idx is None else data[idx]
+        on = mats.select(idx)
         qq, at = d[:, :n], d[:, n:]
         # F on the free rows and columns, the identity elsewhere: lam_I = -F_II^{-1} q_I
-        lam, failed = xp.solve(xp.free_block(F_flat, free), xp.where(free, -qq, 0.0), spd=False)
-        w = qq + lam @ FT
+        lam, failed = on.solve(xp.free_block(on.rows(F_flat), free), xp.where(free, -qq, 0.0), spd=False)
+        w = qq + on.rmul(lam, FT)
         bad = xp.where(free, lam < at, w < at)
         if failed is not None:
             bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
@@ -65,14 +69,15 @@ def pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
 
 def solve(F: torch.Tensor, q: torch.Tensor, *, tol: float = PIVOT_TOL, max_iter: int = 1000,
           warm_start: torch.Tensor | None = None, arrays: str = "auto") -> Pivoted:
-    """Pivot the LCPs ``(F, q_t)`` for the rows of ``q`` ``(B, n)`` (``F`` ``(n, n)``, detached
-    tensors) in the ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
+    """Pivot the LCPs ``(F, q_t)`` for the rows of ``q`` ``(B, n)`` (``F`` ``(n, n)``, or a stack
+    ``(K, n, n)`` whose models own ``B / K`` rows each, model-major; detached tensors) in the
+    ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
     xp = array_ops(q, arrays)
     with xp.threads():
         Fa, qa = xp.wrap(F), xp.wrap(q)
         res = pivot(xp, Fa, qa, tol, max_iter, warm_start, q.device)
         lam = xp.clamp_min(res.solution, 0.0)
         free = res.free & (res.solution > 0)
-        w = lam @ Fa.T + qa
+        w = matrices(xp, Fa, qa.shape[0]).select(None).rmul(lam, Fa.swapaxes(-1, -2)) + qa
         idx = unconverged(xp, res.converged)
     return Pivoted(xp.unwrap(lam), xp.unwrap(w), xp.unwrap(free), idx, res.iterations)

@@ -6,6 +6,11 @@ the model's parameters without an autograd graph. Their gradients are written ou
 form (:func:`envelope_backward`: Lemma 3; :func:`implicit_backward`: Lemma 1), each a few small
 products, and taken from ``F`` to ``(G, H)`` by :func:`F_adjoint`. :mod:`lcs_cvx.losses` wraps
 them in ``torch.autograd.Function`` adapters.
+
+Every function also takes a stack of ``K`` models (:mod:`lcs_cvx.ensemble`): parameters with a
+leading model axis (``(K, n, n)``, ``(K, n)``), per-sample arrays ``(K, B, .)`` (model ``k``'s
+samples in row ``k``), a stiffness ``(K, 1, 1)``; the loss values are then ``(K,)``, one per
+model, and their gradients stacked. Each model's numbers are those of its own call.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from typing import Any, NamedTuple
 import torch
 
 from .arrays import ArrayOps
+from .stacks import matrices
 
 __all__ = [
     "Batch",
@@ -32,8 +38,10 @@ __all__ = [
 
 
 def F_matrix(xp: ArrayOps, G: Any, H: Any, stiffness: Any) -> Any:
-    """``F = G G^T + H - H^T + s I`` (paper Sec. 5) from ``G``, ``H`` ``(n, n)``."""
-    return G @ G.T + H - H.T + stiffness * xp.eye(G.shape[-1], G)
+    """``F = G G^T + H - H^T + s I`` (paper Sec. 5) from ``G``, ``H`` ``(n, n)`` (or stacks
+    ``(K, n, n)`` with ``s`` ``(K, 1, 1)``)."""
+    HT = H.swapaxes(-1, -2)
+    return G @ G.swapaxes(-1, -2) + H - HT + stiffness * xp.eye(G.shape[-1], G)
 
 
 def F_adjoint(T_F: Any, G: Any) -> tuple[Any, Any]:
@@ -66,8 +74,8 @@ def batch(xp: ArrayOps, params: Sequence[torch.Tensor], x: torch.Tensor, u: torc
     A, B, C, d, D, E, G, H, c = (xp.wrap(t) for t in params)
     x, u, x_next = xp.wrap(x), xp.wrap(u), xp.wrap(x_next)
     # the association of the closed form (Lemma 3's w = F lam + q - phi cancels: keep it)
-    q = x @ D.T + u @ E.T + c
-    r = x @ A.T + u @ B.T + d - x_next
+    q = x @ D.swapaxes(-1, -2) + u @ E.swapaxes(-1, -2) + c[..., None, :]
+    r = x @ A.swapaxes(-1, -2) + u @ B.swapaxes(-1, -2) + d[..., None, :] - x_next
     return Batch(xp, x, u, q, r, F_matrix(xp, G, H, stiffness), C, G)
 
 
@@ -79,12 +87,18 @@ def parameter_gradients(xp: ArrayOps, need: Sequence[bool], x: Any, u: Any, lam:
     ``dC = g_r^T lam``, ``dd = sum_t g_r``, ``dD = g_q^T x``, ``dF = g_q^T lam``, ..., and
     ``dG, dH`` from ``dF`` (:func:`F_adjoint`). One small product per gradient, each contiguous
     as the parameters are laid out."""
-    grT, gqT = g_r.T, g_q.T
+    grT, gqT = g_r.swapaxes(-1, -2), g_q.swapaxes(-1, -2)
     dG, dH = F_adjoint(gqT @ lam, G) if need[6] or need[7] else (None, None)
     return (grT @ x if need[0] else None, grT @ u if need[1] else None,
             grT @ lam if need[2] else None, xp.colsum(g_r) if need[3] else None,
             gqT @ x if need[4] else None, gqT @ u if need[5] else None,
             dG, dH, xp.colsum(g_q) if need[8] else None)
+
+
+def _factor(xp: ArrayOps, grad: torch.Tensor) -> Any:
+    """The incoming gradient as a factor of the residuals: a number (one model), or ``(K, 1, 1)``
+    for a stack's ``(K,)`` values."""
+    return xp.scalar(grad) if grad.dim() == 0 else xp.wrap(grad)[:, None, None]
 
 
 def _tensors(xp: ArrayOps, arrays: tuple[Any, ...]) -> tuple[torch.Tensor | None, ...]:
@@ -98,10 +112,10 @@ def envelope_forward(b: Batch, lam: Any, phi: Any, gamma: float, eps: float) -> 
     ``e = C lam + r`` and ``w = F lam + q - phi``. Returns the value (a 0-dim tensor) and what
     :func:`envelope_backward` needs."""
     xp = b.xp
-    e = b.r + lam @ b.C.T
-    w = b.q + lam @ b.F.T - phi  # the association of the closed form
-    n = lam.shape[0]
-    total = 0.5 * xp.vdot(e, e) + (xp.vdot(lam, phi) + 0.5 / gamma * xp.vdot(w, w)) / eps
+    e = b.r + lam @ b.C.swapaxes(-1, -2)
+    w = b.q + lam @ b.F.swapaxes(-1, -2) - phi  # the association of the closed form
+    n = lam.shape[-2]
+    total = 0.5 * xp.inner(e, e) + (xp.inner(lam, phi) + 0.5 / gamma * xp.inner(w, w)) / eps
     # the residuals, already scaled by the gradient's 1/B and 1/(gamma eps B)
     saved = (xp, b.x, b.u, lam, b.G, e * (1.0 / n), w * (1.0 / (gamma * eps * n)))
     return xp.unwrap(total / n), saved
@@ -118,7 +132,7 @@ def envelope_backward(saved: tuple, grad: torch.Tensor, need: Sequence[bool]) ->
     and ``dG, dH`` from ``dF`` -- tensors in ``A, B, C, d, D, E, G, H, c`` order (None where
     ``need`` is False)."""
     xp, x, u, lam, G, ge, gw = saved
-    s = xp.scalar(grad)
+    s = _factor(xp, grad)
     with xp.threads():
         return _tensors(xp, parameter_gradients(xp, need, x, u, lam, G, ge * s, gw * s))
 
@@ -129,9 +143,9 @@ def implicit_forward(b: Batch, lam: Any, free: Any) -> tuple[torch.Tensor, tuple
     zero, the one-sided derivative). Returns the value and what :func:`implicit_backward`
     needs."""
     xp = b.xp
-    e = b.r + lam @ b.C.T
-    n = lam.shape[0]
-    total = 0.5 * xp.vdot(e, e)
+    e = b.r + lam @ b.C.swapaxes(-1, -2)
+    n = lam.shape[-2]
+    total = 0.5 * xp.inner(e, e)
     return xp.unwrap(total / n), (xp, b.x, b.u, lam, free, b.F, b.C, b.G, e * (1.0 / n))
 
 
@@ -146,11 +160,15 @@ def implicit_backward(saved: tuple, grad: torch.Tensor, need: Sequence[bool]) ->
 
     and ``dG, dH`` from ``dF`` -- tensors in ``A, B, C, d, D, E, G, H, c`` order."""
     xp, x, u, lam, free, F, C, G, ge = saved
-    n = F.shape[0]
+    n = F.shape[-1]
     with xp.threads():
-        ge = ge * xp.scalar(grad)
-        F_II = xp.free_block(F.reshape(1, n * n), free)
-        mu, _ = xp.solve(F_II.swapaxes(-1, -2), xp.where(free, ge @ C, 0.0), spd=False)
+        ge = ge * _factor(xp, grad)
+        rows = free.reshape(-1, n)  # a stack's samples, model-major
+        on = matrices(xp, F, rows.shape[0]).select(None)
+        F_II = xp.free_block(on.rows(F.reshape(-1, n * n)), rows)
+        rhs = xp.where(rows, (ge @ C).reshape(rows.shape), 0.0)
+        mu, _ = on.solve(F_II.swapaxes(-1, -2), rhs, False)
+        mu = mu.reshape(free.shape)
         return _tensors(xp, parameter_gradients(xp, need, x, u, lam, G, ge, -mu))
 
 

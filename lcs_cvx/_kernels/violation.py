@@ -29,6 +29,7 @@ import torch
 
 from .arrays import ArrayOps, array_ops
 from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
+from .stacks import matrices
 
 __all__ = ["PIVOT_TOL", "Pivoted", "normal_equations", "phi", "pivot", "solve", "solve_arrays"]
 
@@ -45,13 +46,14 @@ def normal_equations(xp: ArrayOps, C: Any, F: Any, q: Any, r: Any, gamma: float,
         Ltb = eps r C + q                          (rows of L^T b = eps C^T r + q)
         K   = (gamma I - F) / sqrt(gamma),   h = q / sqrt(gamma)
 
-    ``C`` ``(n_x, n)``, ``F`` ``(n, n)``, ``q`` ``(B, n)``, ``r`` ``(B, n_x)``; ``gamma`` is not
+    ``C`` ``(n_x, n)``, ``F`` ``(n, n)``, ``q`` ``(B, n)``, ``r`` ``(B, n_x)``; or stacks of
+    models, ``(K, n_x, n)``, ``(K, n, n)``, ``(K, B, n)``, ``(K, B, n_x)``. ``gamma`` is not
     checked here (:func:`lcs_cvx.problems.check_gamma`).
     """
     eye = xp.eye(F.shape[-1], F)
     scale = 1.0 / math.sqrt(gamma)
     return {
-        "LtL": eps * (C.T @ C) + F + F.T - gamma * eye,
+        "LtL": eps * (C.swapaxes(-1, -2) @ C) + F + F.swapaxes(-1, -2) - gamma * eye,
         "Ltb": eps * (r @ C) + q,
         "K": (gamma * eye - F) * scale,
         "h": q * scale,
@@ -59,8 +61,9 @@ def normal_equations(xp: ArrayOps, C: Any, F: Any, q: Any, r: Any, gamma: float,
 
 
 def phi(xp: ArrayOps, lam: Any, F: Any, q: Any, gamma: float) -> Any:
-    """The exact minimiser of (V) over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``."""
-    return xp.clamp_min(lam @ F.T + q - gamma * lam, 0.0)
+    """The exact minimiser of (V) over ``phi`` for fixed ``lam``: ``max(0, F lam + q - gamma lam)``
+    (``lam``, ``q`` ``(B, n)`` and ``F`` ``(n, n)``, or stacks ``(K, B, n)``, ``(K, n, n)``)."""
+    return xp.clamp_min(lam @ F.swapaxes(-1, -2) + q - gamma * lam, 0.0)
 
 
 class Pivoted(NamedTuple):
@@ -83,16 +86,20 @@ class Pivoted(NamedTuple):
 
 def pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
           warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, PivotResult]:
-    """Block pivoting on (V) in the kernel's arrays (:func:`normal_equations`):
+    """Block pivoting on (V) in the kernel's arrays (:func:`normal_equations`; ``LtL`` and ``K``
+    ``(n, n)``, or stacks ``(K, n, n)`` of models owning ``B / K`` rows each, :mod:`.stacks`):
     ``(lam, active, result)`` with ``active = [lam > 0, K lam - h > 0]`` ``(B, 2 n)``."""
     n = Ltb.shape[1]
+    mats = matrices(xp, K, Ltb.shape[0])
+    everyone = mats.select(None)
     # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
-    K_outer = (K[:, :, None] * K[:, None, :]).reshape(n, n * n)
-    scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(h @ K))
+    K_outer = (K[..., :, None] * K[..., None, :]).reshape(K.shape[:-2] + (n, n * n))
+    scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(everyone.rmul(h, K)))
     scale_t = tol * (1.0 + xp.amax_abs(h))
     neg_l: list[Any] = []  # -(lam's scale), from the first candidate
-    LtL_flat = LtL.reshape(1, n * n)
-    KT_LtL = xp.concat([K.T, LtL])  # (n, 2 n): lam @ KT_LtL is [K lam, L^T L lam] in one product
+    LtL_flat = LtL.reshape(-1, n * n)
+    KT = K.swapaxes(-1, -2)
+    KT_LtL = xp.concat([KT, LtL])  # (n, 2 n): lam @ KT_LtL is [K lam, L^T L lam] in one product
     # the per-sample data side by side: one gather when the work set shrinks
     data = xp.concat([Ltb, -Ltb, h, -h, -scale_g, scale_t, -scale_t])
     cut = [0, n, 2 * n, 3 * n, 4 * n, 4 * n + 1, 4 * n + 2, 4 * n + 3]
@@ -101,15 +108,16 @@ def pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter
     def solve(state: Any, idx: Any):
         free, pos = state[:, :n], state[:, n:]
         d = data if idx is None else data[idx]
+        on = mats.select(idx)
         bb, nbb, hh, nhh, ng, st, nt = (d[:, part] for part in parts)
         sf = xp.to_float(pos, Ltb)
         # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
-        M = xp.free_block(LtL_flat + sf @ K_outer, free)
-        rhs = xp.where(free, nbb + (sf * hh) @ K, 0.0)
-        lam, failed = xp.solve(M, rhs)
-        prod = lam @ KT_LtL
+        M = xp.free_block(on.rows(LtL_flat) + on.rmul(sf, K_outer), free)
+        rhs = xp.where(free, nbb + on.rmul(sf * hh, K), 0.0)
+        lam, failed = on.solve(M, rhs, True)
+        prod = on.rmul(lam, KT_LtL)
         t = prod[:, :n] + nhh
-        g = prod[:, n:] + bb + (sf * t) @ K
+        g = prod[:, n:] + bb + on.rmul(sf * t, K)
         if not neg_l:
             neg_l.append(-tol * (1.0 + xp.amax_abs(lam)))
         nl = neg_l[0] if idx is None else neg_l[0][idx]
@@ -123,7 +131,7 @@ def pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter
     state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
     res = block_pivoting(xp, solve, state0, max_iter=max_iter)
     lam = xp.clamp_min(res.solution, 0.0)
-    return lam, xp.concat([lam > 0, (lam @ K.T - h) > 0]), res
+    return lam, xp.concat([lam > 0, (everyone.rmul(lam, KT) - h) > 0]), res
 
 
 def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device, tol: float = PIVOT_TOL,
@@ -138,7 +146,8 @@ def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device, 
 def solve(normal: dict[str, torch.Tensor], *, tol: float = PIVOT_TOL, max_iter: int = 1000,
           warm_start: torch.Tensor | None = None, arrays: str = "auto") -> Pivoted:
     """:func:`solve_arrays` on detached tensors ``{"LtL": (n, n), "Ltb": (B, n), "K": (n, n),
-    "h": (B, n)}``, in the ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
+    "h": (B, n)}`` (or stacks ``(K, n, n)`` of ``LtL`` and ``K``, the rows model-major), in the
+    ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
     xp = array_ops(normal["Ltb"], arrays)
     with xp.threads():
         wrapped = {k: xp.wrap(v) for k, v in normal.items()}

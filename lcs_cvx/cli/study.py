@@ -30,6 +30,9 @@ def configure_study(p: argparse.ArgumentParser) -> None:
                      help="run only matching cells; keys value, value_index, trial, method")
     run.add_argument("--max-cells", type=positive_int, default=None,
                      help="run at most this many unfinished cells (the rest on a later run)")
+    run.add_argument("--ensemble", action="store_true",
+                     help="train the trials of each swept value and method together, in one "
+                     "batched loop per worker (the same results as one by one)")
     rep = sub.add_parser("report", help="figures and tables of every study in a directory",
                          description="Write <name>.png, <name>.pdf and <name>.md for every study "
                          "in DIR/studies.sqlite, with the authors' numbers from studies/anchors.toml.")
@@ -52,7 +55,8 @@ def run_study_command(args: argparse.Namespace) -> int:
     only = parse_only(args.only) if args.only is not None else None
     try:
         summary = run_config(args.config, out=args.out, workers=args.workers,
-                             scheduler=args.scheduler, only=only, max_cells=args.max_cells)
+                             scheduler=args.scheduler, only=only, max_cells=args.max_cells,
+                             ensemble=args.ensemble)
     except StudyError as exc:
         print(f"{PROG} study: {exc}", file=sys.stderr)
         return 1

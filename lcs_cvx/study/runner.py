@@ -7,6 +7,11 @@ redoes nothing finished. A failed cell is logged in ``failures`` and retried on 
 cell killed at the config's ``time_limit`` is stored with ``status = "timeout"`` and counts as
 finished until the config asks for a larger limit (then it runs again).
 
+With ``ensemble=True`` (``--ensemble``) the cells to run are grouped into ensembles
+(:mod:`lcs_cvx.study.ensembles`: the trials of one swept value and method), each trained by one
+worker in one batched loop; every finished cell is stored exactly as on its own, when its
+ensemble finishes.
+
 A ``kind = "module"`` config is handed to its module's ``run_study(config, out_dir, workers)``
 (with ``scheduler=`` when one is given), which may use the same executors and store
 (``studies/physics/jobs.py`` does).
@@ -27,6 +32,7 @@ from typing import Any
 from .._checks import LCSInputError
 from .cells import expand
 from .config import config_hash, load_config
+from .ensembles import ensembles, run_ensemble
 from .executors import dask_cluster, process_pool
 from .store import Store
 
@@ -118,6 +124,25 @@ class _Progress:
             self.bar.close()
 
 
+def _store(store: Store, config: dict[str, Any], cell: dict[str, Any], result: Any) -> int:
+    """Write one cell's result, or log its failure (and say so on stderr); 1 if the cell timed
+    out (recorded as such), else 0."""
+    if isinstance(result, BaseException):
+        text = "".join(traceback.format_exception(result)).strip()
+        store.add_failure(cell, text)
+        print(f"{config['name']}: cell failed (value {cell['value']}, trial "
+              f"{cell['trial']}, {cell['method']}): "
+              f"{type(result).__name__}: {result}", file=sys.stderr, flush=True)
+        return 0
+    store.add_cell(cell, config["seed"], result)
+    if result.get("status") != "timeout":
+        return 0
+    print(f"{config['name']}: cell timed out after {result['wall_time']:.0f} s (value "
+          f"{cell['value']}, trial {cell['trial']}, {cell['method']}); recorded as 'timeout'",
+          file=sys.stderr, flush=True)
+    return 1
+
+
 def _run_module(config: dict[str, Any], out: str, workers: int, scheduler: str | None) -> None:
     where = config["path"]
     if os.getcwd() not in sys.path:  # `studies.physics.x` from the repository root, also when
@@ -149,6 +174,7 @@ def run_config(
     only: dict[str, Any] | None = None,
     max_cells: int | None = None,
     progress: bool = True,
+    ensemble: bool = False,
 ) -> RunSummary | None:
     """Run the study of the config at ``path`` into ``out`` (see the module docstring).
 
@@ -160,6 +186,9 @@ def run_config(
         only: run only cells matching ``{"value": 4.0, "trial": 0, "method": "violation"}``.
         max_cells: run at most this many unfinished cells (the rest on a later run).
         progress: a bar (terminal) or periodic lines on stderr.
+        ensemble: train the cells that differ only in their seeds (a swept value's trials, one
+            method) together, one ensemble per worker (:mod:`lcs_cvx.study.ensembles`); the
+            results are those of the cells run one by one.
 
     Returns:
         A :class:`RunSummary`; None for a ``kind = "module"`` config (its module writes its own).
@@ -191,30 +220,26 @@ def run_config(
         bar = _Progress(config["name"], len(cells), skipped, len(todo), progress)
         timed_out = 0
         if todo:
-            executor = (process_pool(todo, workers) if scheduler is None
-                        else dask_cluster(todo, scheduler, workers))
+            jobs, fn = (ensembles(todo), run_ensemble) if ensemble else (todo, None)
+            kw = {} if fn is None else {"fn": fn}
+            executor = (process_pool(jobs, workers, **kw) if scheduler is None
+                        else dask_cluster(jobs, scheduler, workers, **kw))
             try:
                 with executor as outcomes:
-                    for cell, result in outcomes:
-                        if isinstance(result, BrokenProcessPool):
+                    for job, outcome in outcomes:
+                        if isinstance(outcome, BrokenProcessPool):
                             raise StudyError(
-                                f"a worker process died ({result}); the {bar.done} finished cells "
+                                f"a worker process died ({outcome}); the {bar.done} finished cells "
                                 f"are in {store.path}: run the same command again to resume")
-                        if isinstance(result, BaseException):
-                            text = "".join(traceback.format_exception(result)).strip()
-                            store.add_failure(cell, text)
-                            print(f"{config['name']}: cell failed (value {cell['value']}, trial "
-                                  f"{cell['trial']}, {cell['method']}): "
-                                  f"{type(result).__name__}: {result}", file=sys.stderr, flush=True)
+                        if not ensemble:
+                            pairs: Any = [(job, outcome)]
+                        elif isinstance(outcome, BaseException):  # the whole ensemble failed
+                            pairs = [(c, outcome) for c in job["cells"]]
                         else:
-                            store.add_cell(cell, config["seed"], result)
-                            if result.get("status") == "timeout":
-                                timed_out += 1
-                                print(f"{config['name']}: cell timed out after "
-                                      f"{result['wall_time']:.0f} s (value {cell['value']}, trial "
-                                      f"{cell['trial']}, {cell['method']}); recorded as "
-                                      "'timeout'", file=sys.stderr, flush=True)
-                        bar.update(not isinstance(result, BaseException))
+                            pairs = zip(job["cells"], outcome, strict=True)
+                        for cell, result in pairs:
+                            timed_out += _store(store, config, cell, result)
+                            bar.update(not isinstance(result, BaseException))
             finally:
                 bar.close()
         if progress and bar.bar is None:

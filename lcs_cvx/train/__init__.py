@@ -5,11 +5,13 @@
 - :mod:`~lcs_cvx.train.state` -- :class:`TrainState`, one run's state (serialises itself).
 - :mod:`~lcs_cvx.train.phases` -- Adam, pruning, second-order refinement and polish, on one loop.
 - :mod:`~lcs_cvx.train.driver` -- :func:`fit`: restarts, checkpoints and resume, progress.
+- :mod:`~lcs_cvx.train.ensemble` -- :func:`fit_ensemble`: many models in one batched loop.
 """
 
 from .driver import CHECKPOINT_FORMAT as CHECKPOINT_FORMAT
 from .driver import FitResult as FitResult
 from .driver import fit as fit
+from .ensemble import fit_ensemble as fit_ensemble
 from .options import AdamOptions as AdamOptions
 from .options import FitOptions as FitOptions
 from .options import ObjectiveOptions as ObjectiveOptions
@@ -24,7 +26,7 @@ from .recipes import resolve_options as resolve_options
 from .state import TrainState as TrainState
 
 __all__ = [
-    "fit", "FitResult", "FitOptions", "RECIPES", "FLAT_OPTIONS", "ObjectiveOptions", "AdamOptions",
+    "fit", "fit_ensemble", "FitResult", "FitOptions", "RECIPES", "FLAT_OPTIONS", "ObjectiveOptions", "AdamOptions",
     "PruneOptions", "RefineOptions", "PolishOptions", "RunOptions", "TrainState", "extra_units",
     "resolve_options", "CHECKPOINT_FORMAT",
 ]

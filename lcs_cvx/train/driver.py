@@ -169,6 +169,30 @@ def _dotted(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitOptions,
+                       learner_for: Callable[[int], LCS], fit_data: Dataset, test_data: Dataset | None,
+                       score_on: Callable[[Dataset], Callable[[LCS], float]], test: Dataset | None,
+                       holdout: Dataset | None, elapsed: Callable[[], float]) -> LCS:
+    """``fit(ensemble=True)``: the restarts not in ``done`` trained in one batched loop
+    (:func:`lcs_cvx.train.ensemble.train_together`), then closed as the sequential loop closes
+    each (best iterate, held-out score, ``done`` and ``history``). Returns the last learner."""
+    from .ensemble import train_together
+
+    remaining = range(len(done), r.restarts)
+    learners = [learner_for(k) for k in remaining]
+    states = [TrainState(m, fit_data, test_data, opts, k, score=score_on(test) if test is not None else None)
+              for m, k in zip(learners, remaining, strict=True)]
+    train_together(states, throw=True, elapsed=elapsed)
+    for st in states:
+        if r.keep_best:
+            st.restore_best()
+        score = score_on(holdout)(st.model) if holdout is not None else math.nan
+        done.append({"score": score, "history": st.history,
+                     "params": {k: v.detach().clone() for k, v in st.model.state_dict().items()}})
+        history.extend(st.history)
+    return learners[-1]
+
+
 def fit(
     model: LCS,
     train: Dataset,
@@ -180,6 +204,7 @@ def fit(
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: bool = True,
+    ensemble: bool = False,
     **overrides: Any,
 ) -> FitResult:
     """Learn the LCS ``model`` from ``train`` (in place): minimise ``L(theta) + omega ||C||_F^2``.
@@ -197,6 +222,12 @@ def fit(
             :func:`lcs_cvx.save_model` for that).
         resume: continue from ``checkpoint`` if it exists (the options must be the same).
         progress: a tqdm bar on stderr when it is a terminal.
+        ensemble: train the restarts (``restarts > 1``) together in one batched loop
+            (:func:`lcs_cvx.fit_ensemble`'s), with the same result, history and restart scores as
+            one after the other. Only for options without extra units, refinement, polish or
+            re-initialisation of saturated units, and without callbacks; a checkpoint is written
+            when they have all finished (a killed run restarts the unfinished ones), and the first
+            restart that diverges raises at once.
         **overrides: flat options (:data:`lcs_cvx.train.FLAT_OPTIONS`: ``loss``, ``optimizer``,
             ``iterations``, ``lr``, ``gamma``, ``eps``, ``reg``, ``seed``, ...) or whole groups
             (``adam=AdamOptions(...)``), applied on top of ``options`` or ``recipe``.
@@ -264,7 +295,15 @@ def fit(
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False
     learner = None
+    if ensemble and callbacks:
+        raise LCSInputError("callbacks: expected none with ensemble=True (the restarts are "
+                            f"trained together), received {len(callbacks)}")
     try:
+        if ensemble and len(done) < r.restarts:
+            learner = _restarts_together(done, history, r, opts, learner_for, fit_data, test_data,
+                                         score_on, test, holdout, elapsed)
+            if bar is not None:
+                bar.update(bar.total - bar.n)
         for restart in range(len(done), r.restarts):
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart,
