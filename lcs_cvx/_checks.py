@@ -162,3 +162,34 @@ def check_positive(name: str, value: Any, *, integer: bool = False, upper: float
     if upper is not None and value >= upper:
         raise LCSInputError(f"{name}: expected a number < {upper:.6g}, received {value!r}")
     return float(value)
+
+
+def as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
+    """A mask pattern as a CPU bool tensor of exactly ``shape``, or a clear error."""
+    if isinstance(value, torch.Tensor):
+        t = value.detach().cpu()
+    else:
+        try:
+            t = torch.from_numpy(np.array(value))
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise LCSInputError(
+                f"{name}: expected a bool or 0/1 array of shape {tuple(shape)}, received "
+                f"{type(value).__name__} {value!r}"
+            ) from exc
+    if tuple(t.shape) != tuple(shape):
+        raise LCSInputError(
+            f"{name}: expected a mask of shape {tuple(shape)}, received shape {tuple(t.shape)}"
+        )
+    if t.dtype == torch.bool:
+        return t.clone()
+    if t.is_complex() or not (t.is_floating_point() or t.dtype in (
+            torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)):
+        raise LCSInputError(f"{name}: expected a mask of bool or 0/1 values, received dtype {t.dtype}")
+    bad = t[(t != 0) & (t != 1)]
+    if bad.numel():
+        shown = sorted({float(b) for b in bad.flatten()[:5].tolist()})
+        raise LCSInputError(
+            f"{name}: expected a mask of bool or 0/1 values, received {bad.numel()} other "
+            f"values (e.g. {shown})"
+        )
+    return t != 0

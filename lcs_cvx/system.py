@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ._checks import LCSInputError, as_batch, as_matrix, check_positive
+from ._checks import LCSInputError, as_batch, as_matrix, as_pattern, check_positive
 from ._kernels import losses as kernel
 from ._kernels.arrays import TORCH
 from .lcp import LCPSolution, active_set_solve, solve_lcp
@@ -208,7 +208,7 @@ class LCS(nn.Module):
                 )
         if "F" in new:
             F, s = new.pop("F"), float(self.stiffness)
-            low = float(torch.linalg.eigvalsh(0.5 * (F + F.mT)).min())
+            low = 0.5 * float(sym_min_eig(F))  # of the symmetric part (F + F^T) / 2
             if low < s - 1e-12 * (1.0 + float(F.abs().max())):
                 raise LCSInputError(
                     f"F: expected a symmetric part (F + F^T) / 2 >= s I with s = {s:.6g} (the "
@@ -246,7 +246,7 @@ class LCS(nn.Module):
                     f"{k}: expected a maskable parameter name among {MASKABLE}, received "
                     f"{k!r}{why}"
                 )
-            new[k] = None if v is None else _as_pattern(k, v, shapes[k])
+            new[k] = None if v is None else as_pattern(k, v, shapes[k])
         with torch.no_grad():
             for k, m in new.items():
                 if m is None:
@@ -439,37 +439,6 @@ class LCS(nn.Module):
             "H": m["E"],
             "c": m["c"],
         }
-
-
-def _as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
-    """A mask pattern as a CPU bool tensor of exactly ``shape``, or a clear error."""
-    if isinstance(value, torch.Tensor):
-        t = value.detach().cpu()
-    else:
-        try:
-            t = torch.from_numpy(np.array(value))
-        except (TypeError, ValueError, RuntimeError) as exc:
-            raise LCSInputError(
-                f"{name}: expected a bool or 0/1 array of shape {tuple(shape)}, received "
-                f"{type(value).__name__} {value!r}"
-            ) from exc
-    if tuple(t.shape) != tuple(shape):
-        raise LCSInputError(
-            f"{name}: expected a mask of shape {tuple(shape)}, received shape {tuple(t.shape)}"
-        )
-    if t.dtype == torch.bool:
-        return t.clone()
-    if t.is_complex() or not (t.is_floating_point() or t.dtype in (
-            torch.uint8, torch.int8, torch.int16, torch.int32, torch.int64)):
-        raise LCSInputError(f"{name}: expected a mask of bool or 0/1 values, received dtype {t.dtype}")
-    bad = t[(t != 0) & (t != 1)]
-    if bad.numel():
-        shown = sorted({float(b) for b in bad.flatten()[:5].tolist()})
-        raise LCSInputError(
-            f"{name}: expected a mask of bool or 0/1 values, received {bad.numel()} other "
-            f"values (e.g. {shown})"
-        )
-    return t != 0
 
 
 def random_lcs(

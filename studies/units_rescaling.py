@@ -2,7 +2,7 @@
 on the same data after an exact change of units (state scaled by diag(1e3, 1, 1e-2, 10), input
 by diag(1e-2, 1e2)), with and without learning in normalised coordinates.
 
-    python studies/units_rescaling.py [--seeds 0,1,2,3,4,5] [--out studies/results/units_rescaling.md]
+    python studies/units_rescaling.py [--seeds 0,1,2,3,4,5] [--init increment] [--out studies/results/units_rescaling.md]
 
 Ground truth ``random_lcs(4, 2, 3, seed=0)``, 5,000 training samples with noise 1e-2, 2,000
 noiseless test samples; the learner ``LCS(4, 2, 3, seed=s)`` and ``fit(..., seed=s)``. Each
@@ -48,6 +48,7 @@ def run(train: Dataset, test: Dataset, seed: int, s_x: torch.Tensor, **options
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", default="0,1,2,3,4,5")
+    p.add_argument("--init", default="increment", help="fit's init for the normalised runs")
     p.add_argument("--out", default=None, help="markdown file to write the table to")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -56,8 +57,9 @@ def main() -> None:
     test = lcs_cvx.make_dataset(truth, 2000, seed=2)
     one = torch.ones(4, dtype=torch.float64)
     raw = {"normalize": False, "init": "model"}
-    cases = {"as generated": (train, test, one, {}),
-             "other units": (rescaled(train), rescaled(test), SX, {}),
+    start = {"init": args.init}
+    cases = {"as generated": (train, test, one, start),
+             "other units": (rescaled(train), rescaled(test), SX, start),
              "as generated, normalize=False": (train, test, one, raw),
              "other units, normalize=False": (rescaled(train), rescaled(test), SX, raw)}
     rows = []
@@ -83,7 +85,7 @@ def main() -> None:
     if args.out:
         with open(args.out, "w") as f:
             f.write("# The same system in other units\n\n"
-                    f"`python studies/units_rescaling.py --seeds {args.seeds} --out {args.out}`, "
+                    f"`python studies/units_rescaling.py --seeds {args.seeds} --init {args.init} --out {args.out}`, "
                     f"{datetime.date.today()}, {platform.machine()} VM with 2 cores, 24 GiB, one "
                     "torch thread. " + " ".join(__doc__.split("\n\n")[2].split()) + "\n\n"
                     + "\n".join(lines) + "\n")
