@@ -7,6 +7,7 @@ PARC fit that fails reported in its rows."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 
@@ -18,6 +19,9 @@ import lcs_cvx
 from lcs_cvx import load_model
 
 pytestmark = needs_mujoco
+needs_parc = pytest.mark.skipif(
+    importlib.util.find_spec("pyparc") is None,
+    reason="pyparc is not installed (the baselines extra: pip install 'lcs_cvx[baselines]')")
 SMOKE = os.path.join(ROOT, "studies", "configs", "pusher_slider_smoke.toml")
 
 
@@ -176,6 +180,7 @@ def test_config_errors_name_the_section_and_the_key():
 
 
 # -- PARC ----------------------------------------------------------------------------------------
+@needs_parc
 def test_parc_job_finds_the_pieces_of_a_piecewise_affine_map_and_is_rebuilt_exactly():
     """On x' = x + B u + (a_left or a_right)(x) with the switch at x_1 = 0, PARC (K = 2) fits
     the training data far better than one affine map, its partition is the switch, and the model
@@ -213,6 +218,7 @@ def test_parc_job_finds_the_pieces_of_a_piecewise_affine_map_and_is_rebuilt_exac
     assert np.array_equal(stored.predict(xt, ut), own.predictor.predict(np.hstack([xt, ut]))[0])
 
 
+@needs_parc
 def test_parc_job_reports_a_failed_fit(monkeypatch):
     from lcs_cvx.study.baselines import baseline_options
     from lcs_cvx.study.baselines import parc as parc_baseline
@@ -230,6 +236,7 @@ def test_parc_job_reports_a_failed_fit(monkeypatch):
 
 
 # -- the study, end to end -------------------------------------------------------------------------
+@needs_parc
 def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path, monkeypatch):
     from lcs_cvx.study.runner import run_config
 

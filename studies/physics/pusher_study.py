@@ -324,6 +324,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2, scheduler:
 
     import lcs_cvx
     from lcs_cvx.scaling import Scaling
+    from lcs_cvx.study.baselines.parc import import_parc
 
     from . import evaluation as ev
     from . import pusher_figures as figs
@@ -334,6 +335,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2, scheduler:
     torch.set_num_threads(1)
     t_start = time.perf_counter()
     cfg = parse_config(config)
+    import_parc()  # before any training: PARC needs the extra "baselines"
     phys, lc, horizons = cfg["physics"], cfg["lcs"], [int(h) for h in cfg["eval"]["horizons"]]
     H, sizes = max(horizons), cfg["data"]["sizes"]
     os.makedirs(os.path.join(out_dir, "models"), exist_ok=True)
