@@ -1,11 +1,13 @@
 """The pusher-slider study (studies/physics/pusher_*.py): the MuJoCo plant (sticking, sliding
 either way and separation all occur, the friction force stays in the Coulomb cone and points
 against the slip, the slider's frame, reproducible by seed), the nested training sizes, the
-config's errors, and the smoke config run end to end through the study runner and resumed from
-its store."""
+config's errors, the PARC baseline (a piecewise-affine toy, rebuilt exactly from its stored arrays),
+and the smoke config run end to end through the study runner, resumed from its store, and with a
+PARC fit that fails reported in its rows."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 
@@ -17,6 +19,9 @@ import lcs_cvx
 from lcs_cvx import load_model
 
 pytestmark = needs_mujoco
+needs_parc = pytest.mark.skipif(
+    importlib.util.find_spec("pyparc") is None,
+    reason="pyparc is not installed (the baselines extra: pip install 'lcs_cvx[baselines]')")
 SMOKE = os.path.join(ROOT, "studies", "configs", "pusher_slider_smoke.toml")
 
 
@@ -157,6 +162,7 @@ def test_config_errors_name_the_section_and_the_key():
 
     cfg = parse_config({"name": "p"})
     assert cfg["data"]["sizes"] == [500, 2000, 10000, 20000] and cfg["lcs"]["tolerance"] == 0.1
+    assert cfg["parc"]["K"] == 4 and cfg["parc"]["sigma"] == 1.0 and cfg["parc"]["seed"] == 0
     assert cfg["lcs"]["prediction"]["normalize"] is True
     for bad, match in (({"data": {"sizes": [500, 500]}}, r"data\.sizes: expected a non-empty list of distinct integers"),
                        ({"data": {"sizes": [0.5]}}, r"data\.sizes"),
@@ -164,27 +170,91 @@ def test_config_errors_name_the_section_and_the_key():
                        ({"mlp": {"weight_decay": [-1.0]}}, r"mlp\.weight_decay"),
                        ({"physics": {"mu": 0.3}}, r"\[physics\]: unknown key 'mu'"),
                        ({"lcs": {"losses": ["hinge"]}}, r"lcs\.losses: expected 'violation' or 'prediction'"),
+                       ({"parc": {"sigma": -1.0}}, r"parc\.sigma: expected a finite number >= 0"),
+                       ({"parc": {"K": 0}}, r"parc\.K: expected"),
+                       ({"parc": {"seed": -1}}, r"parc\.seed: expected an integer >= 0"),
+                       ({"parc": {"pieces": 4}}, r"parc\.pieces: unknown key"),
                        ({"plots": {}}, r"plots: unknown key")):
         with pytest.raises(ValueError, match=match):
             parse_config({"name": "p", **bad})
 
 
+# -- PARC ----------------------------------------------------------------------------------------
+@needs_parc
+def test_parc_job_finds_the_pieces_of_a_piecewise_affine_map_and_is_rebuilt_exactly():
+    """On x' = x + B u + (a_left or a_right)(x) with the switch at x_1 = 0, PARC (K = 2) fits
+    the training data far better than one affine map, its partition is the switch, and the model
+    rebuilt from the job's stored arrays predicts what pyparc's own predictor does."""
+    from lcs_cvx.study.baselines import baseline_options
+    from lcs_cvx.study.baselines.parc import fit
+    from lcs_cvx.study.store import Store
+    from studies.physics.evaluation import relative_error
+    from studies.physics.models import AffineModel, fit_parc, parc_from_result
+
+    rng = np.random.default_rng(0)
+    x, u = rng.uniform(-1, 1, (600, 2)), rng.uniform(-1, 1, (600, 1))
+    left = x[:, 0] < 0
+    x_next = x + 0.1 * u @ np.array([[1.0, 0.5]]) + np.where(
+        left[:, None], [0.3, -0.2] - 0.5 * x[:, 1:2], [-0.3, 0.2] + 0.5 * x[:, 1:2])
+    options = baseline_options("parc", {"K": 2})
+    res = fit_parc({"x": x, "u": u, "x_next": x_next, "options": options, "modes": 2, "seed": 0})
+    assert res["error"] is None and res["info"]["K_final"] == 2
+    model = parc_from_result(res)
+    pred = model.predict(x, u)
+    assert pred.shape == x_next.shape
+    parc_err = relative_error(pred, x_next)
+    affine_err = relative_error(AffineModel.fit(x, u, x_next).predict(x, u), x_next)
+    assert parc_err < 0.5 * affine_err, (parc_err, affine_err)
+    piece = model.piece(x, u)
+    assert max((piece == left).mean(), (piece != left).mean()) > 0.85  # the partition is the switch
+    # the arrays survive the study database, and the rebuilt model is pyparc's predictor
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d, Store(d) as store:
+        store.add_job("k", "toy", "fit_parc", res)
+        stored = parc_from_result(store.jobs(["k"])["k"])
+    own, _ = fit(lcs_cvx.Dataset.from_arrays(x, u, x_next), options, seed=0, modes=2)
+    xt, ut = rng.uniform(-2, 2, (50, 2)), rng.uniform(-2, 2, (50, 1))
+    assert np.array_equal(stored.predict(xt, ut), own.predictor.predict(np.hstack([xt, ut]))[0])
+
+
+@needs_parc
+def test_parc_job_reports_a_failed_fit(monkeypatch):
+    from lcs_cvx.study.baselines import baseline_options
+    from lcs_cvx.study.baselines import parc as parc_baseline
+    from studies.physics.models import fit_parc, parc_from_result
+
+    def broken(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(parc_baseline, "fit", broken)
+    x = np.zeros((20, 2))
+    res = fit_parc({"x": x, "u": x[:, :1], "x_next": x, "options": baseline_options("parc", {}), "modes": 2, "seed": 0})
+    assert res["error"] == "LinAlgError: Singular matrix" and res["omega"] is None
+    with pytest.raises(ValueError, match=r"result: expected a PARC fit that succeeded, received the error"):
+        parc_from_result(res)
+
+
 # -- the study, end to end -------------------------------------------------------------------------
-def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path):
+@needs_parc
+def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path, monkeypatch):
     from lcs_cvx.study.runner import run_config
 
     run_config(SMOKE, out=tmp_path, workers=1, progress=False)
     for name in ("report.md", "metrics.json", "learning_curve.png", "error_vs_horizon.png", "rollouts.png"):
         assert (tmp_path / name).stat().st_size > 0
     m = json.loads((tmp_path / "metrics.json").read_text())
-    assert list(m["sizes"]) == ["200", "400"] and m["jobs"] == {"total": 12, "run_now": 12}
+    assert list(m["sizes"]) == ["200", "400"] and m["jobs"] == {"total": 14, "run_now": 14}
     rows = m["sizes"]["400"]["sets"]["test"]
     assert [r["name"] for r in rows] == ["LCS, violation loss", "LCS, prediction loss", "affine (least squares)",
                                          "MLP", "affine per true mode (oracle)", "PARC (piecewise-affine regression)"]
-    for r in rows[:-1]:
+    for r in rows:
         assert set(r["one_step"]) == {"separated", "sticking", "sliding +y", "sliding -y", "contact", "all"}
-        assert np.isfinite(r["one_step"]["all"]) and set(r["rollout"]) == {"1", "5", "20"}
-    assert rows[-1]["pending"] and rows[-1]["one_step"] is None
+        assert np.isfinite(list(r["one_step"].values())).all() and set(r["rollout"]) == {"1", "5", "20"}
+        assert np.isfinite(list(r["rollout"].values())).all() and r["error"] is None
+    parc = m["sizes"]["400"]["selection"]["parc"]  # a real PARC fit: 4 pieces, fitted in the job
+    assert parc["error"] is None and parc["info"]["K"] == 4 and 1 <= parc["info"]["K_final"] <= 4
+    assert parc["wall_time"] > 0 and np.isfinite(parc["val_error"])
     # every (size, set, loss) has a target row, computed from the rows
     assert len(m["target"]) == 2 * 2 * 2
     t = next(t for t in m["target"] if t["size"] == 400 and t["set"] == "test" and t["loss"] == "violation")
@@ -203,9 +273,33 @@ def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path):
     library = lcs_cvx.rollout_error(model, test.to_trajectories(), [20])[20]
     assert library == pytest.approx(rows[0]["rollout"]["20"], rel=1e-9)
     report = (tmp_path / "report.md").read_text()
-    assert "## Target: the LCS 1.5× below the MLP" in report and "| PARC (piecewise-affine regression) | not run |" in report
+    assert "## Target: the LCS 1.5× below the MLP" in report
+    parc_rows = [line for line in report.splitlines() if line.startswith("| PARC (piecewise-affine regression) | ")]
+    assert len(parc_rows) == 4 and not any("–" in r or "failed" in r for r in parc_rows)  # 2 curves, 2 per mode
+    assert "K = 4 (told how many modes there are" in report and "N = 400: " in report
     # a second run reads every job from the store: the same numbers, nothing trained
     run_config(SMOKE, out=tmp_path, workers=1, progress=False)
     again = json.loads((tmp_path / "metrics.json").read_text())
-    assert again["jobs"] == {"total": 12, "run_now": 0}
+    assert again["jobs"] == {"total": 14, "run_now": 0}
     assert again["sizes"] == m["sizes"] and again["target"] == m["target"]
+    # another PARC seed runs the two PARC jobs only; where pyparc raises, the rows say so
+    from lcs_cvx.study.baselines import parc as parc_baseline
+
+    def broken(*args, **kwargs):
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(parc_baseline, "fit", broken)
+    other = tmp_path / "other_seed.toml"
+    other.write_text(f'name = "pusher_slider_smoke"\nextends = {json.dumps(SMOKE)}\n[parc]\nseed = 1\n')
+    run_config(other, out=tmp_path, workers=1, progress=False)
+    failed = json.loads((tmp_path / "metrics.json").read_text())
+    assert failed["jobs"] == {"total": 14, "run_now": 2}
+    for n in ("200", "400"):
+        row = failed["sizes"][n]["sets"]["test"][-1]
+        assert row["name"] == "PARC (piecewise-affine regression)" and row["one_step"] is None
+        assert row["error"] == "LinAlgError: Singular matrix"
+        assert failed["sizes"][n]["sets"]["test"][:-1] == m["sizes"][n]["sets"]["test"][:-1]
+    report = (tmp_path / "report.md").read_text()
+    assert "| PARC (piecewise-affine regression) | fit failed: LinAlgError: Singular matrix | – |" in report
+    assert "| PARC (piecewise-affine regression) | failed (see Models) | failed (see Models) |" in report
+    assert "N = 200: **failed** after" in report and (tmp_path / "learning_curve.png").stat().st_size > 0

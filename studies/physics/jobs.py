@@ -1,7 +1,7 @@
 """The training jobs of the physics study and where they run.
 
 A job is a plain dict ``{"key", "function", "args"}``: ``function`` names a function of
-:mod:`studies.physics.models` (``"fit_lcs"`` or ``"fit_mlp"``) and ``args`` is its argument
+:mod:`studies.physics.models` (``"fit_lcs"``, ``"fit_mlp"`` or ``"fit_parc"``) and ``args`` is its argument
 (numpy arrays and plain values). Its ``key`` is the SHA-256 of ``function`` and ``args`` (arrays
 by dtype, shape and bytes), so the same work has the same key in every run.
 
@@ -26,7 +26,7 @@ import numpy as np
 __all__ = ["FUNCTIONS", "make_job", "job_key", "run_job", "run_jobs", "JobError"]
 
 #: The job functions (in :mod:`studies.physics.models`).
-FUNCTIONS = ("fit_lcs", "fit_mlp")
+FUNCTIONS = ("fit_lcs", "fit_mlp", "fit_parc")
 
 
 class JobError(RuntimeError):

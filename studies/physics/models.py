@@ -8,6 +8,9 @@ maps states ``(N, n_x)`` and inputs ``(N, n_u)`` (physical units, float64 numpy)
   way) and told the true mode when it predicts: an oracle, the best a
   piecewise-affine model with known modes could do.
 - :class:`MLPModel` -- a small MLP (torch), ``x' = x + f(x, u)``.
+- :class:`PARCModel` -- PARC's piecewise-affine model (Bemporad's piecewise-affine regression
+  and classification, :mod:`lcs_cvx.study.baselines.parc`), rebuilt from its pieces and its
+  partition.
 
 The LCS is learned by :func:`lcs_cvx.fit` in the library's normalised coordinates
 (:class:`lcs_cvx.scaling.Scaling`) and comes back in physical units; the MLP learns on the same
@@ -32,11 +35,14 @@ __all__ = [
     "AffineModel",
     "ModeAffineModel",
     "MLPModel",
+    "PARCModel",
     "contact_mode",
     "encode",
     "fit_lcs",
     "fit_mlp",
+    "fit_parc",
     "mlp_from_result",
+    "parc_from_result",
 ]
 
 
@@ -245,3 +251,71 @@ def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
         "settings": settings,
         "wall_time": time.perf_counter() - t0,
     }
+
+
+class PARCModel:
+    r"""A piecewise-affine model with a piecewise-linear partition, as PARC fits it
+    (``pyparc.parc.PARC.predict`` with numerical targets): for ``z = [x, u]`` ``(n_z,)``,
+
+        j = argmax_i  omega_i^T z + gamma_i,    x' = coef_j^T z + intercept_j,
+
+    ``omega`` ``(K, n_z)``, ``gamma`` ``(K,)``, ``coef`` ``(K, n_z, n_x)``, ``intercept`` ``(K, n_x)``.
+    """
+
+    def __init__(self, omega: np.ndarray, gamma: np.ndarray, coef: np.ndarray, intercept: np.ndarray) -> None:
+        K, n_z = omega.shape
+        if gamma.shape != (K,) or coef.shape[:2] != (K, n_z) or intercept.shape != (K, coef.shape[2]):
+            raise ValueError(f"omega, gamma, coef, intercept: expected shapes (K, n_z), (K,), (K, n_z, n_x), "
+                             f"(K, n_x), received {omega.shape}, {gamma.shape}, {coef.shape}, {intercept.shape}")
+        self.omega, self.gamma, self.coef, self.intercept = omega, gamma, coef, intercept
+
+    @classmethod
+    def from_predictor(cls, predictor: Any) -> PARCModel:
+        """The arrays of a fitted ``pyparc.parc.PARC`` (numerical targets, every feature used)."""
+        p = predictor
+        if any(p.categorical) or list(p.coeff_index) != list(range(p.ny)) or not np.all(p.feature_selection):
+            raise ValueError("predictor: expected a PARC fit with numerical targets and every feature "
+                             f"selected, received categorical={p.categorical}, coeff_index={p.coeff_index}")
+        return cls(*(np.array(a, dtype=np.float64) for a in (p.omega, np.ravel(p.gamma), p.coef_, p.intercept_)))
+
+    def piece(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The piece ``j`` ``(N,)`` of every sample."""
+        return np.argmax(np.hstack([x, u]) @ self.omega.T + self.gamma, axis=1)
+
+    def predict(self, x: np.ndarray, u: np.ndarray, contact: np.ndarray | None = None) -> np.ndarray:
+        z = np.hstack([x, u])
+        j = np.argmax(z @ self.omega.T + self.gamma, axis=1)
+        return np.einsum("nz,nzx->nx", z, self.coef[j]) + self.intercept[j]
+
+
+def fit_parc(job: dict[str, Any]) -> dict[str, Any]:
+    """Fit the PARC baseline (a process-pool job; plain data in, plain data out) through
+    :func:`lcs_cvx.study.baselines.parc.fit` on the raw ``[x, u] -> x'`` data.
+
+    ``job``: ``x, u, x_next`` (training, physical units), ``options`` (the complete options of
+    ``lcs_cvx.study.baselines.OPTIONS["parc"]``), ``modes`` (K where ``options["K"] == "modes"``),
+    ``seed``. Returns the :class:`PARCModel` arrays ``omega, gamma, coef, intercept``, ``info``
+    (K asked, pieces kept, iterations, final cost) and ``wall_time``; a fit in which ``pyparc``
+    raises returns ``omega = None`` and ``error`` (the exception's type and message).
+    """
+    from lcs_cvx.study.baselines.parc import fit, import_parc
+
+    import_parc()  # a missing extra is an error of the set-up, not a failed fit
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    train = Dataset.from_arrays(job["x"], job["u"], job["x_next"])
+    try:
+        model, info = fit(train, job["options"], seed=job["seed"], modes=job["modes"])
+        arrays = PARCModel.from_predictor(model.predictor)
+    except Exception as exc:  # noqa: BLE001 -- any failure of pyparc's fit is reported in the study's tables
+        return {"omega": None, "gamma": None, "coef": None, "intercept": None, "info": None,
+                "wall_time": time.perf_counter() - t0, "error": f"{type(exc).__name__}: {exc}"}
+    return {"omega": arrays.omega, "gamma": arrays.gamma, "coef": arrays.coef, "intercept": arrays.intercept,
+            "info": info, "wall_time": time.perf_counter() - t0, "error": None}
+
+
+def parc_from_result(result: dict[str, Any]) -> PARCModel:
+    """The :class:`PARCModel` of a :func:`fit_parc` result that did not fail."""
+    if result.get("error") is not None:
+        raise ValueError(f"result: expected a PARC fit that succeeded, received the error {result['error']!r}")
+    return PARCModel(*(np.asarray(result[k], dtype=np.float64) for k in ("omega", "gamma", "coef", "intercept")))

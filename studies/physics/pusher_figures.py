@@ -25,7 +25,7 @@ def plot_learning_curve(per_size: dict[str, Any], H: int, path: str) -> None:
     set_names = list(per_size[sizes[0]]["sets"])
     fig, axes = plt.subplots(len(set_names), 2, figsize=(12, 4.2 * len(set_names)), squeeze=False)
     for i, set_name in enumerate(set_names):
-        names = [r["name"] for r in per_size[sizes[0]]["sets"][set_name] if not r.get("pending")]
+        names = list(dict.fromkeys(r["name"] for n in sizes for r in per_size[n]["sets"][set_name]))
         for j, (label, value) in enumerate((("one-step error in contact", lambda r: r["one_step"]["contact"]),
                                             (f"{H}-step rollout error", lambda r: r["rollout"][str(H)]))):
             ax = axes[i, j]
@@ -33,7 +33,8 @@ def plot_learning_curve(per_size: dict[str, Any], H: int, path: str) -> None:
                 ys = []
                 for n in sizes:
                     row = next((r for r in per_size[n]["sets"][set_name] if r["name"] == name), None)
-                    ys.append(np.nan if row is None or not np.isfinite(value(row)) else value(row))
+                    failed = row is None or row["error"] is not None  # a failed fit: no point
+                    ys.append(np.nan if failed or not np.isfinite(value(row)) else value(row))
                 ax.plot([int(n) for n in sizes], ys, "o-" if name.startswith("LCS") else "s:", lw=1.6, ms=4, label=name)
             ax.set_xscale("log")
             ax.set_yscale("log")

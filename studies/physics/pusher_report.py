@@ -73,6 +73,34 @@ def _system(s: dict[str, Any], cfg: dict[str, Any], H: int) -> list[str]:
     return out + _table(["set", "samples", "trajectories", *MODES, f"{H}-step windows"], rows)
 
 
+def _parc(s: dict[str, Any], cfg: dict[str, Any]) -> str:
+    """The PARC bullet: what it is, its settings and, per training size, its fit (wall time,
+    pieces kept, iterations) or the error it failed with."""
+    pc = cfg["parc"]
+    fits = []
+    for n in sorted(s["sizes"], key=int):
+        r = s["sizes"][n]["selection"].get("parc")
+        if r is None:
+            continue
+        if r["error"] is not None:
+            fits.append(f"N = {n}: **failed** after {r['wall_time']:.1f} s ({r['error']})")
+        else:
+            fits.append(f"N = {n}: {r['wall_time']:.1f} s, {r['info']['K_final']} pieces kept, "
+                        f"{r['info']['iterations']} iterations")
+    K = "the number of true contact modes, 4" if pc["K"] == "modes" else str(pc["K"])
+    return ("- **PARC (piecewise-affine regression)**: piecewise-affine regression and classification (Bemporad, "
+            "IEEE TAC 2023; package `pyparc`, through `lcs_cvx.study.baselines.parc`): K affine maps "
+            "x' = A_j x + B_j u + d_j on the cells of a piecewise-linear partition of [x; u] "
+            "(j = argmax_i ω_iᵀ[x; u] + γ_i), fitted together by block-coordinate descent from a k-means++ "
+            "clustering, on the same training samples in physical units ([x, u] → x', as the authors call it). "
+            f"K = {K} (told how many modes there are, not which sample is in which), separation "
+            f"{pc['separation']}, σ = {pc['sigma']:g}, α = {pc['alpha']:g}, β = {pc['beta']:g}, at most "
+            f"{pc['maxiter']} iterations, cost tolerance {pc['cost_tol']:g}, clusters under {pc['min_number']} "
+            f"samples merged, fit_on_partition = {str(pc['fit_on_partition']).lower()}, {pc['kmeans_init']} "
+            f"k-means++ starts, seed {pc['seed']} (the authors' settings); one fit per training size, nothing "
+            "selected. Fit wall time (one thread): " + "; ".join(fits) + ".")
+
+
 def _models(s: dict[str, Any], cfg: dict[str, Any], H: int) -> list[str]:
     lc, mc = cfg["lcs"], cfg["mlp"]
     opts = "; ".join(f"{loss} loss: " + ", ".join(f"{k}={v}" for k, v in lc[loss].items()) for loss in lc["losses"])
@@ -94,7 +122,7 @@ def _models(s: dict[str, Any], cfg: dict[str, Any], H: int) -> list[str]:
         "validation error (the LCS's criterion) kept per training size.",
         "- **affine per true mode (oracle)**: one least-squares affine model per true contact mode "
         "(separated / sticking / sliding +y / sliding −y), told the true mode of every sample and every rollout step.",
-        "- **PARC (piecewise-affine regression)**: a place in the tables; not run yet.",
+        _parc(s, cfg),
         "",
         "One-step error: Σ‖x̂' − x'‖² / Σ‖x'‖² (the paper's e_test) over the samples of each true contact mode, "
         "over the samples in contact (every mode but separated) and over all. Rollout error at H: open-loop from "
@@ -142,7 +170,7 @@ def _learning_curve(s: dict[str, Any], H: int) -> list[str]:
             cells = [name]
             for n in sizes:
                 r = next((r for r in s["sizes"][n]["sets"][set_name] if r["name"] == name), None)
-                cells.append("–" if r is None or r.get("pending") else
+                cells.append("–" if r is None else "failed (see Models)" if r["error"] is not None else
                              f"{fmt(r['one_step']['contact'])} / {fmt(r['rollout'][str(H)])}")
             rows.append(cells)
         out += [f"{set_name}: one-step error in contact / {H}-step rollout error, per number of training samples.", ""]
@@ -156,8 +184,8 @@ def _per_mode(s: dict[str, Any], horizons: list[int]) -> list[str]:
     for set_name, rows in s["sizes"][n]["sets"].items():
         table = []
         for r in rows:
-            if r.get("pending"):
-                table.append([r["name"]] + ["not run"] + ["–"] * (len(MODES) + 1 + len(horizons)))
+            if r["error"] is not None:
+                table.append([r["name"]] + [f"fit failed: {r['error']}"] + ["–"] * (len(MODES) + 1 + len(horizons)))
                 continue
             table.append([r["name"]] + [fmt(r["one_step"][m]) for m in (*MODES, "contact", "all")]
                          + [fmt(r["rollout"][str(h)]) for h in horizons])

@@ -11,15 +11,18 @@ curve.
    its validation set the held-out trajectories interleaved with them (:func:`split_sizes`; the
    sets are nested: a larger size extends a smaller one);
 2. training: per size, one :func:`lcs_cvx.fit` per ``(loss, n_lam, seed)`` (the library normalises
-   the data and starts the model itself; the model comes back in physical units) and one MLP per
-   point of the ``[mlp]`` grid -- the jobs of :mod:`studies.physics.jobs`, run on an
+   the data and starts the model itself; the model comes back in physical units), one MLP per
+   point of the ``[mlp]`` grid and one PARC fit (``[parc]``: piecewise-affine regression and
+   classification on the raw ``[x, u] -> x'`` data, :func:`studies.physics.models.fit_parc`,
+   by default with K = 4 pieces, the number of true contact modes, and the authors' other
+   settings) -- the jobs of :mod:`studies.physics.jobs`, run on an
    :mod:`lcs_cvx.study.executors` executor and stored in ``<out>/studies.sqlite`` as they finish
    (a second run resumes, running only what is missing);
 3. selection, per size, on the validation set alone: per ``(loss, n_lam)`` the restart with the
    lowest one-step validation error; per loss the ``n_lam`` that
    :func:`lcs_cvx.selection.choose` picks from those errors; the MLP grid point with the lowest
-   one-step validation error (the same relative error as the LCS's). The affine least-squares
-   model and the per-mode oracle are fitted here;
+   one-step validation error (the same relative error as the LCS's). PARC has one fit per size
+   (nothing to select). The affine least-squares model and the per-mode oracle are fitted here;
 4. evaluation (:mod:`studies.physics.evaluation`): one-step error per true contact mode and
    open-loop rollout errors on the test and wide-input sets, for every size (the rollouts are
    :func:`studies.physics.evaluation.rollout_errors` rather than :func:`lcs_cvx.rollout_error`
@@ -43,6 +46,9 @@ from typing import Any
 
 import numpy as np
 
+from lcs_cvx.study.baselines import OPTIONS as BASELINE_OPTIONS
+from lcs_cvx.study.baselines import baseline_options
+
 from .config import check_sections, from_table, lcs_section, section
 from .jobs import make_job, run_jobs
 from .pusher_plant import (
@@ -56,13 +62,13 @@ from .pusher_plant import (
     sample_transitions,
 )
 
-__all__ = ["CONFIG_SECTIONS", "BASELINES", "PENDING", "parse_config", "split_sizes", "run_study"]
+__all__ = ["CONFIG_SECTIONS", "BASELINES", "PARC", "parse_config", "split_sizes", "run_study"]
 
-CONFIG_SECTIONS = ("physics", "sampling", "data", "lcs", "mlp", "eval")
+CONFIG_SECTIONS = ("physics", "sampling", "data", "lcs", "mlp", "parc", "eval")
+#: PARC's name in the tables.
+PARC = "PARC (piecewise-affine regression)"
 #: The baselines, in the order of the tables.
-BASELINES = ("affine (least squares)", "MLP", "affine per true mode (oracle)")
-#: Baselines with a place in the tables and no implementation yet.
-PENDING = ("PARC (piecewise-affine regression)",)
+BASELINES = ("affine (least squares)", "MLP", "affine per true mode (oracle)", PARC)
 
 _DATA_DEFAULTS = {"sizes": [500, 2000, 10000, 20000], "n_test": 5000, "n_wide": 5000, "seed_train": 0,
                   "seed_test": 1, "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
@@ -73,6 +79,9 @@ _LCS_DEFAULTS = {"n_lam": [4, 8, 16, 24], "losses": ["violation", "prediction"],
                                 "keep_best": True}}
 _MLP_DEFAULTS = {"hidden": [[64, 64], [128, 128], [64, 64, 64]], "weight_decay": [0.0, 1e-4],
                  "iterations": 20000, "batch_size": 256, "lr": 3e-3, "seed": 0}
+#: The options of :mod:`lcs_cvx.study.baselines.parc` (the authors' settings), K = the four true
+#: contact modes, and the seed of its k-means++ starts.
+_PARC_DEFAULTS = {**{k: default for k, (default, _) in BASELINE_OPTIONS["parc"].items()}, "K": len(MODES), "seed": 0}
 _EVAL_DEFAULTS = {"horizons": [1, 5, 20], "target": 1.5}
 
 
@@ -100,6 +109,11 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
         raise ValueError(f"config: mlp.hidden: expected a list of layer-width lists such as [[64, 64]], "
                          f"received {mlp['hidden']!r}")
     _distinct_list("mlp.weight_decay", mlp["weight_decay"], False, 0)
+    parc = section(config, "parc", _PARC_DEFAULTS)
+    seed = parc.pop("seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"config: parc.seed: expected an integer >= 0, received {seed!r}")
+    parc = {**baseline_options("parc", parc, where="config"), "seed": seed}
     return {
         "name": config.get("name", "pusher_slider"),
         "physics": from_table(Physics, config.get("physics"), "config: [physics]"),
@@ -107,6 +121,7 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
         "data": data,
         "lcs": lcs_section(config, _LCS_DEFAULTS),
         "mlp": mlp,
+        "parc": parc,
         "eval": section(config, "eval", _EVAL_DEFAULTS),
     }
 
@@ -146,11 +161,14 @@ def _data(cfg: dict[str, Any]) -> tuple[dict[int, tuple[PusherTransitions, Pushe
 def _jobs(cfg: dict[str, Any], splits: dict[int, tuple[PusherTransitions, PusherTransitions]], scalings: dict[int, Any]
           ) -> tuple[list[dict[str, Any]], list[tuple]]:
     """The jobs of every size (the largest size and ``n_lam`` first: the slowest start first),
-    and a tag per job: ``("lcs", size, loss, n_lam, init, seed)`` or ``("mlp", size, hidden,
-    weight_decay)``; the restarts of an ``(n_lam, loss)`` are every start ``init`` with every seed."""
+    and a tag per job: ``("lcs", size, loss, n_lam, init, seed)``, ``("mlp", size, hidden,
+    weight_decay)`` or ``("parc", size)``; the restarts of an ``(n_lam, loss)`` are every start
+    ``init`` with every seed."""
     from .models import encode
 
     lc, mc = cfg["lcs"], cfg["mlp"]
+    parc = dict(cfg["parc"])
+    parc_seed = parc.pop("seed")
     jobs, tags = [], []
     for n in sorted(splits, reverse=True):
         train, val = splits[n]
@@ -175,6 +193,9 @@ def _jobs(cfg: dict[str, Any], splits: dict[int, tuple[PusherTransitions, Pusher
                     "z": z, "v": v, "y": y, "z_val": zv, "v_val": vv, "y_val": yv, "hidden": hidden,
                     "weight_decay": float(wd), **{k: mc[k] for k in ("iterations", "batch_size", "lr", "seed")}}))
                 tags.append(("mlp", n, tuple(hidden), float(wd)))
+        jobs.append(make_job("fit_parc", {"x": train.x, "u": train.u, "x_next": train.x_next, "options": parc,
+                                          "modes": len(MODES), "seed": int(parc_seed)}))
+        tags.append(("parc", n))
     return jobs, tags
 
 
@@ -182,16 +203,18 @@ def _jobs(cfg: dict[str, Any], splits: dict[int, tuple[PusherTransitions, Pusher
 def _select(cfg: dict[str, Any], tags: list[tuple], results: list[dict[str, Any]],
             splits: dict[int, tuple[PusherTransitions, PusherTransitions]], scalings: dict[int, Any]
             ) -> tuple[dict[int, dict[str, Any]], dict[int, dict[str, Any]]]:
-    """Per size: the chosen models (``"LCS, <loss> loss"`` and ``"MLP"``) and the selection
-    record (every restart's and grid point's validation error, the n_λ chosen)."""
+    """Per size: the chosen models (``"LCS, <loss> loss"``, ``"MLP"`` and ``"PARC"``, each
+    ``(validation error, model, result)``) and the selection record (every restart's and grid
+    point's validation error, the n_λ chosen, PARC's fit: its validation error, wall time, the
+    fit's ``info`` and the ``error`` of a fit that failed)."""
     from lcs_cvx.selection import choose
 
     from . import evaluation as ev
-    from .models import LCSModel, mlp_from_result
+    from .models import LCSModel, mlp_from_result, parc_from_result
 
     n_x, n_u = len(STATE_NAMES), len(INPUT_NAMES)
     chosen: dict[int, dict[str, Any]] = {n: {} for n in splits}
-    record: dict[int, dict[str, Any]] = {n: {"lcs": [], "mlp": [], "n_lam": {}} for n in splits}
+    record: dict[int, dict[str, Any]] = {n: {"lcs": [], "mlp": [], "n_lam": {}, "parc": None} for n in splits}
     best: dict[tuple[int, str, int], tuple[float, dict[str, Any], int]] = {}
     for tag, res in zip(tags, results, strict=True):
         n, val = tag[1], splits[tag[1]][1]
@@ -203,6 +226,15 @@ def _select(cfg: dict[str, Any], tags: list[tuple], results: list[dict[str, Any]
             key = (n, loss, n_lam)
             if res["matrices"] is not None and (key not in best or res["val_error"] < best[key][0]):
                 best[key] = (res["val_error"], res, f"{init} {seed}")
+        elif tag[0] == "parc":
+            rec = {"val_error": None, "wall_time": res["wall_time"], "info": res["info"], "error": res["error"]}
+            if res["error"] is None:
+                model = parc_from_result(res)
+                rec["val_error"] = ev.relative_error(model.predict(val.x, val.u), val.x_next)
+                chosen[n]["PARC"] = (rec["val_error"], model, res)
+            else:
+                _log(f"size {n}: PARC failed: {res['error']}")
+            record[n]["parc"] = rec
         else:
             model = mlp_from_result(res, scalings[n], n_x + n_u, n_x)
             err = ev.relative_error(model.predict(val.x, val.u), val.x_next)
@@ -225,10 +257,11 @@ def _select(cfg: dict[str, Any], tags: list[tuple], results: list[dict[str, Any]
 
 
 # -- evaluation --------------------------------------------------------------------------------
-def _rows(models: dict[str, Any], sets: dict[str, PusherTransitions], horizons: list[int]
-          ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, dict[str, np.ndarray]]]:
-    """Per set, one row per model (one-step error per mode, rollout errors), and the rollout
-    error curves."""
+def _rows(models: dict[str, Any], sets: dict[str, PusherTransitions], horizons: list[int],
+          failed: dict[str, str]) -> tuple[dict[str, list[dict[str, Any]]], dict[str, dict[str, np.ndarray]]]:
+    """Per set, one row per model (one-step error per mode, rollout errors, ``"error": None``)
+    and one per model whose fit ``failed`` (``{name: error}``: no numbers, its ``"error"``), and
+    the rollout error curves."""
     from . import evaluation as ev
 
     H = max(horizons)
@@ -241,8 +274,9 @@ def _rows(models: dict[str, Any], sets: dict[str, PusherTransitions], horizons: 
             curves[set_name][name] = errs
             rows[set_name].append({"name": name, "one_step": ev.mode_errors(model, data, MODES),
                                    "rollout": {str(h): float(errs[h - 1]) for h in horizons},
-                                   "rollout_curve": [float(e) for e in errs]})
-        rows[set_name] += [{"name": name, "one_step": None, "rollout": None, "pending": True} for name in PENDING]
+                                   "rollout_curve": [float(e) for e in errs], "error": None})
+        rows[set_name] += [{"name": name, "one_step": None, "rollout": None, "rollout_curve": None, "error": err}
+                           for name, err in failed.items()]
     return rows, curves
 
 
@@ -290,6 +324,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2, scheduler:
 
     import lcs_cvx
     from lcs_cvx.scaling import Scaling
+    from lcs_cvx.study.baselines.parc import import_parc
 
     from . import evaluation as ev
     from . import pusher_figures as figs
@@ -300,6 +335,7 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2, scheduler:
     torch.set_num_threads(1)
     t_start = time.perf_counter()
     cfg = parse_config(config)
+    import_parc()  # before any training: PARC needs the extra "baselines"
     phys, lc, horizons = cfg["physics"], cfg["lcs"], [int(h) for h in cfg["eval"]["horizons"]]
     H, sizes = max(horizons), cfg["data"]["sizes"]
     os.makedirs(os.path.join(out_dir, "models"), exist_ok=True)
@@ -327,7 +363,12 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 2, scheduler:
         if "MLP" in chosen[n]:
             models["MLP"] = chosen[n]["MLP"][1]
         models["affine per true mode (oracle)"] = ModeAffineModel.fit(train.x, train.u, train.x_next, train.contact)
-        rows, curves = _rows(models, sets, horizons)
+        failed = {}
+        if "PARC" in chosen[n]:
+            models[PARC] = chosen[n]["PARC"][1]
+        elif record[n]["parc"] is not None:
+            failed[PARC] = record[n]["parc"]["error"]
+        rows, curves = _rows(models, sets, horizons, failed)
         per_size[str(n)] = {"n_train": len(train), "n_validation": len(splits[n][1]), "sets": rows,
                             "selection": record[n]}
         for loss, sel in record[n]["n_lam"].items():
