@@ -108,6 +108,60 @@ def test_restarts_pick_the_best_on_holdout(small):
     assert {h["restart"] for h in result.history} == {0, 1, 2}
 
 
+def test_kept_fit_compares_the_last_refined_loss_with_the_last_adam_loss():
+    from lcs_cvx.train.driver import kept_fit
+
+    h = [{"phase": "adam", "loss": 1e-4}, {"phase": "adam", "loss": 2e-5},
+         {"phase": "gauss-newton", "loss": 9e-5}, {"phase": "gauss-newton", "loss": 5e-5}]
+    assert kept_fit(h, 3.0) and not kept_fit(h, 2.0)
+    assert kept_fit(h, None)
+    assert kept_fit(h[:2], 1.0)  # no refinement: nothing could lose the fit
+    assert kept_fit(h[2:], 1.0)  # no Adam phase: nothing to compare with
+    assert not kept_fit(h + [{"phase": "polish", "loss": 1e-9}], 2.0)  # polish is not refinement
+
+
+def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypatch):
+    from lcs_cvx.train import driver
+
+    _, train, _ = small
+    verdicts, tolerances = iter([False, True]), []
+
+    def verdict(history, tolerance):
+        tolerances.append(tolerance)
+        return next(verdicts)
+
+    monkeypatch.setattr(driver, "kept_fit", verdict)
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+                         eval_every=10, refine="gauss-newton", refine_iterations=2, restarts=4,
+                         restart_tolerance=3.0)
+    assert tolerances == [3.0, 3.0]  # the second run kept its fit: restarts 2 and 3 never ran
+    assert len(result.restart_scores) == 2
+    assert {h["restart"] for h in result.history} == {0, 1}
+
+
+def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small):
+    _, train, _ = small
+    options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
+                   refine_iterations=2, restarts=3)
+    once = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, restart_tolerance=1e9, **options)
+    every = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, **options)
+    assert len(once.restart_scores) == 1 and len(every.restart_scores) == 3
+    assert once.restart_scores[0] == every.restart_scores[0]  # the same first run
+
+
+@pytest.mark.parametrize("value", [0.5, float("nan"), "3", True])
+def test_restart_tolerance_is_checked(small, value):
+    with pytest.raises(LCSInputError, match="restart_tolerance"):
+        resolve_options(restarts=2, restart_tolerance=value)
+
+
+def test_restart_tolerance_is_refused_with_restarts_trained_together(small):
+    _, train, _ = small
+    with pytest.raises(LCSInputError, match="restart_tolerance.*ensemble=True"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=5,
+                    restarts=2, restart_tolerance=3.0, ensemble=True)
+
+
 def test_polish_lowers_the_prediction_loss(small):
     """A final polish on the prediction loss: recorded as its own phase, counted in the
     iterations, and it lowers L_pred on the training data from where Adam on L_eps left it."""

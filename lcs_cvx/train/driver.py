@@ -57,7 +57,8 @@ class FitResult:
             since the last record) and ``max_residual`` (the worst relative KKT residual of those
             reference answers; 0.0 when there were none -- pivoting's own answers are exact).
         settings: the resolved :class:`FitOptions`.
-        restart_scores: held-out relative error of each restart (empty with one run).
+        restart_scores: held-out relative error of each restart that ran (empty with one run;
+            fewer than ``restarts`` when ``restart_tolerance`` stopped them early).
         wall_time: seconds, summed over resumed pieces.
         scaling: the normalised coordinates the model was learned in
             (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
@@ -167,6 +168,17 @@ def _dotted(d: dict, prefix: str = "") -> dict:
     for k, v in d.items():
         out.update(_dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
     return out
+
+
+def kept_fit(history: list[dict[str, Any]], tolerance: float | None) -> bool:
+    """Whether a run kept the fit its Adam phase found: its last refinement record's training
+    loss at most ``tolerance`` times its last Adam record's (True without a tolerance, and for a
+    run with no records of either phase)."""
+    adam = [h["loss"] for h in history if h["phase"] == "adam"]
+    refined = [h["loss"] for h in history if h["phase"] in ("gauss-newton", "newton")]
+    if tolerance is None or not adam or not refined:
+        return True
+    return refined[-1] <= tolerance * adam[-1]
 
 
 def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitOptions,
@@ -295,6 +307,9 @@ def fit(
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False
     learner = None
+    if ensemble and r.restart_tolerance is not None:
+        raise LCSInputError("restart_tolerance: restarts trained together all run; expected None "
+                            f"with ensemble=True, received {r.restart_tolerance!r}")
     if ensemble and callbacks:
         raise LCSInputError("callbacks: expected none with ensemble=True (the restarts are "
                             f"trained together), received {len(callbacks)}")
@@ -305,6 +320,8 @@ def fit(
             if bar is not None:
                 bar.update(bar.total - bar.n)
         for restart in range(len(done), r.restarts):
+            if r.restart_tolerance is not None and any(d.get("kept", False) for d in done):
+                break
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart,
                                score=score_on(test) if test is not None else None)
@@ -321,6 +338,7 @@ def fit(
                 state.restore_best()
             score = score_on(holdout)(learner) if holdout is not None else math.nan
             done.append({"score": score, "history": state.history,
+                         "kept": kept_fit(state.history, r.restart_tolerance),
                          "params": {k: v.detach().clone() for k, v in learner.state_dict().items()}})
             history.extend(state.history)
             if stopped:

@@ -221,6 +221,11 @@ class RunOptions:
             initialisations); the one with the lowest relative error on a held-out ``holdout``
             fraction of the data is returned.
         holdout: see ``restarts`` (only used when ``restarts > 1``).
+        restart_tolerance: with ``restarts > 1``, run a further restart only while no finished
+            run *kept its fit*: ended (after pruning and refinement) at a training loss at most
+            ``restart_tolerance`` times its loss at the end of the Adam phase (pruning extra
+            units can lose the fit Adam found; the training guide has measurements). A run
+            without pruning or refinement always keeps its fit. None: every restart runs.
         seed: seed of minibatches, restarts' initialisations and re-initialisations.
         eval_every: Adam and polish steps between history records.
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
@@ -241,6 +246,7 @@ class RunOptions:
 
     restarts: int = 1
     holdout: float = 0.1
+    restart_tolerance: float | None = None
     seed: int = 0
     eval_every: int = 100
     checkpoint_every: int = 500
@@ -255,6 +261,9 @@ class RunOptions:
             raise option_error("normalize", "True or False", self.normalize)
         if not (_number(self.holdout) and 0 < self.holdout < 1):
             raise option_error("holdout", "a fraction in (0, 1)", self.holdout)
+        t = self.restart_tolerance
+        if t is not None and not (_number(t) and t >= 1):
+            raise option_error("restart_tolerance", "None or a finite number >= 1", t)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise option_error("seed", "an integer", self.seed)
 

@@ -26,8 +26,8 @@ _FLAT: dict[str, tuple[str, str]] = {
     "refine": ("refine", "method"), "refine_iterations": ("refine", "iterations"),
     "refine_batch": ("refine", "batch_size"), "damping": ("refine", "damping"),
     "polish_iterations": ("polish", "iterations"), "polish_lr": ("polish", "lr"),
-    **{k: ("run", k) for k in ("restarts", "holdout", "seed", "eval_every", "checkpoint_every",
-                               "keep_best", "normalize", "init")},
+    **{k: ("run", k) for k in ("restarts", "holdout", "restart_tolerance", "seed", "eval_every",
+                               "checkpoint_every", "keep_best", "normalize", "init")},
 }
 
 #: (group, field) -> the flat keyword that sets it
