@@ -24,12 +24,15 @@ import torch
 
 import lcs_cvx
 from lcs_cvx.cli import main
-from lcs_cvx.study import Store, cell_seeds, expand, load_config, run_config
+from lcs_cvx.study import Store, cell_seeds, config_hash, expand, load_config, report, run_config
 from lcs_cvx.study.cells import REFERENCE, run_cell, setup_cell
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "studies" / "configs"
-SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
+SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml") if not p.stem.endswith("_best_smoke"))
+#: The best-recipe panels, each reported beside its paper-recipe study (``compare``).
+BEST = {"fig1a_n_lam_best": "fig1a_n_lam", "fig1b_n_x_best": "fig1b_n_x",
+        "fig1c_stiffness_best": "fig1c_stiffness"}
 PANELS = {"fig1a_n_lam_smoke": "a", "fig1b_n_x_smoke": "b", "fig1c_stiffness_smoke": "c",
           "fig1d_gamma_smoke": "d", "fig1e_eps_smoke": "e"}
 
@@ -352,6 +355,9 @@ GOOD = f'extends = "{(CONFIGS / "fig1a_n_lam_smoke.toml").as_posix()}"\nname = "
         (GOOD + "[fit]\ngamma = 5.0\n", "fit.gamma"),  # authors' 5.0 is 2.5 here, >= 2 s = 2
         (GOOD + "[fit]\nbatch_size = 'big'\n", "fit.batch_size"),
         (GOOD + "reference_methods = ['prediction']\n", "reference_methods"),
+        (GOOD + "compare = 3\n", "compare"),
+        (GOOD + "compare = ['fig1a_n_lam']\n", "compare"),
+        (GOOD + "compare = 't'\n", "compare"),  # the study itself
         ('extends = "missing.toml"\nname = "t"\n', "missing.toml"),
         ("name = 't'\ntrials = [\n", "not valid TOML"),
     ],
@@ -383,6 +389,88 @@ def test_cli_run_with_only_runs_the_matching_cells(tmp_path, capsys):
     assert "4 cells, 0 already finished, 1 run now, 0 failed" in capsys.readouterr().out
     [row] = _rows(tmp_path)
     assert (row["value"], row["method"]) == (8.0, "violation")
+
+
+@pytest.mark.parametrize("name", [*BEST, *(f"{n}_smoke" for n in BEST)])
+def test_best_panels_train_the_paper_panels_violation_cells(name):
+    """Each best-recipe config trains the violation cells of its paper config: same seeds,
+    truths, data and starts (cell by cell), only the recipe differs; compare names it."""
+    paper_name = BEST[name.removesuffix("_smoke")] + ("_smoke" if name.endswith("_smoke") else "")
+    best, paper = load_config(CONFIGS / f"{name}.toml"), load_config(CONFIGS / f"{paper_name}.toml")
+    assert best["name"] == name and best["compare"] == paper_name
+    assert (best["recipe"], best["methods"], paper["recipe"]) == ("best", ["violation"], "paper")
+    for key in ("seed", "trials", "sweep", "system", "data", "learner", "convention", "panel"):
+        assert best[key] == paper[key], key
+    assert config_hash(best) == config_hash({k: v for k, v in best.items() if k != "compare"})
+    theirs = {(c["value_index"], c["trial"]): c for c in expand(paper) if c["method"] == "violation"}
+    ours = expand(best)
+    assert len(ours) == len(theirs) == len(paper["sweep"]["values"]) * paper["trials"]
+    for c in ours:
+        o = theirs[(c["value_index"], c["trial"])]
+        assert c["seeds"] == o["seeds"] == cell_seeds(best["seed"], c["value_index"], c["trial"])
+        assert all(c[k] == o[k] for k in ("system", "data", "learner"))
+        assert c["recipe"] == "best" and o["recipe"] == "paper" and c["key"] != o["key"]
+
+
+def _table(md: str) -> list[dict[str, str]]:
+    """The rows of the report's table, as {column: cell}."""
+    lines = [line for line in md.splitlines() if line.startswith("| ")]
+    head = [h.strip() for h in lines[0].strip("|").split("|")]
+    return [dict(zip(head, (c.strip() for c in line.strip("|").split("|")), strict=True))
+            for line in lines[1:]]
+
+
+def test_report_shows_the_compared_study_beside_the_best_one(tmp_path):
+    """A best smoke study and the violation cells of its paper smoke study in one database: the
+    best study's table has the paper study's e_test and fit time per value (recomputed from the
+    store here), the ratios, and the authors' ratio; without the paper study, one line says so."""
+    out = tmp_path / "out"
+    paper = run_config(CONFIGS / "fig1a_n_lam_smoke.toml", out=out, workers=1,
+                       only={"method": "violation"}, progress=False)
+    best = run_config(CONFIGS / "fig1a_n_lam_best_smoke.toml", out=out, workers=1, progress=False)
+    assert (paper.executed, best.executed, paper.failed + best.failed) == (2, 2, 0)
+    written = report(out)
+    assert str(out / "fig1a_n_lam_best_smoke.png") in written
+    rows = _table((out / "fig1a_n_lam_best_smoke.md").read_text())
+    md = (out / "fig1a_n_lam_best_smoke.md").read_text()
+    assert "yes, in all 2 paired cells" in md and "hash `f3e82aa25daf0bfd`" in md
+    conn = sqlite3.connect(out / "studies.sqlite")
+    stored = {(s, v): (e, t) for s, v, e, t in conn.execute(
+        "SELECT study, value, e_test, fit_wall_time FROM cells WHERE method = 'violation'")}
+    conn.close()
+    fmt = "{:.3g}".format
+    assert [r["n_λ"] for r in rows] == ["1", "4"]
+    for row in rows:
+        v = float(row["n_λ"])
+        (e_paper, t_paper), (e_best, t_best) = (stored[("fig1a_n_lam_smoke", v)],
+                                                 stored[("fig1a_n_lam_best_smoke", v)])
+        assert row["violation (best recipe) mean"] == fmt(e_best)
+        assert row["violation (paper recipe, fig1a_n_lam_smoke) mean"] == fmt(e_paper)
+        assert row["violation (paper recipe, fig1a_n_lam_smoke) median"] == fmt(e_paper)
+        assert row["violation mean: fig1a_n_lam_smoke / this study"] == fmt(e_paper / e_best)
+        assert row["fit s / cell"] == fmt(t_best)
+        assert row["fit s / cell (fig1a_n_lam_smoke)"] == fmt(t_paper)
+        assert row["fit s / cell: this study / fig1a_n_lam_smoke"] == fmt(t_best / t_paper)
+    authors = {1.0: 1.01e-6, 4.0: 1.86e-4}  # studies/anchors.toml, set 1
+    assert [r["authors 1 / this study: violation mean"] for r in rows] == [
+        fmt(authors[v] / stored[("fig1a_n_lam_best_smoke", v)][0]) for v in (1.0, 4.0)]
+    assert rows[0]["authors 2 / this study: violation mean"] == "–"  # no anchor at n_lam = 1
+    assert "fit s / cell" not in (out / "fig1a_n_lam_smoke.md").read_text()  # no compare key
+    # the compared study gone from the database: one line, no comparison columns
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    src, dst = sqlite3.connect(out / "studies.sqlite"), sqlite3.connect(alone / "studies.sqlite")
+    src.backup(dst)
+    src.close()
+    dst.execute("DELETE FROM studies WHERE name = 'fig1a_n_lam_smoke'")
+    dst.commit()
+    dst.close()
+    report(alone)
+    md = (alone / "fig1a_n_lam_best_smoke.md").read_text()
+    assert "paper recipe" not in md and "fit s / cell" not in md
+    [line] = [line for line in md.splitlines() if "`fig1a_n_lam_smoke`" in line]
+    assert line == ("- Compared study `fig1a_n_lam_smoke` (`compare`): not in this database; run "
+                    "its config with the same `--out` to show it here.")
 
 
 def test_recipe_best_runs_both_methods(tmp_path):
