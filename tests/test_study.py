@@ -26,6 +26,7 @@ import lcs_cvx
 from lcs_cvx.cli import main
 from lcs_cvx.study import Store, cell_seeds, config_hash, expand, load_config, report, run_config
 from lcs_cvx.study.cells import REFERENCE, run_cell, setup_cell
+from lcs_cvx.study.report import load_anchors
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "studies" / "configs"
@@ -420,56 +421,65 @@ def _table(md: str) -> list[dict[str, str]]:
             for line in lines[1:]]
 
 
-def test_report_shows_the_compared_study_beside_the_best_one(tmp_path):
+@pytest.mark.parametrize("name", [f"{n}_smoke" for n in BEST])
+def test_report_shows_the_compared_study_beside_the_best_one(tmp_path, name):
     """A best smoke study and the violation cells of its paper smoke study in one database: the
     best study's table has the paper study's e_test and fit time per value (recomputed from the
     store here), the ratios, and the authors' ratio; without the paper study, one line says so."""
+    paper_name = load_config(CONFIGS / f"{name}.toml")["compare"]
     out = tmp_path / "out"
-    paper = run_config(CONFIGS / "fig1a_n_lam_smoke.toml", out=out, workers=1,
+    paper = run_config(CONFIGS / f"{paper_name}.toml", out=out, workers=1,
                        only={"method": "violation"}, progress=False)
-    best = run_config(CONFIGS / "fig1a_n_lam_best_smoke.toml", out=out, workers=1, progress=False)
+    best = run_config(CONFIGS / f"{name}.toml", out=out, workers=1, progress=False)
     assert (paper.executed, best.executed, paper.failed + best.failed) == (2, 2, 0)
     written = report(out)
-    assert str(out / "fig1a_n_lam_best_smoke.png") in written
-    rows = _table((out / "fig1a_n_lam_best_smoke.md").read_text())
-    md = (out / "fig1a_n_lam_best_smoke.md").read_text()
-    assert "yes, in all 2 paired cells" in md and "hash `f3e82aa25daf0bfd`" in md
+    assert str(out / f"{name}.png") in written
+    md = (out / f"{name}.md").read_text()
+    rows = _table(md)
+    with Store(out) as store:
+        [hash_paper] = [s["config_hash"] for s in store.studies() if s["name"] == paper_name]
+    assert "yes, in all 2 paired cells" in md and f"hash `{hash_paper}`" in md
     conn = sqlite3.connect(out / "studies.sqlite")
     stored = {(s, v): (e, t) for s, v, e, t in conn.execute(
         "SELECT study, value, e_test, fit_wall_time FROM cells WHERE method = 'violation'")}
     conn.close()
+    config = load_config(CONFIGS / f"{name}.toml")
+    label = config["sweep"]["label"]
+    assert [float(r[label]) for r in rows] == config["sweep"]["values"]
+    sets = load_anchors(str(ROOT / "studies" / "anchors.toml")).get(config["panel"], {})
+    sets = sets.get("sets", []) if sets.get("param") == config["sweep"]["param"] else []
     fmt = "{:.3g}".format
-    assert [r["n_λ"] for r in rows] == ["1", "4"]
+    paired = f"violation (paper recipe, {paper_name})"
     for row in rows:
-        v = float(row["n_λ"])
-        (e_paper, t_paper), (e_best, t_best) = (stored[("fig1a_n_lam_smoke", v)],
-                                                 stored[("fig1a_n_lam_best_smoke", v)])
+        v = float(row[label])
+        (e_paper, t_paper), (e_best, t_best) = stored[(paper_name, v)], stored[(name, v)]
         assert row["violation (best recipe) mean"] == fmt(e_best)
-        assert row["violation (paper recipe, fig1a_n_lam_smoke) mean"] == fmt(e_paper)
-        assert row["violation (paper recipe, fig1a_n_lam_smoke) median"] == fmt(e_paper)
-        assert row["violation mean: fig1a_n_lam_smoke / this study"] == fmt(e_paper / e_best)
+        assert row[f"{paired} mean"] == row[f"{paired} median"] == fmt(e_paper)
+        assert row[f"violation mean: {paper_name} / this study"] == fmt(e_paper / e_best)
         assert row["fit s / cell"] == fmt(t_best)
-        assert row["fit s / cell (fig1a_n_lam_smoke)"] == fmt(t_paper)
-        assert row["fit s / cell: this study / fig1a_n_lam_smoke"] == fmt(t_best / t_paper)
-    authors = {1.0: 1.01e-6, 4.0: 1.86e-4}  # studies/anchors.toml, set 1
-    assert [r["authors 1 / this study: violation mean"] for r in rows] == [
-        fmt(authors[v] / stored[("fig1a_n_lam_best_smoke", v)][0]) for v in (1.0, 4.0)]
-    assert rows[0]["authors 2 / this study: violation mean"] == "–"  # no anchor at n_lam = 1
-    assert "fit s / cell" not in (out / "fig1a_n_lam_smoke.md").read_text()  # no compare key
+        assert row[f"fit s / cell ({paper_name})"] == fmt(t_paper)
+        assert row[f"fit s / cell: this study / {paper_name}"] == fmt(t_best / t_paper)
+        for k, aset in enumerate(sets):
+            authors = [r["violation_mean"] for r in aset["rows"]
+                       if math.isclose(r["value"], v) and "violation_mean" in r]
+            col = f"authors{f' {k + 1}' if len(sets) > 1 else ''} / this study: violation mean"
+            assert row[col] == (fmt(authors[0] / e_best) if authors else "–")
+    assert bool(sets) == ("| authors" in md)  # (a), (c) have the authors' means, (b) none
+    assert "fit s / cell" not in (out / f"{paper_name}.md").read_text()  # no compare key
     # the compared study gone from the database: one line, no comparison columns
     alone = tmp_path / "alone"
     alone.mkdir()
     src, dst = sqlite3.connect(out / "studies.sqlite"), sqlite3.connect(alone / "studies.sqlite")
     src.backup(dst)
     src.close()
-    dst.execute("DELETE FROM studies WHERE name = 'fig1a_n_lam_smoke'")
+    dst.execute("DELETE FROM studies WHERE name = ?", (paper_name,))
     dst.commit()
     dst.close()
     report(alone)
-    md = (alone / "fig1a_n_lam_best_smoke.md").read_text()
+    md = (alone / f"{name}.md").read_text()
     assert "paper recipe" not in md and "fit s / cell" not in md
-    [line] = [line for line in md.splitlines() if "`fig1a_n_lam_smoke`" in line]
-    assert line == ("- Compared study `fig1a_n_lam_smoke` (`compare`): not in this database; run "
+    [line] = [line for line in md.splitlines() if f"`{paper_name}`" in line]
+    assert line == (f"- Compared study `{paper_name}` (`compare`): not in this database; run "
                     "its config with the same `--out` to show it here.")
 
 
