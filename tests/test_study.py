@@ -2,7 +2,8 @@
 process pool, finished cells are skipped, an interrupted run resumes without duplicates, a Dask
 LocalCluster and a real `dask scheduler` + `dask worker` on loopback give the same numbers, the
 store keeps a module study's job results exactly, the report writes figures and tables with the
-authors' numbers, and config errors name the file and the key."""
+authors' numbers (and a best-recipe panel's beside its paper-recipe panel's: `compare`), and
+config errors name the file and the key."""
 
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ from lcs_cvx.study.report import load_anchors
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "studies" / "configs"
-SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml") if not p.stem.endswith("_best_smoke"))
+SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml")
+               if not p.stem.endswith("_best_smoke"))
 #: The best-recipe panels, each reported beside its paper-recipe study (``compare``).
 BEST = {"fig1a_n_lam_best": "fig1a_n_lam", "fig1b_n_x_best": "fig1b_n_x",
         "fig1c_stiffness_best": "fig1c_stiffness"}
