@@ -2,7 +2,8 @@
 process pool, finished cells are skipped, an interrupted run resumes without duplicates, a Dask
 LocalCluster and a real `dask scheduler` + `dask worker` on loopback give the same numbers, the
 store keeps a module study's job results exactly, the report writes figures and tables with the
-authors' numbers, and config errors name the file and the key."""
+authors' numbers (and a best-recipe panel's beside its paper-recipe panel's: `compare`), and
+config errors name the file and the key."""
 
 from __future__ import annotations
 
@@ -24,12 +25,17 @@ import torch
 
 import lcs_cvx
 from lcs_cvx.cli import main
-from lcs_cvx.study import Store, cell_seeds, expand, load_config, run_config
+from lcs_cvx.study import Store, cell_seeds, config_hash, expand, load_config, report, run_config
 from lcs_cvx.study.cells import REFERENCE, run_cell, setup_cell
+from lcs_cvx.study.report import load_anchors
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "studies" / "configs"
-SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml"))
+SMOKE = sorted(p.stem for p in CONFIGS.glob("fig1*_smoke.toml")
+               if not p.stem.endswith("_best_smoke"))
+#: The best-recipe panels, each reported beside its paper-recipe study (``compare``).
+BEST = {"fig1a_n_lam_best": "fig1a_n_lam", "fig1b_n_x_best": "fig1b_n_x",
+        "fig1c_stiffness_best": "fig1c_stiffness"}
 PANELS = {"fig1a_n_lam_smoke": "a", "fig1b_n_x_smoke": "b", "fig1c_stiffness_smoke": "c",
           "fig1d_gamma_smoke": "d", "fig1e_eps_smoke": "e"}
 
@@ -352,6 +358,9 @@ GOOD = f'extends = "{(CONFIGS / "fig1a_n_lam_smoke.toml").as_posix()}"\nname = "
         (GOOD + "[fit]\ngamma = 5.0\n", "fit.gamma"),  # authors' 5.0 is 2.5 here, >= 2 s = 2
         (GOOD + "[fit]\nbatch_size = 'big'\n", "fit.batch_size"),
         (GOOD + "reference_methods = ['prediction']\n", "reference_methods"),
+        (GOOD + "compare = 3\n", "compare"),
+        (GOOD + "compare = ['fig1a_n_lam']\n", "compare"),
+        (GOOD + "compare = 't'\n", "compare"),  # the study itself
         ('extends = "missing.toml"\nname = "t"\n', "missing.toml"),
         ("name = 't'\ntrials = [\n", "not valid TOML"),
     ],
@@ -383,6 +392,97 @@ def test_cli_run_with_only_runs_the_matching_cells(tmp_path, capsys):
     assert "4 cells, 0 already finished, 1 run now, 0 failed" in capsys.readouterr().out
     [row] = _rows(tmp_path)
     assert (row["value"], row["method"]) == (8.0, "violation")
+
+
+@pytest.mark.parametrize("name", [*BEST, *(f"{n}_smoke" for n in BEST)])
+def test_best_panels_train_the_paper_panels_violation_cells(name):
+    """Each best-recipe config trains the violation cells of its paper config: same seeds,
+    truths, data and starts (cell by cell), only the recipe differs; compare names it."""
+    paper_name = BEST[name.removesuffix("_smoke")] + ("_smoke" if name.endswith("_smoke") else "")
+    best, paper = load_config(CONFIGS / f"{name}.toml"), load_config(CONFIGS / f"{paper_name}.toml")
+    assert best["name"] == name and best["compare"] == paper_name
+    assert (best["recipe"], best["methods"], paper["recipe"]) == ("best", ["violation"], "paper")
+    for key in ("seed", "trials", "sweep", "system", "data", "learner", "convention", "panel"):
+        assert best[key] == paper[key], key
+    assert config_hash(best) == config_hash({k: v for k, v in best.items() if k != "compare"})
+    theirs = {(c["value_index"], c["trial"]): c for c in expand(paper) if c["method"] == "violation"}
+    ours = expand(best)
+    assert len(ours) == len(theirs) == len(paper["sweep"]["values"]) * paper["trials"]
+    for c in ours:
+        o = theirs[(c["value_index"], c["trial"])]
+        assert c["seeds"] == o["seeds"] == cell_seeds(best["seed"], c["value_index"], c["trial"])
+        assert all(c[k] == o[k] for k in ("system", "data", "learner"))
+        assert c["recipe"] == "best" and o["recipe"] == "paper" and c["key"] != o["key"]
+
+
+def _table(md: str) -> list[dict[str, str]]:
+    """The rows of the report's table, as {column: cell}."""
+    lines = [line for line in md.splitlines() if line.startswith("| ")]
+    head = [h.strip() for h in lines[0].strip("|").split("|")]
+    return [dict(zip(head, (c.strip() for c in line.strip("|").split("|")), strict=True))
+            for line in lines[1:]]
+
+
+@pytest.mark.parametrize("name", [f"{n}_smoke" for n in BEST])
+def test_report_shows_the_compared_study_beside_the_best_one(tmp_path, name):
+    """A best smoke study and the violation cells of its paper smoke study in one database: the
+    best study's table has the paper study's e_test and fit time per value (recomputed from the
+    store here), the ratios, and the authors' ratio; without the paper study, one line says so."""
+    paper_name = load_config(CONFIGS / f"{name}.toml")["compare"]
+    out = tmp_path / "out"
+    paper = run_config(CONFIGS / f"{paper_name}.toml", out=out, workers=1,
+                       only={"method": "violation"}, progress=False)
+    best = run_config(CONFIGS / f"{name}.toml", out=out, workers=1, progress=False)
+    assert (paper.executed, best.executed, paper.failed + best.failed) == (2, 2, 0)
+    written = report(out)
+    assert str(out / f"{name}.png") in written
+    md = (out / f"{name}.md").read_text()
+    rows = _table(md)
+    with Store(out) as store:
+        [hash_paper] = [s["config_hash"] for s in store.studies() if s["name"] == paper_name]
+    assert "yes, in all 2 paired cells" in md and f"hash `{hash_paper}`" in md
+    conn = sqlite3.connect(out / "studies.sqlite")
+    stored = {(s, v): (e, t) for s, v, e, t in conn.execute(
+        "SELECT study, value, e_test, fit_wall_time FROM cells WHERE method = 'violation'")}
+    conn.close()
+    config = load_config(CONFIGS / f"{name}.toml")
+    label = config["sweep"]["label"]
+    assert [float(r[label]) for r in rows] == config["sweep"]["values"]
+    sets = load_anchors(str(ROOT / "studies" / "anchors.toml")).get(config["panel"], {})
+    sets = sets.get("sets", []) if sets.get("param") == config["sweep"]["param"] else []
+    fmt = "{:.3g}".format
+    paired = f"violation (paper recipe, {paper_name})"
+    for row in rows:
+        v = float(row[label])
+        (e_paper, t_paper), (e_best, t_best) = stored[(paper_name, v)], stored[(name, v)]
+        assert row["violation (best recipe) mean"] == fmt(e_best)
+        assert row[f"{paired} mean"] == row[f"{paired} median"] == fmt(e_paper)
+        assert row[f"violation mean: {paper_name} / this study"] == fmt(e_paper / e_best)
+        assert row["fit s / cell"] == fmt(t_best)
+        assert row[f"fit s / cell ({paper_name})"] == fmt(t_paper)
+        assert row[f"fit s / cell: this study / {paper_name}"] == fmt(t_best / t_paper)
+        for k, aset in enumerate(sets):
+            authors = [r["violation_mean"] for r in aset["rows"]
+                       if math.isclose(r["value"], v) and "violation_mean" in r]
+            col = f"authors{f' {k + 1}' if len(sets) > 1 else ''} / this study: violation mean"
+            assert row[col] == (fmt(authors[0] / e_best) if authors else "–")
+    assert bool(sets) == ("| authors" in md)  # (a), (c) have the authors' means, (b) none
+    assert "fit s / cell" not in (out / f"{paper_name}.md").read_text()  # no compare key
+    # the compared study gone from the database: one line, no comparison columns
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    src, dst = sqlite3.connect(out / "studies.sqlite"), sqlite3.connect(alone / "studies.sqlite")
+    src.backup(dst)
+    src.close()
+    dst.execute("DELETE FROM studies WHERE name = ?", (paper_name,))
+    dst.commit()
+    dst.close()
+    report(alone)
+    md = (alone / f"{name}.md").read_text()
+    assert "paper recipe" not in md and "fit s / cell" not in md
+    [line] = [line for line in md.splitlines() if f"`{paper_name}`" in line]
+    assert line == (f"- Compared study `{paper_name}` (`compare`): not in this database; run "
+                    "its config with the same `--out` to show it here.")
 
 
 def test_recipe_best_runs_both_methods(tmp_path):

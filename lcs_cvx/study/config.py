@@ -17,6 +17,9 @@ paper's Fig. 1 (Sec. 5.1, panels (a)-(e)). Its keys::
     time_limit = 3600               # optional: seconds per cell; a cell still running then is
                                     # killed and recorded as timed out (lcs_cvx.study.limits)
     method_trials = { parc = 3 }    # optional: fewer trials for a method (its first n trials)
+    compare = "fig1a_n_lam"         # optional: the study this one is reported beside (its e_test
+                                    # and fit time per swept value, when it is in the same
+                                    # database; lcs_cvx.study.report); not part of the config hash
     convention = "paper"            # "authors": gamma, eps (and reg for the violation loss) are
                                     # given in the authors' code's scaling and converted
     [sweep]   param = "system.n_lam", values = [...], shared_truth = false, label = "n_lam"
@@ -71,7 +74,7 @@ _VIOLATION_ONLY = {"refine": None, "extra_units": 0}
 
 _TOP = {"name", "panel", "description", "kind", "module", "extends", "seed", "trials", "methods",
         "reference_methods", "recipe", "convention", "sweep", "system", "data", "learner", "fit",
-        "time_limit", "method_trials", "baselines"}
+        "time_limit", "method_trials", "baselines", "compare"}
 #: ``"violation@best"``: the loss, the separator, the recipe.
 RECIPE_SEP = "@"
 # section -> {key: (default or REQUIRED, check)}
@@ -361,6 +364,17 @@ def _limits(where: str, raw: dict, cfg: dict[str, Any]) -> None:
         cfg["baselines"] = {m: options[m] for m in used_baselines}
 
 
+def _compare(where: str, v: Any, name: str) -> str:
+    """``compare``: the name of another study (a report shows it beside this one)."""
+    if not isinstance(v, str) or not v or any(c in v for c in "/\\ "):
+        raise _fail(where, "compare", f"expected the name of another study (a string without "
+                    f"spaces or slashes), received {v!r}")
+    if v == name:
+        raise _fail(where, "compare", f"expected the name of another study, received this "
+                    f"study's own name {v!r}")
+    return v
+
+
 def load_config(path: str | os.PathLike) -> dict[str, Any]:
     """Read, merge (``extends``), check and complete the config at ``path``.
 
@@ -411,6 +425,8 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
         cfg[name_] = _section(where, name_, raw, sweep["param"])
     cfg["fit"] = _fit_section(where, raw, sweep["param"], cfg["methods"] + cfg["reference_methods"])
     _limits(where, raw, cfg)
+    if "compare" in raw:  # only when set: a config without it keeps its stored JSON
+        cfg["compare"] = _compare(where, raw["compare"], name)
     swept_section, swept_key = sweep["param"].split(".", 1)
     if swept_section in _SECTIONS:
         check = _SECTIONS[swept_section][swept_key][1]
@@ -423,8 +439,8 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def config_hash(config: dict[str, Any]) -> str:
-    """16 hex digits of the SHA-256 of the config's canonical JSON (``description`` and ``path``
-    left out: they do not change any result)."""
-    body = {k: v for k, v in config.items() if k not in ("description", "path")}
+    """16 hex digits of the SHA-256 of the config's canonical JSON (``description``, ``path`` and
+    ``compare`` left out: they do not change any result)."""
+    body = {k: v for k, v in config.items() if k not in ("description", "path", "compare")}
     text = json.dumps(body, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -9,6 +9,15 @@ the truth (mean), mean and median e_test of each method and, where ``studies/anc
 them for the study's panel and swept parameter, the authors' numbers beside ours. Cells killed at
 the config's time limit have no e_test: they are left out of the statistics and counted in a
 line of the table's notes.
+
+A study whose config has ``compare = NAME`` is reported beside the study of that name in the same
+database (the latest one, if several have it): per swept value its table adds the compared
+study's mean and median e_test for each of this study's losses (its methods of the same loss:
+``"violation"`` under its own recipe), the ratios "compared mean / this study's mean" and, where
+the anchors have the loss's means, "authors' mean / this study's mean", and the mean fit wall
+time per cell (``fit_wall_time``) of both and its ratio; its notes say whether the paired cells
+(same value and trial) drew the same truth, data and start; its figure draws the compared boxes
+beside this study's. A compared study missing from the database is said in one line of the notes.
 """
 
 from __future__ import annotations
@@ -21,16 +30,18 @@ from typing import Any
 
 from .._checks import LCSInputError
 from .cells import REFERENCE, expand
-from .config import read_toml
+from .config import method_parts, read_toml
 from .store import Store
 
-__all__ = ["report", "load_anchors", "summarize", "default_anchors_path"]
+__all__ = ["report", "load_anchors", "summarize", "comparison", "default_anchors_path"]
 
 #: The swept values span "decades" (log x axis) when max / min reaches this.
 LOG_X_RATIO = 30.0
 _COLORS = {"prediction": "tab:blue", "violation": "tab:orange", "violation@best": "tab:red",
            "prediction@best": "tab:cyan", "parc": "tab:green", "mlp": "tab:purple",
            "affine": "tab:gray"}
+#: Colours of a compared study's boxes whose method colour this study already uses.
+_SPARE_COLORS = ("tab:brown", "tab:olive", "tab:pink", "tab:cyan")
 
 
 def default_anchors_path() -> str | None:
@@ -99,7 +110,145 @@ def _stat(xs: list[float], f) -> float | None:
     return f(xs) if xs else None
 
 
-def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
+
+def _colour_key(method: str, recipe: str) -> str:
+    """The key of :data:`_COLORS` of a method under ``recipe``: ``"violation"`` under "best" is
+    drawn as ``"violation@best"``."""
+    loss, own = method_parts(method, recipe)
+    return method if own in (None, "paper") or method != loss else f"{loss}@{own}"
+
+
+def _value_index(values: list[Any], value: Any) -> int | None:
+    for j, v in enumerate(values):
+        if math.isclose(float(v), float(value), rel_tol=1e-9):
+            return j
+    return None
+
+
+def _same_draws(this: dict[str, Any], other: dict[str, Any],
+                pairs: list[tuple[str, str]]) -> str:
+    """Whether each cell of ``this`` config and the cell of ``other`` with the same swept value,
+    trial and paired method draw the same truth, data and start (seeds, system, data, learner)."""
+    partners: dict[str, list[str]] = {}
+    for m, m2 in pairs:
+        partners.setdefault(m, []).append(m2)
+    theirs = {(float(c["value"]), c["trial"], c["method"]): c
+              for c in expand(other) if c["value"] is not None}
+    n, differ = 0, []
+    for c in expand(this):
+        for m2 in partners.get(c["method"], []) if c["value"] is not None else []:
+            o = theirs.get((float(c["value"]), c["trial"], m2))
+            if o is None:
+                continue
+            n += 1
+            if any(c[k] != o[k] for k in ("seeds", "system", "data", "learner")):
+                differ.append(c)
+    if not n:
+        return "no paired cells (no common swept value and trial)"
+    if not differ:
+        return f"yes, in all {n} paired cells (same seeds, system, data and learner)"
+    c = differ[0]
+    return (f"no: {len(differ)} of {n} paired cells differ (e.g. {c['value']:g}, trial "
+            f"{c['trial']}: seeds, system, data or learner)")
+
+
+def comparison(summary: dict[str, Any], summaries: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """The study named by ``summary``'s ``compare`` among ``summaries`` (the latest of that name)
+    and the pairs (this study's method, its method of the same loss); None without ``compare``.
+    ``{"name", "summary": None}`` when no study of that name is there."""
+    config = summary["study"]["config"]
+    name = config.get("compare")
+    if name is None:
+        return None
+    found = [s for s in summaries if s["study"]["name"] == name]
+    if not found:
+        return {"name": name, "summary": None}
+    other = found[-1]
+    oconfig = other["study"]["config"]
+    pairs, unpaired = [], []
+    for m in config["methods"]:
+        loss = method_parts(m, config["recipe"])[0]
+        same = [m2 for m2 in oconfig["methods"] if method_parts(m2, oconfig["recipe"])[0] == loss]
+        pairs += [(m, m2) for m2 in same]
+        if not same:
+            unpaired.append(m)
+    return {"name": name, "summary": other, "n_same_name": len(found), "pairs": pairs,
+            "unpaired": unpaired, "draws": _same_draws(config, oconfig, pairs)}
+
+
+def _described(method: str, recipe: str, study: str | None = None) -> str:
+    """``"violation (paper recipe, fig1a_n_lam)"``; a baseline keeps its name."""
+    loss, own = method_parts(method, recipe)
+    inside = ", ".join(x for x in ((f"{own} recipe" if own else None), study) if x)
+    return f"{loss} ({inside})" if inside else loss
+
+
+def _fit_time(rows: list[dict[str, Any]]) -> float | None:
+    return _stat([r["fit_wall_time"] for r in rows if r.get("fit_wall_time") is not None],
+                 statistics.fmean)
+
+
+def _ratio(a: Any, b: Any) -> float | None:
+    return a / b if a is not None and b is not None and b > 0 else None
+
+
+def _compare_columns(summary: dict[str, Any], compared: dict[str, Any],
+                     sets: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str]]:
+    """The comparison's header, its cells per swept value and its notes."""
+    config = summary["study"]["config"]
+    other = compared["summary"]
+    oconfig, oname = other["study"]["config"], compared["name"]
+    pairs = compared["pairs"]
+    ours_m = list(dict.fromkeys(m for m, _ in pairs))
+    theirs_m = list(dict.fromkeys(m2 for _, m2 in pairs))
+    loss = {m: method_parts(m, config["recipe"])[0] for m in config["methods"]}
+    # a method is named by its loss, unless two of this study's methods share it
+    tag = {m: (loss[m] if list(loss.values()).count(loss[m]) == 1 else m) for m in loss}
+    described = {m2: _described(m2, oconfig["recipe"], oname) for m2 in theirs_m}
+    anchored = [(k, s, m) for m in config["methods"] for k, s in enumerate(sets)
+                if any(f"{loss[m]}_mean" in r for r in s["rows"])]
+    head = [f"{described[m2]} {stat}" for m2 in theirs_m for stat in ("mean", "median")]
+    head += [f"{tag[m]} mean: {oname}{'' if len(theirs_m) == 1 else ' ' + m2} / this study"
+             for m, m2 in pairs]
+    head += [f"authors{' ' + str(k + 1) if len(sets) > 1 else ''} / this study: {tag[m]} mean"
+             for k, _, m in anchored]
+    head += ["fit s / cell", f"fit s / cell ({oname})", f"fit s / cell: this study / {oname}"]
+    rows = []
+    for i, v in enumerate(summary["values"]):
+        j = _value_index(other["values"], v)
+        theirs = {m2: _e(other["per"][(j, m2)]) if j is not None else [] for m2 in theirs_m}
+        mean = {m: _stat(_e(summary["per"][(i, m)]), statistics.fmean) for m in config["methods"]}
+        cells = [_fmt(_stat(theirs[m2], f)) for m2 in theirs_m
+                 for f in (statistics.fmean, statistics.median)]
+        cells += [_fmt(_ratio(_stat(theirs[m2], statistics.fmean), mean[m])) for m, m2 in pairs]
+        cells += [_fmt(_ratio(_anchor(s, v, f"{loss[m]}_mean"), mean[m])) for _, s, m in anchored]
+        mine = _fit_time([r for m in ours_m for r in summary["per"][(i, m)]])
+        fits = (_fit_time([r for m2 in theirs_m for r in other["per"][(j, m2)]])
+                if j is not None else None)
+        cells += [_fmt(mine), _fmt(fits), _fmt(_ratio(mine, fits))]
+        rows.append(cells)
+    study = other["study"]
+    methods = ", ".join(f"`{m2}`" for m2 in theirs_m) or "no"
+    done = sum(len(other["per"][(j, m2)]) for m2 in theirs_m for j in range(len(other["values"])))
+    several = (f" (the latest of {compared['n_same_name']} studies of that name)"
+               if compared["n_same_name"] > 1 else "")
+    notes = [f"- Compared with `{oname}`{several}: config `{study['path']}` (hash "
+             f"`{study['config_hash']}`), recipe `{oconfig['recipe']}`; its {methods} cells, "
+             f"{done} finished. Same truth, data and start per swept value and trial: "
+             f"{compared['draws']}.",
+             "- `fit s / cell`: mean `fit_wall_time` (seconds in the fit) of each study's compared "
+             "cells; wall times are comparable only when both studies ran under the same load. "
+             "The ratios divide means: an e_test ratio `… / this study` above 1 means this "
+             "study's mean e_test is lower, a fit time ratio `this study / …` below 1 that its "
+             "fits are faster."]
+    notes += [f"- `{oname}` has no method with the loss of `{m}`: no comparison columns for it."
+              for m in compared["unpaired"]]
+    return head, rows, notes
+
+
+def markdown(summary: dict[str, Any], anchors: dict[str, Any],
+             compared: dict[str, Any] | None = None) -> str:
+    """The study's markdown table and notes; ``compared``: :func:`comparison`'s result."""
     study = summary["study"]
     config = study["config"]
     label = config["sweep"]["label"]
@@ -107,12 +256,21 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
     sets = _anchor_sets(study, anchors)
     head = [label, "cells", "modes (mean)", "σ_min(F+Fᵀ) (mean)"]
     for m in methods:
-        head += [f"{m} mean", f"{m} median"]
+        d = _described(m, config["recipe"]) if compared is not None else m
+        head += [f"{d} mean", f"{d} median"]
     anchor_cols = [(k, s, metric) for k, s in enumerate(sets)
                    for metric in ("prediction_mean", "violation_mean", "modes")
                    if any(metric in r for r in s["rows"])]
     head += [f"authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {metric.replace('_', ' ')}"
              for k, _, metric in anchor_cols]
+    extra_rows: list[list[str]] = [[] for _ in summary["values"]]
+    compare_notes = []
+    if compared is not None and compared["summary"] is None:
+        compare_notes.append(f"- Compared study `{compared['name']}` (`compare`): not in this "
+                             "database; run its config with the same `--out` to show it here.")
+    elif compared is not None:
+        extra_head, extra_rows, compare_notes = _compare_columns(summary, compared, sets)
+        head += extra_head
     lines = [f"# {config['name']}" + (f" — Fig. 1({config['panel']})" if config.get("panel") else ""),
              "",
              f"config `{study['path']}` (hash `{study['config_hash']}`), recipe `{config['recipe']}`, "
@@ -133,6 +291,7 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
             xs = _e(summary["per"][(i, m)])
             cells += [_fmt(_stat(xs, statistics.fmean)), _fmt(_stat(xs, statistics.median))]
         cells += [_fmt(_anchor(s, v, metric)) for _, s, metric in anchor_cols]
+        cells += extra_rows[i]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     for m in refs:
@@ -143,6 +302,7 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any]) -> str:
     for k, s in enumerate(sets):
         note = " " + " ".join(s["note"].split()) if s.get("note") else ""
         lines.append(f"- Authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {s['label']}.{note}")
+    lines += compare_notes
     timed_out: dict[str, int] = {}
     for (_, m), rows in summary["per"].items():
         for r in rows:
@@ -165,7 +325,41 @@ def _positions(values: list[float]) -> tuple[list[float], bool]:
     return ([math.log10(v) for v in vs] if log else vs), log
 
 
-def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[str]:
+def _series(summary: dict[str, Any], compared: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """The box groups of the figure: ``{"key", "label", "color", "data": [e_test list per
+    swept value]}``, this study's methods and, with a comparison, each compared method just
+    before the method it is paired with."""
+    config = summary["study"]["config"]
+    n = len(summary["values"])
+    if compared is None or compared["summary"] is None:
+        return [{"key": m, "label": m, "color": _COLORS.get(m, "grey"),
+                 "data": [_e(summary["per"][(i, m)]) for i in range(n)]}
+                for m in config["methods"]]
+    other = compared["summary"]
+    oconfig = other["study"]["config"]
+    used = {_COLORS.get(_colour_key(m, config["recipe"]), "grey") for m in config["methods"]}
+    spare = iter(_SPARE_COLORS)
+    out = []
+    for m in config["methods"]:
+        for m0, m2 in compared["pairs"]:
+            if m0 != m:
+                continue
+            color = _COLORS.get(_colour_key(m2, oconfig["recipe"]), "grey")
+            if color in used:
+                color = next(spare, "grey")
+            used.add(color)
+            idx = [_value_index(other["values"], v) for v in summary["values"]]
+            out.append({"key": ("compared", m2), "color": color,
+                        "label": _described(m2, oconfig["recipe"], compared["name"]),
+                        "data": [_e(other["per"][(j, m2)]) if j is not None else [] for j in idx]})
+        out.append({"key": m, "label": _described(m, config["recipe"]),
+                    "color": _COLORS.get(_colour_key(m, config["recipe"]), "grey"),
+                    "data": [_e(summary["per"][(i, m)]) for i in range(n)]})
+    return out
+
+
+def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str,
+         compared: dict[str, Any] | None = None) -> list[str]:
     from .._optional import require
 
     matplotlib = require("matplotlib", "studies", "lcs-cvx study report (the figures)")
@@ -175,15 +369,15 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[st
     study = summary["study"]
     config = study["config"]
     methods = config["methods"]
+    series = _series(summary, compared)
     pos, log_x = _positions(summary["values"])
     gaps = [abs(a - b) for a, b in zip(pos, pos[1:], strict=False) if a != b]
-    width = 0.7 * (min(gaps) if gaps else 1.0) / max(1, len(methods))
+    width = 0.7 * (min(gaps) if gaps else 1.0) / max(1, len(series))
     fig, ax = plt.subplots(figsize=(5.2, 4.4))
-    offsets = {m: (k - (len(methods) - 1) / 2) * width for k, m in enumerate(methods)}
-    for m in methods:
-        offset = offsets[m]
-        data = [(p + offset, [max(x, 1e-300) for x in _e(summary["per"][(i, m)])])
-                for i, p in enumerate(pos)]
+    offsets = {g["key"]: (k - (len(series) - 1) / 2) * width for k, g in enumerate(series)}
+    for g in series:
+        offset = offsets[g["key"]]
+        data = [(p + offset, [max(x, 1e-300) for x in xs]) for p, xs in zip(pos, g["data"], strict=True)]
         data = [(p, xs) for p, xs in data if xs]
         if not data:
             continue
@@ -193,9 +387,9 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str) -> list[st
                                    "markeredgecolor": "black", "markersize": 4},
                         medianprops={"color": "black"}, flierprops={"markersize": 3})
         for patch in bp["boxes"]:
-            patch.set_facecolor(_COLORS.get(m, "grey"))
+            patch.set_facecolor(g["color"])
             patch.set_alpha(0.6)
-        ax.plot([], [], "s", color=_COLORS.get(m, "grey"), label=m)
+        ax.plot([], [], "s", color=g["color"], label=g["label"])
     for m in config["reference_methods"]:
         xs = _e(summary["per"][(REFERENCE, m)])
         if xs:
@@ -239,14 +433,15 @@ def report(directory: str | os.PathLike, anchors_path: str | None = "default") -
     with Store(directory, create=False) as store:
         studies = [s for s in store.studies() if s["config"].get("kind") == "grid"]
         names = [s["name"] for s in studies]
-        for study in studies:
+        summaries = [summarize(store, study) for study in studies]
+        for study, summary in zip(studies, summaries, strict=True):
             stem = study["name"]
             if names.count(stem) > 1:  # the same name with other settings: keep both
                 stem += f"-{study['config_hash'][:8]}"
-            summary = summarize(store, study)
+            compared = comparison(summary, summaries)
             stem_path = os.path.join(directory, stem)
-            written += plot(summary, anchors, stem_path)
+            written += plot(summary, anchors, stem_path, compared)
             with open(stem_path + ".md", "w") as f:
-                f.write(markdown(summary, anchors))
+                f.write(markdown(summary, anchors, compared))
             written.append(stem_path + ".md")
     return written

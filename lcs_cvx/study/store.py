@@ -172,7 +172,7 @@ class Store:
     # -- writing (the client only) ------------------------------------------------------
     def add_study(self, h: str, config: dict[str, Any]) -> None:
         """Record the study; a re-run of the same hash refreshes what the hash leaves out (the
-        description, the path), so the report follows the config file."""
+        description, the path, ``compare``), so the report follows the config file."""
         body = {k: v for k, v in config.items() if k != "path"}
         with self.conn:
             self.conn.execute(
