@@ -1,7 +1,8 @@
 """The PWA regression comparison: the baselines (affine, MLP, PARC) fit and are measured like an
 LCS, the grid runner trains them as methods of a cell (and a loss under its own recipe,
 ``"violation@best"``), a per-cell time limit kills a slow cell and records it as timed out
-(kept on resume, run again under a larger limit), and the smoke study of
+(kept on resume, run again under a larger limit), a baseline whose own fit fails is recorded as
+failed (once, never retried, shown in both reports), and the smoke study of
 ``studies/configs/pwa_compare_smoke.toml`` runs every method for real and is reported."""
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import torch
 
 from lcs_cvx import Dataset, LCSInputError, count_modes, make_dataset, random_lcs, relative_error
 from lcs_cvx.study import Store, config_hash, expand, load_config, run_config
-from lcs_cvx.study.baselines import OPTIONS, baseline_options, fit_baseline
+from lcs_cvx.study.baselines import OPTIONS, BaselineFailed, baseline_options, fit_baseline
 from lcs_cvx.study.cells import setup_cell, work
 from lcs_cvx.study.limits import ChildError, run_limited
 
@@ -85,6 +86,22 @@ def test_parc_is_seeded_and_leaves_numpys_global_generator_alone():
     assert (np.random.get_state()[1] == before).all()
     b, _ = fit_baseline("parc", opts, train, seed=7, modes=0)
     assert torch.equal(a.step(test.x, test.u), b.step(test.x, test.u))
+
+
+@needs_parc
+def test_a_parc_fit_that_fails_in_pyparc_raises_baseline_failed():
+    """K = 30 pieces on 30 samples (min_number 10): every cluster is too small, pyparc merges
+    them all away and its own fit raises (as at n_lambda = 20 of the comparison, ~17,000 modes on
+    5,000 samples); our wrapper names the method and keeps the original as the cause."""
+    import numpy as np
+
+    train = make_dataset(random_lcs(2, 1, 2, stiffness=1.0, seed=4), 30, seed=1)
+    state = np.random.get_state()[1].copy()
+    with pytest.raises(BaselineFailed, match=re.escape(
+            "PARC failed: ValueError: attempt to get argmax of an empty sequence")) as info:
+        fit_baseline("parc", baseline_options("parc", {"K": 30}), train, seed=0, modes=0)
+    assert isinstance(info.value, RuntimeError) and isinstance(info.value.__cause__, ValueError)
+    assert (np.random.get_state()[1] == state).all()  # numpy's generator restored all the same
 
 
 def test_mlp_baseline_picks_the_grid_point_with_the_lowest_held_out_error():
@@ -251,6 +268,132 @@ def test_a_database_from_before_time_limits_gains_the_columns(tmp_path):
         [row] = store.cells(["k"]).values()
         assert (row["status"], row["time_limit"], row["e_test"]) == ("ok", None, 0.1)
         assert store.finished_keys() == {"k"}
+
+
+# -- failed baselines --------------------------------------------------------------------------
+def _failed_result(error: str) -> dict:
+    return {"status": "failed", "e_test": None, "final_loss": None, "modes": 4, "sigma_min": 1.0,
+            "fit_wall_time": 2.0, "wall_time": 2.5, "settings": {"K": "modes", "error": error},
+            "warnings": [], "host": "h", "curve": []}
+
+
+def test_a_failed_cell_is_finished_under_any_time_limit_and_clears_its_failures(tmp_path):
+    cell = {**expand(load_config(SMOKE))[0], "time_limit": 2}
+    with Store(tmp_path) as store:
+        store.add_failure(cell, "Traceback: an earlier run's error")
+        assert [f["key"] for f in store.failures(cell["config_hash"])] == [cell["key"]]
+        assert store.add_cell(cell, 0, _failed_result("PARC failed: ValueError: x"))
+        assert store.failures(cell["config_hash"]) == []
+        [row] = store.cells([cell["key"]]).values()
+        assert (row["status"], row["e_test"], row["fit_wall_time"]) == ("failed", None, 2.0)
+        # unlike a timed-out cell, no limit makes it run again
+        for limit in (None, 1, 2, 1e9):
+            assert store.finished_keys(limit) == {cell["key"]}
+
+
+def test_the_pwa_report_tells_failed_from_timed_out(tmp_path):
+    """The PWA table (no pyparc needed: the points are written by hand): a point where PARC's
+    fit failed says "failed", one where it timed out "timed out", with the failure's message in
+    the notes and the figure's marks for both."""
+    from studies.pwa.report import BEST, PARC, markdown, plot
+
+    def method(e=(), t=(), out=(), failed=(), errors=()):
+        return {"expected": 2, "e_test": list(e), "time": list(t), "timeouts": list(out),
+                "limit": 60.0 if out else None, "failed": list(failed), "errors": list(errors)}
+
+    msg = "PARC failed: ValueError: attempt to get argmax of an empty sequence"
+    points = [
+        {"value": 4, "modes": 16.0, "methods": {BEST: method([1e-3, 2e-3], [1.0, 1.0]),
+                                                 PARC: method([0.1, 0.2], [20.0, 30.0])}},
+        {"value": 16, "modes": 2000.0, "methods": {BEST: method([1e-3, 2e-3], [2.0, 2.0]),
+                                                    PARC: method(out=[60.5, 61.0])}},
+        {"value": 20, "modes": 17000.0, "methods": {BEST: method([1e-3, 2e-3], [3.0, 3.0]),
+                                                     PARC: method(failed=[40.0, 50.0], errors=[msg])}},
+    ]
+    config = {"name": "pwa_hand", "trials": 2, "methods": [BEST, PARC], "time_limit": 60.0,
+              "system": {"n_x": 4, "n_u": 2}, "data": {"n_train": 5000, "n_test": 1000}}
+    r = {"study": {"path": "hand.toml", "config_hash": "h"}, "config": config, "points": points,
+         "n_cells": 12, "n_done": 12, "cell_time": 1.0, "failures": []}
+    table = markdown(r)
+    rows = {line.split(" | ")[0]: line for line in table.splitlines() if line.startswith("| ")}
+    assert "| 20 | 17,000 | 0.0015 | 3 | failed | – (2 failed after 45 s) |" in table
+    assert "| 16 | 2,000 | 0.0015 | 2 | – | – (2 timed out ≥ 60 s) |" in table
+    assert "| 20 | 17,000 | – (PARC failed) | – (PARC failed) | PARC failed | PARC failed | yes |" in table
+    assert "| 16 | 2,000 | – (PARC timed out) | ≥ 30 (timed out) | PARC timed out | yes | n/a |" in table
+    assert f"- Failed (the method's own fit raised; no e_test, left out of the medians; " \
+           f"recorded once, not retried): PARC at n_λ = 20: 2 cells ({msg})." in table
+    # the authors' 2,021 modes: our n_λ = 16 point (2,000 modes), where PARC timed out
+    assert rows["| 2,021"].count("timed out") == 1 and "| failed |" in rows["| 2,021"]
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    saved = {}
+    real_savefig = plt.Figure.savefig
+
+    def keep_labels(fig, *args, **kwargs):
+        saved["labels"] = fig.axes[1].get_legend_handles_labels()[1]
+        return real_savefig(fig, *args, **kwargs)
+
+    plt.Figure.savefig = keep_labels
+    try:
+        written = plot(r, str(tmp_path / "hand"))
+    finally:
+        plt.Figure.savefig = real_savefig
+    assert all(Path(w).stat().st_size > 1000 for w in written)
+    assert "PARC: timed out (at the limit)" in saved["labels"]
+    assert "PARC: fit failed (at the seconds until it failed)" in saved["labels"]
+
+
+@needs_parc
+def test_a_parc_fit_that_fails_is_recorded_once_and_reported(tmp_path, monkeypatch, capsys):
+    """PARC failing for real in its child process (min_number 1,000 on 500 samples: every
+    cluster merged away): the cell is stored as 'failed' with the error in its settings, the
+    failure an earlier run logged is cleared, a second run hands nothing to the executor, and
+    both reports show it."""
+    from lcs_cvx.study import report, runner
+    from studies.pwa.report import write_report
+
+    path = _write(tmp_path, 'methods = ["parc"]\n[sweep]\nvalues = [2]\n'
+                            "[baselines.parc]\nmin_number = 1000\n")
+    [cell] = expand(load_config(path))
+    out = tmp_path / "out"
+    with Store(out) as store:  # as if an earlier run had logged it (before BaselineFailed)
+        store.add_failure(cell, "Traceback ...\nValueError: attempt to get argmax of an empty sequence")
+    handed: list[int] = []
+    real_pool = runner.process_pool
+
+    def counting_pool(cells, *args, **kwargs):
+        handed.append(len(cells))
+        return real_pool(cells, *args, **kwargs)
+
+    monkeypatch.setattr(runner, "process_pool", counting_pool)
+    summary = run_config(path, out=out, workers=1, progress=False)
+    assert (summary.executed, summary.failed, summary.timed_out, summary.baseline_failed) == (1, 0, 0, 1)
+    msg = "PARC failed: ValueError: attempt to get argmax of an empty sequence"
+    assert f"the method's own fit failed (value 2, trial 0, parc): {msg}; recorded as 'failed'" \
+        in capsys.readouterr().err
+    [row] = _rows(out)
+    import json
+
+    settings = json.loads(row["settings_json"])
+    assert (row["status"], row["e_test"], row["final_loss"], row["modes"]) == ("failed", None, None, 4)
+    assert settings["error"] == msg and settings["min_number"] == 1000 and settings["K"] == "modes"
+    assert 0 < row["fit_wall_time"] <= row["wall_time"]
+    with Store(out) as store:
+        assert store.failures(cell["config_hash"]) == []
+        assert store.curve(row["id"]) == []
+    again = run_config(path, out=out, workers=1, progress=False)
+    assert (again.skipped, again.executed, again.baseline_failed) == (1, 0, 0)
+    assert handed == [1]  # the second run handed no cell to the executor
+    [table] = [w for w in report(out, anchors_path=None) if w.endswith(".md")]
+    text = Path(table).read_text()
+    assert ("- Failed (the method's own fit raised; no e_test, left out of the statistics): "
+            f"parc 1 cells ({msg}).") in text
+    assert "Failures logged" not in text
+    [pwa] = [w for w in write_report(out) if w.endswith(".md")]
+    assert "| 2 | 4 | failed | – (1 failed after" in Path(pwa).read_text()
 
 
 # -- the smoke study ---------------------------------------------------------------------------

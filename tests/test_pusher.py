@@ -235,6 +235,19 @@ def test_parc_job_reports_a_failed_fit(monkeypatch):
         parc_from_result(res)
 
 
+@needs_parc
+def test_parc_job_names_pyparcs_own_error_when_its_fit_fails():
+    """30 pieces on 30 samples: pyparc merges every cluster away and raises; the job's error
+    names pyparc's exception, not the BaselineFailed that wraps it."""
+    from lcs_cvx.study.baselines import baseline_options
+    from studies.physics.models import fit_parc
+
+    x = np.random.default_rng(0).uniform(-1, 1, (30, 2))
+    res = fit_parc({"x": x, "u": x[:, :1], "x_next": x, "options": baseline_options("parc", {"K": 30}),
+                    "modes": 2, "seed": 0})
+    assert res["error"] == "ValueError: attempt to get argmax of an empty sequence" and res["omega"] is None
+
+
 # -- the study, end to end -------------------------------------------------------------------------
 @needs_parc
 def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path, monkeypatch):

@@ -70,6 +70,8 @@ def run_study_command(args: argparse.Namespace) -> int:
     print(f"study {summary.study} (config {summary.config_hash}): {summary.total} cells, "
           f"{summary.skipped} already finished, {summary.executed} run now, {summary.failed} failed "
           f"({summary.wall_time:.1f} s)"
-          + (f"; {summary.timed_out} timed out" if summary.timed_out else ""))
+          + (f"; {summary.timed_out} timed out" if summary.timed_out else "")
+          + (f"; {summary.baseline_failed} baseline fits failed (recorded as 'failed')"
+             if summary.baseline_failed else ""))
     print(f"database: {summary.database}")
     return 1 if summary.failed else 0

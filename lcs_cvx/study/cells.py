@@ -9,6 +9,11 @@ Time limit. A config's ``time_limit`` runs each cell in a child process killed a
 (:mod:`lcs_cvx.study.limits`); a killed cell's result has ``status = "timeout"``, no e_test, the
 hybrid modes of its data and the seconds it ran, and is stored like a finished one.
 
+Failed baselines. A baseline whose own fitting algorithm fails on the cell's data (PARC with
+thousands of modes; :class:`lcs_cvx.study.baselines.BaselineFailed`) gives a result with
+``status = "failed"``: no e_test, the error in its settings. It is a finished cell -- the method's
+result on that problem -- stored once, never retried, and shown in the reports.
+
 Seeds. Every random draw of a cell has its own seed, derived from the config's ``seed``, the swept
 value's index ``i`` and the trial ``t`` only::
 
@@ -36,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..system import ACTIVE_TOL
-from .baselines import BASELINES
+from .baselines import BASELINES, BaselineFailed
 from .config import config_hash, fit_options, method_parts
 
 __all__ = ["STREAMS", "cell_seeds", "expand", "cell_key", "setup_cell", "run_cell", "work",
@@ -127,7 +132,9 @@ def setup_cell(cell: dict[str, Any]) -> tuple[Any, Any, Any, Any, dict[str, Any]
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     """Run one cell (in a worker; one torch thread) and return its metrics and curve: the
     result of :func:`work`, in a child process killed at ``cell["time_limit"]`` where the
-    config sets one (then a killed cell returns ``status = "timeout"``, see below).
+    config sets one (then a killed cell returns ``status = "timeout"``, see below). A baseline
+    whose own fit failed returns ``status = "failed"`` (see :func:`work`), with or without a
+    limit.
 
     A timed-out cell's result: ``status`` ``"timeout"``, ``e_test`` and ``final_loss`` None,
     ``modes`` and ``sigma_min`` of its data (None if it was killed before drawing them),
@@ -165,6 +172,14 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
     (s; the latter includes drawing the data), ``settings`` (the resolved ``FitOptions``, or a
     baseline's options and what its fit chose), ``curve`` (``fit``'s history; empty for a
     baseline), ``warnings`` (distinct warning messages) and ``host``.
+
+    A baseline whose own fitting algorithm fails (``BaselineFailed`` of
+    :mod:`lcs_cvx.study.baselines`, e.g. PARC at thousands of modes) is a result, not an
+    error: ``status`` ``"failed"``, ``e_test`` and ``final_loss`` None, ``modes`` and
+    ``sigma_min`` as above, ``fit_wall_time`` (s from the start of the fit to the failure),
+    ``settings`` (the baseline's options and ``"error"``: the failure's message), empty
+    ``curve``, ``warnings`` as above. (A timed-out cell, :func:`run_cell`, has ``status = "timeout"``.) Any other
+    exception propagates (the runner logs it in ``failures`` and retries the cell).
     """
     import torch
 
@@ -172,6 +187,7 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
 
     torch.set_num_threads(1)  # reproducible and no oversubscription (DESIGN.md)
     t0 = time.perf_counter()
+    status, e_test = "ok", None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         truth, train, test, learner, options = setup_cell(cell)
@@ -186,8 +202,11 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
             if cell["method"] == "parc":
                 import_parc()  # imported before the clock starts, as lcs_cvx is for the others
             t_fit = time.perf_counter()
-            model, info = fit_baseline(cell["method"], cell["baseline"], train,
-                                       seed=cell["seeds"]["fit"], modes=modes)
+            try:
+                model, info = fit_baseline(cell["method"], cell["baseline"], train,
+                                           seed=cell["seeds"]["fit"], modes=modes)
+            except BaselineFailed as exc:  # the method's result on this problem
+                model, info, status = None, {"error": str(exc)}, "failed"
             fit_time = time.perf_counter() - t_fit
             settings, final_loss, curve = {**cell["baseline"], **info}, None, []
         else:
@@ -196,9 +215,10 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
             model, fit_time, curve = result.model, result.wall_time, result.history
             settings = result.settings.flat()
             final_loss = result.history[-1]["loss"] if result.history else float("nan")
-        e_test = relative_error(model, test)
+        if model is not None:
+            e_test = relative_error(model, test)
     return {
-        "status": "ok",
+        "status": status,
         "e_test": e_test,
         "final_loss": final_loss,
         "modes": modes,

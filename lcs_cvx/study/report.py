@@ -7,8 +7,9 @@ horizontal line at its median; the authors' published means as crosses), the lay
 and ``DIR/<name>.md``: per swept value the hybrid modes of the data (mean), sigma_min(F + F^T) of
 the truth (mean), mean and median e_test of each method and, where ``studies/anchors.toml`` has
 them for the study's panel and swept parameter, the authors' numbers beside ours. Cells killed at
-the config's time limit have no e_test: they are left out of the statistics and counted in a
-line of the table's notes.
+the config's time limit, and baseline cells whose own fit failed (``status = "failed"``, e.g.
+PARC at thousands of modes), have no e_test: they are left out of the statistics and counted in
+a line of the table's notes each (the failed ones with their distinct error messages).
 
 A study whose config has ``compare = NAME`` is reported beside the study of that name in the same
 database (the latest one, if several have it): per swept value its table adds the compared
@@ -22,6 +23,7 @@ beside this study's. A compared study missing from the database is said in one l
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import statistics
@@ -33,7 +35,8 @@ from .cells import REFERENCE, expand
 from .config import method_parts, read_toml
 from .store import Store
 
-__all__ = ["report", "load_anchors", "summarize", "comparison", "default_anchors_path"]
+__all__ = ["report", "load_anchors", "summarize", "comparison", "default_anchors_path",
+           "failed_cells", "short_error"]
 
 #: The swept values span "decades" (log x axis) when max / min reaches this.
 LOG_X_RATIO = 30.0
@@ -80,7 +83,8 @@ def _anchor(aset: dict[str, Any], value: float, metric: str) -> Any:
 
 
 def summarize(store: Store, study: dict[str, Any]) -> dict[str, Any]:
-    """Finished cells of ``study`` grouped by swept value and method (report's input)."""
+    """Finished cells of ``study`` grouped by swept value and method (report's input); its
+    ``failures`` are the logged failures of cells not stored since (still to retry)."""
     config = study["config"]
     cells = expand(config)
     found = store.cells([c["key"] for c in cells])
@@ -92,7 +96,8 @@ def summarize(store: Store, study: dict[str, Any]) -> dict[str, Any]:
         if row is not None:
             per[(c["value_index"], c["method"])].append(row)
     return {"study": study, "values": values, "per": per, "n_cells": len(cells),
-            "n_done": len(found), "failures": store.failures(study["config_hash"]),
+            "n_done": len(found),
+            "failures": [f for f in store.failures(study["config_hash"]) if f["key"] not in found],
             "cell_time": sum(r["wall_time"] for r in found.values())}
 
 
@@ -109,6 +114,20 @@ def _fmt(v: Any) -> str:
 def _stat(xs: list[float], f) -> float | None:
     return f(xs) if xs else None
 
+
+def short_error(text: str, width: int = 100) -> str:
+    """A failure's message on one line, cut to ``width`` characters (``…`` marks a cut)."""
+    line = " ".join(str(text).split())
+    return line if len(line) <= width else line[: width - 1].rstrip() + "…"
+
+
+def failed_cells(rows: list[dict[str, Any]]) -> tuple[int, list[str]]:
+    """How many of ``rows`` (stored cells) have ``status = "failed"``, and their distinct
+    shortened error messages (``settings_json["error"]``), in order of appearance."""
+    failed = [r for r in rows if r.get("status") == "failed"]
+    errors = [short_error(json.loads(r.get("settings_json") or "{}").get("error", "no message"))
+              for r in failed]
+    return len(failed), list(dict.fromkeys(errors))
 
 
 def _colour_key(method: str, recipe: str) -> str:
@@ -312,6 +331,17 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any],
         lines.append("- Timed out (killed at the config's time limit; no e_test, left out of the "
                      "statistics): " + ", ".join(f"{m} {n}" for m, n in sorted(timed_out.items()))
                      + " cells.")
+    failed_by: dict[str, list[dict[str, Any]]] = {}
+    for (_, m), rows in summary["per"].items():
+        failed_by.setdefault(m, []).extend(rows)
+    parts = []
+    for m in sorted(failed_by):
+        n, errors = failed_cells(failed_by[m])
+        if n:
+            parts.append(f"{m} {n} cells ({'; '.join(errors)})")
+    if parts:
+        lines.append("- Failed (the method's own fit raised; no e_test, left out of the "
+                     "statistics): " + ", ".join(parts) + ".")
     failed = {f["key"] for f in summary["failures"]}
     if failed:
         lines.append(f"- Failures logged: {len(failed)} cells (see the `failures` table); "

@@ -3,9 +3,11 @@
 The client process expands the grid (:func:`lcs_cvx.study.cells.expand`), reads which cell keys
 the database already holds, sends the others to an executor and writes every result to the
 database the moment it arrives. Running a config again therefore resumes where it stopped and
-redoes nothing finished. A failed cell is logged in ``failures`` and retried on the next run. A
-cell killed at the config's ``time_limit`` is stored with ``status = "timeout"`` and counts as
-finished until the config asks for a larger limit (then it runs again).
+redoes nothing finished. A cell that raised is logged in ``failures`` and retried on the next
+run. A cell killed at the config's ``time_limit`` is stored with ``status = "timeout"`` and
+counts as finished until the config asks for a larger limit (then it runs again). A baseline
+whose own fitting algorithm failed on the cell's data (PARC at thousands of modes) is stored with
+``status = "failed"``: the method's result on that problem, finished, never run again.
 
 With ``ensemble=True`` (``--ensemble``) the cells to run are grouped into ensembles
 (:mod:`lcs_cvx.study.ensembles`: the trials of one swept value and method), each trained by one
@@ -50,7 +52,8 @@ class StudyError(RuntimeError):
 @dataclass(frozen=True)
 class RunSummary:
     """What one ``study run`` did: cells in the grid, already finished, run now (``timed_out``
-    of them killed at the time limit), failed."""
+    of them killed at the time limit, ``baseline_failed`` of them baselines whose own fit
+    failed, recorded as ``"failed"``), failed (raised; logged in ``failures``)."""
 
     study: str
     config_hash: str
@@ -61,6 +64,7 @@ class RunSummary:
     failed: int
     wall_time: float
     timed_out: int = 0
+    baseline_failed: int = 0
 
 
 def parse_only(text: str) -> dict[str, Any]:
@@ -124,23 +128,27 @@ class _Progress:
             self.bar.close()
 
 
-def _store(store: Store, config: dict[str, Any], cell: dict[str, Any], result: Any) -> int:
-    """Write one cell's result, or log its failure (and say so on stderr); 1 if the cell timed
-    out (recorded as such), else 0."""
+def _store(store: Store, config: dict[str, Any], cell: dict[str, Any], result: Any) -> str | None:
+    """Write one cell's result, or log its failure (and say so on stderr); the status stored
+    (``"ok"``, ``"timeout"``, ``"failed"``: a line on stderr for the last two), None for a
+    logged failure."""
+    where = f"value {cell['value']}, trial {cell['trial']}, {cell['method']}"
     if isinstance(result, BaseException):
         text = "".join(traceback.format_exception(result)).strip()
         store.add_failure(cell, text)
-        print(f"{config['name']}: cell failed (value {cell['value']}, trial "
-              f"{cell['trial']}, {cell['method']}): "
-              f"{type(result).__name__}: {result}", file=sys.stderr, flush=True)
-        return 0
+        print(f"{config['name']}: cell failed ({where}): {type(result).__name__}: {result}; "
+              "logged in 'failures', retried by the next run", file=sys.stderr, flush=True)
+        return None
     store.add_cell(cell, config["seed"], result)
-    if result.get("status") != "timeout":
-        return 0
-    print(f"{config['name']}: cell timed out after {result['wall_time']:.0f} s (value "
-          f"{cell['value']}, trial {cell['trial']}, {cell['method']}); recorded as 'timeout'",
-          file=sys.stderr, flush=True)
-    return 1
+    status = result.get("status", "ok")
+    if status == "timeout":
+        print(f"{config['name']}: cell timed out after {result['wall_time']:.0f} s ({where}); "
+              "recorded as 'timeout'", file=sys.stderr, flush=True)
+    elif status == "failed":
+        print(f"{config['name']}: the method's own fit failed ({where}): "
+              f"{result['settings'].get('error')}; recorded as 'failed'", file=sys.stderr,
+              flush=True)
+    return status
 
 
 def _run_module(config: dict[str, Any], out: str, workers: int, scheduler: str | None) -> None:
@@ -218,7 +226,7 @@ def run_config(
         if max_cells is not None:
             todo = todo[:max_cells]
         bar = _Progress(config["name"], len(cells), skipped, len(todo), progress)
-        timed_out = 0
+        stored: dict[str | None, int] = {}
         if todo:
             jobs, fn = (ensembles(todo), run_ensemble) if ensemble else (todo, None)
             kw = {} if fn is None else {"fn": fn}
@@ -238,11 +246,13 @@ def run_config(
                         else:
                             pairs = zip(job["cells"], outcome, strict=True)
                         for cell, result in pairs:
-                            timed_out += _store(store, config, cell, result)
+                            status = _store(store, config, cell, result)
+                            stored[status] = stored.get(status, 0) + 1
                             bar.update(not isinstance(result, BaseException))
             finally:
                 bar.close()
         if progress and bar.bar is None:
             bar.line()
     return RunSummary(config["name"], h, store.path, len(cells), skipped, bar.done - skipped,
-                      bar.failed, time.perf_counter() - t0, timed_out)
+                      bar.failed, time.perf_counter() - t0, stored.get("timeout", 0),
+                      stored.get("failed", 0))

@@ -19,14 +19,20 @@ is in WAL mode with ``synchronous = FULL``, so a Ctrl-C or a killed process lose
 in flight, and a finished cell is never lost or written twice (``key`` is unique).
 
 The ``jobs`` table came after version 2 without changing the others: opening a database that
-lacks it adds it, empty. So did the columns ``cells.status`` (``"ok"``, or ``"timeout"`` for a
-cell killed at its config's ``time_limit``: e_test NULL, the seconds it ran in the wall times)
-and ``cells.time_limit`` (the limit it ran under, NULL for none): opening an older database adds
-them, every existing row ``"ok"`` with no limit.
+lacks it adds it, empty. So did the columns ``cells.status`` (``"ok"``; ``"timeout"`` for a
+cell killed at its config's ``time_limit``: e_test NULL, the seconds it ran in the wall times;
+``"failed"`` for a baseline whose own fitting algorithm failed on the cell's data: e_test NULL,
+the error in ``settings_json["error"]``) and ``cells.time_limit`` (the limit it ran under, NULL
+for none): opening an older database adds them, every existing row ``"ok"`` with no limit.
 
 Timed-out cells count as finished (:meth:`Store.finished_keys`) as long as the limit asked for
 is not larger than the one they were killed at; a run with a larger limit (or none) runs them
-again and its result replaces theirs.
+again and its result replaces theirs. Failed cells always count as finished: the method failed
+on the problem, and running it again fails again.
+
+``failures`` logs the cells that raised (a bug, a worker's error): they are not in ``cells``
+and the next run tries them again. Storing a cell (any status) removes its rows from
+``failures``, so the table holds only the cells still to retry.
 
 Schema version 1 stored one row per curve record (~100 bytes each, 100 records a cell at the
 paper's 10,000 iterations: 6.7 MB for Fig. 1(a), (d), (e)); a version-1 database is converted
@@ -183,9 +189,10 @@ class Store:
             )
 
     def add_cell(self, cell: dict[str, Any], seed: int, result: dict[str, Any]) -> bool:
-        """Write one finished (or timed-out: ``result["status"] == "timeout"``) cell and its
-        curve in one transaction; False if it was there. A timed-out row of the same cell is
-        replaced (a run with a larger time limit)."""
+        """Write one finished cell (``result["status"]`` ``"ok"``, ``"timeout"`` or
+        ``"failed"``) and its curve in one transaction, and clear the cell's rows of
+        ``failures``; False (the failures cleared all the same) if it was there. A timed-out row of the same cell is replaced (a
+        run with a larger time limit)."""
         s = cell["seeds"]
         status = result.get("status", "ok")
         with self.conn:
@@ -206,6 +213,7 @@ class Store:
                  json.dumps(cell, sort_keys=True), json.dumps(result["warnings"]),
                  result["host"], _now(), status, _real(cell.get("time_limit"))),
             )
+            self.conn.execute("DELETE FROM failures WHERE key = ?", (cell["key"],))
             if cur.rowcount == 0:
                 return False
             records = [[r["iteration"], r["phase"], _real(r["loss"]), _real(r["e_test"]),
@@ -239,7 +247,8 @@ class Store:
     # -- reading ------------------------------------------------------------------------
     def finished_keys(self, time_limit: float | None = None) -> set[str]:
         """The keys of the cells a run under ``time_limit`` (s; None: no limit) need not run:
-        every finished cell, and every timed-out one whose limit was at least ``time_limit``."""
+        every finished cell (``"ok"`` or ``"failed"``), and every timed-out one whose limit was
+        at least ``time_limit``."""
         rows = self.conn.execute("SELECT key, status, time_limit FROM cells")
         return {k for k, status, limit in rows
                 if status != "timeout" or (time_limit is not None and limit is not None
@@ -252,7 +261,7 @@ class Store:
                  "created": t} for h, n, p, c, path, t in rows]
 
     def cells(self, keys: list[str]) -> dict[str, dict[str, Any]]:
-        """The finished (and timed-out) cells among ``keys``, by key (metrics, seeds, status,
+        """The finished (also timed-out and failed) cells among ``keys``, by key (metrics, seeds, status,
         settings; no curves)."""
         cols = ("id", "key", "e_test", "final_loss", "modes", "sigma_min", "fit_wall_time",
                 "wall_time", "seed_truth", "seed_init", "host", "warnings_json", "status",
@@ -283,6 +292,8 @@ class Store:
         return out
 
     def failures(self, config_hash: str) -> list[dict[str, Any]]:
+        """The logged failures of study ``config_hash``, oldest first: ``{key, value_index,
+        trial, method, error (the traceback), at}`` (a cell stored since has none left)."""
         cols = ("key", "value_index", "trial", "method", "error", "at")
         rows = self.conn.execute(
             f"SELECT {', '.join(cols)} FROM failures WHERE config_hash = ? ORDER BY id", (config_hash,))

@@ -298,6 +298,7 @@ def fit_parc(job: dict[str, Any]) -> dict[str, Any]:
     (K asked, pieces kept, iterations, final cost) and ``wall_time``; a fit in which ``pyparc``
     raises returns ``omega = None`` and ``error`` (the exception's type and message).
     """
+    from lcs_cvx.study.baselines import BaselineFailed
     from lcs_cvx.study.baselines.parc import fit, import_parc
 
     import_parc()  # a missing extra is an error of the set-up, not a failed fit
@@ -308,8 +309,10 @@ def fit_parc(job: dict[str, Any]) -> dict[str, Any]:
         model, info = fit(train, job["options"], seed=job["seed"], modes=job["modes"])
         arrays = PARCModel.from_predictor(model.predictor)
     except Exception as exc:  # noqa: BLE001 -- any failure of pyparc's fit is reported in the study's tables
+        # BaselineFailed wraps pyparc's own exception: name that one
+        cause = exc.__cause__ if isinstance(exc, BaselineFailed) and exc.__cause__ else exc
         return {"omega": None, "gamma": None, "coef": None, "intercept": None, "info": None,
-                "wall_time": time.perf_counter() - t0, "error": f"{type(exc).__name__}: {exc}"}
+                "wall_time": time.perf_counter() - t0, "error": f"{type(cause).__name__}: {cause}"}
     return {"omega": arrays.omega, "gamma": arrays.gamma, "coef": arrays.coef, "intercept": arrays.intercept,
             "info": info, "wall_time": time.perf_counter() - t0, "error": None}
 

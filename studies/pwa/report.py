@@ -4,12 +4,15 @@ hybrid modes in the training data, ours beside the authors' published numbers.
 For every grid study in ``DIR/studies.sqlite`` (``studies/configs/pwa_compare*.toml``) it writes
 ``DIR/<name>_vs_modes.png`` and ``.pdf`` -- (a) e_test, (b) training wall time (log axes), the
 median over trials of each method at the mean mode count of each swept n_lambda, the bars
-spanning the interquartile range, timed-out cells at the time limit as open triangles, and the
-authors' published numbers (:mod:`studies.pwa.authors`) as crosses -- and
-``DIR/<name>_vs_modes.md``: the table per n_lambda, the authors' numbers beside ours at the
-nearest mode count, and the comparison's targets (violation loss, best recipe, against PARC:
->= 10x more accurate and >= 10x faster at every mode count; at >= 2,021 modes PARC fails or is
->= 100x slower), checked on the medians.
+spanning the interquartile range, timed-out cells at the time limit as open triangles, cells
+whose own fit failed (``status = "failed"``: PARC merging all its clusters away) as crosses in a
+circle at the seconds until the failure, and the authors' published numbers
+(:mod:`studies.pwa.authors`) as crosses -- and ``DIR/<name>_vs_modes.md``: the table per
+n_lambda ("failed" where every cell of a method failed, as the authors' table has at 2,021
+modes; "timed out" counts apart), the authors' numbers beside ours at the nearest mode count,
+and the comparison's targets (violation loss, best recipe, against PARC: >= 10x more accurate
+and >= 10x faster at every mode count; at >= 2,021 modes PARC fails or is >= 100x slower),
+checked on the medians.
 
     python -m studies.pwa.report DIR
 """
@@ -24,7 +27,7 @@ import sys
 from typing import Any
 
 from lcs_cvx import LCSInputError
-from lcs_cvx.study.report import summarize
+from lcs_cvx.study.report import failed_cells, summarize
 from lcs_cvx.study.store import Store
 
 from .authors import PUBLISHED, SOURCE
@@ -47,7 +50,7 @@ _COLORS = {"violation": "tab:orange", "violation@best": "tab:red", "prediction":
            "prediction@best": "tab:cyan", "parc": "tab:green", "mlp": "tab:purple",
            "affine": "tab:gray"}
 #: Targets: accuracy and speed ratios (PARC / ours) at every mode count; the slowdown of PARC
-#: from :data:`LARGE_MODES` modes on, unless it fails (times out).
+#: from :data:`LARGE_MODES` modes on, unless it fails (its fit fails or times out).
 ACCURACY_TARGET, SPEED_TARGET, LARGE_TARGET, LARGE_MODES = 10.0, 10.0, 100.0, 2021
 
 
@@ -70,7 +73,9 @@ def collect(store: Store, study: dict[str, Any]) -> dict[str, Any]:
     """The study's cells per swept value and method: ``{"config", "points": [{"value",
     "modes" (mean over the value's cells), "methods": {m: {"expected", "e_test" [...], "time"
     [...] (fit wall time of finished cells), "timeouts" [...] (wall time of timed-out cells),
-    "limit"}}}], "n_cells", "n_done", "cell_time", "failures"}``."""
+    "limit", "failed" [...] (fit wall time until the failure of cells whose own fit failed),
+    "errors" [...] (their distinct messages, shortened)}}}], "n_cells", "n_done", "cell_time",
+    "failures"}``."""
     s = summarize(store, study)
     config = study["config"]
     per_method = config.get("method_trials", {})
@@ -81,14 +86,17 @@ def collect(store: Store, study: dict[str, Any]) -> dict[str, Any]:
         methods = {}
         for m in config["methods"]:
             cells = s["per"][(i, m)]
-            ok = [r for r in cells if r["status"] != "timeout"]
+            ok = [r for r in cells if r["status"] not in ("timeout", "failed")]
             out = [r for r in cells if r["status"] == "timeout"]
+            bad = [r for r in cells if r["status"] == "failed"]
             methods[m] = {
                 "expected": per_method.get(m, config["trials"]),
                 "e_test": [r["e_test"] for r in ok if r["e_test"] is not None],
                 "time": [r["fit_wall_time"] for r in ok if r["fit_wall_time"] is not None],
                 "timeouts": [r["wall_time"] for r in out],
                 "limit": max((r["time_limit"] for r in out if r["time_limit"]), default=None),
+                "failed": [r["fit_wall_time"] or 0.0 for r in bad],
+                "errors": failed_cells(bad)[1],
             }
         points.append({"value": value, "modes": statistics.fmean(modes) if modes else None,
                        "methods": methods})
@@ -104,12 +112,29 @@ def _fmt(v: Any, digits: int = 2) -> str:
     return f"{v:,}" if isinstance(v, int) else str(v)
 
 
+def _n(d: dict[str, Any]) -> int:
+    """The stored cells of a method at a point: finished, timed out and failed."""
+    return len(d["e_test"]) + len(d["timeouts"]) + len(d["failed"])
+
+
+def _e_cell(d: dict[str, Any]) -> str:
+    """Median e_test; ``"failed"`` where every stored cell's fit failed, else the count of
+    failed cells beside the median."""
+    if d["failed"] and not d["e_test"] and not d["timeouts"]:
+        return "failed"
+    e = _fmt(_median(d["e_test"]))
+    return e + (f" ({len(d['failed'])} failed)" if d["failed"] else "")
+
+
 def _time_cell(d: dict[str, Any]) -> str:
     t = _fmt(_median(d["time"]), 3)
+    notes = []
     if d["timeouts"]:
         limit = f" ≥ {d['limit']:g} s" if d["limit"] else ""
-        t += f" ({len(d['timeouts'])} timed out{limit})"
-    return t
+        notes.append(f"{len(d['timeouts'])} timed out{limit}")
+    if d["failed"]:
+        notes.append(f"{len(d['failed'])} failed after {_fmt(_median(d['failed']), 3)} s")
+    return t + (f" ({'; '.join(notes)})" if notes else "")
 
 
 #: An authors' mode count is compared with our swept value of the nearest mean mode count, if
@@ -134,20 +159,27 @@ def _targets(r: dict[str, Any]) -> list[str]:
         best, parc = p["methods"][BEST], p["methods"][PARC]
         e_b, e_p = _median(best["e_test"]), _median(parc["e_test"])
         t_b, t_p = _median(best["time"]), _median(parc["time"])
-        n_parc = len(parc["e_test"]) + len(parc["timeouts"])
-        failed = bool(parc["timeouts"]) and len(parc["timeouts"]) * 2 >= n_parc
-        if failed and parc["limit"] and t_b:  # most PARC cells timed out: a lower bound
-            t_ratio, t_text = parc["limit"] / t_b, f"≥ {parc['limit'] / t_b:.0f} (timed out)"
+        n_out, n_bad, n_parc = len(parc["timeouts"]), len(parc["failed"]), _n(parc)
+        # most PARC cells did not finish: PARC fails here (its fit failed, or it timed out)
+        failed = n_out + n_bad > 0 and (n_out + n_bad) * 2 >= n_parc
+        how = "timed out" if not n_bad else ("failed" if not n_out else "failed or timed out")
+        if failed and n_out and parc["limit"] and t_b:  # cells timed out: a lower bound
+            t_ratio, t_text = parc["limit"] / t_b, f"≥ {parc['limit'] / t_b:.0f} ({how})"
+        elif failed:  # its fit failed: no training time to compare
+            t_ratio, t_text = None, f"– (PARC {how})"
         else:
             t_ratio = t_p / t_b if t_p and t_b else None
             t_text = _fmt(t_ratio, 3)
         e_ratio = e_p / e_b if e_p and e_b and not failed else None
-        e_text = "– (PARC timed out)" if failed else _fmt(e_ratio, 3)
+        e_text = f"– (PARC {how})" if failed else _fmt(e_ratio, 3)
         if not (best["e_test"] and n_parc):
             acc = speed = large = "no data"
         else:
-            acc = "PARC failed" if failed else ("yes" if e_ratio and e_ratio >= ACCURACY_TARGET else "**no**")
-            speed = "yes" if t_ratio and t_ratio >= SPEED_TARGET else "**no**"
+            acc = f"PARC {how}" if failed else ("yes" if e_ratio and e_ratio >= ACCURACY_TARGET else "**no**")
+            if failed and t_ratio is None:
+                speed = f"PARC {how}"
+            else:
+                speed = "yes" if t_ratio and t_ratio >= SPEED_TARGET else "**no**"
             if p["modes"] is None or p["modes"] < LARGE_MODES:
                 large = "n/a"
             else:
@@ -179,9 +211,9 @@ def markdown(r: dict[str, Any]) -> str:
         cells = [_fmt(p["value"]), _fmt(p["modes"], 4)]
         for m in methods:
             d = p["methods"][m]
-            n = len(d["e_test"]) + len(d["timeouts"])
-            e = _fmt(_median(d["e_test"]))
-            cells += [e + (f" ({n}/{d['expected']})" if n != d["expected"] else ""), _time_cell(d)]
+            n = _n(d)
+            cells += [_e_cell(d) + (f" ({n}/{d['expected']})" if n != d["expected"] else ""),
+                      _time_cell(d)]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "## The authors' published numbers beside ours", "",
               f"Authors: {SOURCE}. Ours: the swept n_λ whose mean mode count is nearest, if "
@@ -201,7 +233,7 @@ def markdown(r: dict[str, Any]) -> str:
             return _time_cell(d[m]) if d is not None else "–"
 
         def e_of(m: str, d: dict[str, Any] | None = d) -> str:
-            return _fmt(_median(d[m]["e_test"])) if d is not None else "–"
+            return _e_cell(d[m]) if d is not None else "–"
 
         row = [_fmt(modes), f"{_fmt(p['value'])} ({_fmt(p['modes'], 4)})" if p else "–", _fmt(t_v, 3)]
         row += [time_of(m) for m in ours if m != PARC]
@@ -212,10 +244,16 @@ def markdown(r: dict[str, Any]) -> str:
     lines += ["", "## Targets", "",
               f"{_label(BEST)} against PARC, on the medians: ≥ {ACCURACY_TARGET:g}× more accurate and "
               f"≥ {SPEED_TARGET:g}× faster to train at every mode count; from {LARGE_MODES:,} modes "
-              f"on, PARC fails (times out) or is ≥ {LARGE_TARGET:g}× slower. A point where most "
-              "PARC cells timed out counts as failed; its speed ratio is then a lower bound "
-              "(time limit / our time).", ""]
+              f"on, PARC fails (its fit fails or times out) or is ≥ {LARGE_TARGET:g}× slower. A "
+              "point where most PARC cells failed or timed out counts as failed; where cells "
+              "timed out, its speed ratio is then a lower bound (time limit / our time).", ""]
     lines += _targets(r)
+    failed_notes = [f"{_label(m)} at n_λ = {_fmt(p['value'])}: {len(d['failed'])} cells "
+                    f"({'; '.join(d['errors'])})"
+                    for p in r["points"] for m, d in p["methods"].items() if d["failed"]]
+    if failed_notes:
+        lines += ["", "- Failed (the method's own fit raised; no e_test, left out of the "
+                  "medians; recorded once, not retried): " + ", ".join(failed_notes) + "."]
     failed = {f["key"] for f in r["failures"]}
     if failed:
         lines += ["", f"- Failures logged: {len(failed)} cells (see the `failures` table); they "
@@ -252,6 +290,11 @@ def plot(r: dict[str, Any], stem: str) -> list[str]:
         if outs:
             ax_t.plot(*zip(*outs, strict=True), ls="none", marker="^", mfc="none", mec=color,
                       ms=9, mew=1.5, label=f"{_label(m)}: timed out (at the limit)")
+        bad = [(p["modes"] * shift, max(_median(p["methods"][m]["failed"]), 1e-3))
+               for p in r["points"] if p["modes"] and p["methods"][m]["failed"]]
+        if bad:
+            ax_t.plot(*zip(*bad, strict=True), ls="none", marker="$\\otimes$", color=color,
+                      ms=11, label=f"{_label(m)}: fit failed (at the seconds until it failed)")
     modes = [p[0] for p in PUBLISHED]
     ax_e.plot(modes, [p[3] for p in PUBLISHED], "x", color="black", ms=8, mew=1.5,
               label="authors (published): violation")

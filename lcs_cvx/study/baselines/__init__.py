@@ -13,6 +13,11 @@ Every baseline is fitted by :func:`fit_baseline` and returns a model with the in
 a ``dtype``), so :func:`lcs_cvx.relative_error` measures its e_test as it measures an LCS's.
 A config's ``[baselines.<name>]`` table overrides the defaults of :data:`OPTIONS`; every option
 is checked when the config is loaded (:func:`baseline_options`).
+
+A baseline whose own fitting algorithm fails on a problem (PARC merging all its clusters away
+when K is close to the number of samples over ``min_number``) raises :class:`BaselineFailed`:
+the grid runner records the cell with ``status = "failed"`` -- a result of the method on that
+problem, stored once and shown in the reports, not a bug to retry.
 """
 
 from __future__ import annotations
@@ -22,9 +27,15 @@ from typing import Any
 
 from ..._checks import LCSInputError
 
-__all__ = ["BASELINES", "OPTIONS", "baseline_options", "fit_baseline"]
+__all__ = ["BASELINES", "OPTIONS", "BaselineFailed", "baseline_options", "fit_baseline"]
 
 BASELINES = ("affine", "mlp", "parc")
+
+
+class BaselineFailed(RuntimeError):
+    """The baseline's own fitting algorithm (a third-party package's fit) failed on this
+    problem: a result of the method, not a bug. The message names the method and the original
+    exception (``"PARC failed: ValueError: ..."``), which is chained as ``__cause__``."""
 
 
 class _Check:
@@ -110,6 +121,9 @@ def fit_baseline(name: str, options: dict[str, Any], train: Any, *, seed: int,
 
     Returns ``(model, info)``: the fitted model (``step(x, u)``, ``dtype``) and what the fit
     chose or measured (JSON-able).
+
+    Raises:
+        BaselineFailed: the method's own fitting algorithm failed on these data (PARC).
     """
     if name == "affine":
         from .affine import fit

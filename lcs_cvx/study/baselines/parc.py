@@ -11,8 +11,9 @@ by block-coordinate descent from a k-means++ clustering of ``[x; u]``: assign ea
 piece that fits it best (penalised by ``sigma`` times its distance to the piece's centroid, the
 ``"Voronoi"`` separation), refit each piece by ridge regression (``alpha``), until the cost drops
 by less than ``cost_tol`` or ``maxiter`` iterations; clusters of fewer than ``min_number``
-samples are merged away, and with ``fit_on_partition`` the pieces are refitted on the final
-partition. It is called here as the authors of the paper called it in their comparison, on the
+samples are merged away (if all are, as with K close to the number of samples over
+``min_number``, PARC's fit raises: :class:`~lcs_cvx.study.baselines.BaselineFailed` here), and
+with ``fit_on_partition`` the pieces are refitted on the final partition. It is called here as the authors of the paper called it in their comparison, on the
 raw ``[x, u] -> x'`` data, with ``K`` the number of hybrid modes of the truth in the training
 data (``K = "modes"``) unless a number is given.
 """
@@ -26,6 +27,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from ..._optional import require
+from . import BaselineFailed
 
 __all__ = ["PARCModel", "fit", "import_parc"]
 
@@ -63,6 +65,11 @@ def fit(train: Any, options: dict[str, Any], *, seed: int, modes: int
 
     Returns the model and ``{"K": K asked, "K_final": pieces kept, "iterations": descent
     iterations, "cost": final cost}``.
+
+    Raises:
+        BaselineFailed: ``pyparc``'s fit raised (any exception of ``PARC.fit``, chained as
+            ``__cause__``; e.g. ``ValueError: attempt to get argmax of an empty sequence`` when
+            every cluster has fewer than ``min_number`` samples and all are merged away).
     """
     parc = import_parc()
     K = modes if options["K"] == "modes" else options["K"]
@@ -79,7 +86,10 @@ def fit(train: Any, options: dict[str, Any], *, seed: int, modes: int
     np.random.seed(seed)
     try:
         with threadpool_limits(1):
-            predictor.fit(X, Y, categorical=[False] * Y.shape[1], weights=np.ones(Y.shape[1]))
+            try:
+                predictor.fit(X, Y, categorical=[False] * Y.shape[1], weights=np.ones(Y.shape[1]))
+            except Exception as exc:  # PARC's own algorithm, not our code: a result
+                raise BaselineFailed(f"PARC failed: {type(exc).__name__}: {exc}") from exc
     finally:
         np.random.set_state(state)
     cost = np.asarray(predictor.cost, dtype=np.float64).ravel()
