@@ -537,6 +537,31 @@ def test_ensembles_group_the_cells_that_differ_in_their_seeds_only():
     assert sorted(c["key"] for j in jobs for c in j["cells"]) == sorted(c["key"] for c in cells)
 
 
+def test_ensembles_leave_baselines_and_unsupported_options_to_run_alone():
+    """A baseline cell, or a cell whose fit options the ensemble loop does not run (the best
+    recipe's extra units and refinement), is a job of its own, run by ``run_cell``."""
+    from lcs_cvx.study.ensembles import alone, ensembles
+
+    cells = expand(load_config(CONFIGS / "pwa_compare_smoke.toml"))
+    jobs = ensembles(cells)
+    for job in jobs:
+        assert job["alone"] == (job["method"] not in ("violation", "prediction"))
+        assert len(job["cells"]) == 1 or not job["alone"]
+    assert {c["method"] for c in cells if alone(c)} == {m for m in {c["method"] for c in cells}
+                                                         if m not in ("violation", "prediction")}
+    assert sorted(c["key"] for j in jobs for c in j["cells"]) == sorted(c["key"] for c in cells)
+
+
+def test_a_best_recipe_study_with_ensemble_gives_the_per_cell_results(tmp_path):
+    one = run_config(CONFIGS / "fig1a_n_lam_best_smoke.toml", out=tmp_path / "one", workers=1,
+                     progress=False)
+    together = run_config(CONFIGS / "fig1a_n_lam_best_smoke.toml", out=tmp_path / "two", workers=1,
+                          progress=False, ensemble=True)
+    assert together.failed == one.failed == 0 and together.executed == one.executed > 0
+    a, b = _rows(tmp_path / "one"), _rows(tmp_path / "two")
+    assert [(r["key"], r["e_test"]) for r in a] == [(r["key"], r["e_test"]) for r in b]
+
+
 #: Calls of :func:`run_study` below (a ``kind = "module"`` study runs in this process).
 MODULE_CALLS: list[tuple] = []
 

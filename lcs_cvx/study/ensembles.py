@@ -24,7 +24,7 @@ from typing import Any
 from ..system import ACTIVE_TOL
 from .cells import setup_cell
 
-__all__ = ["ensembles", "run_ensemble", "ENSEMBLE_FIELDS"]
+__all__ = ["ensembles", "run_ensemble", "alone", "ENSEMBLE_FIELDS"]
 
 #: Cells that agree on these fields (all but their seeds and bookkeeping) train as one ensemble.
 ENSEMBLE_FIELDS = ("system", "data", "learner", "recipe", "fit", "method")
@@ -34,22 +34,42 @@ def _group_key(cell: dict[str, Any]) -> str:
     return json.dumps({k: cell[k] for k in ENSEMBLE_FIELDS}, sort_keys=True, separators=(",", ":"))
 
 
+def alone(cell: dict[str, Any]) -> bool:
+    """Whether ``cell`` must run by itself (:func:`~lcs_cvx.study.cells.run_cell`): a baseline, or
+    ``fit`` options the ensemble loop does not run (extra units, refinement, ...: see
+    :func:`lcs_cvx.fit_ensemble`)."""
+    from .._checks import LCSInputError
+    from ..train import resolve_options
+    from ..train.ensemble import check_supported
+
+    if cell.get("baseline") is not None or cell.get("fit") is None:
+        return True
+    options = {k: tuple(v) if isinstance(v, list) else v for k, v in cell["fit"].items()}
+    try:
+        check_supported(resolve_options(cell["recipe"], **options))
+    except LCSInputError:
+        return True
+    return False
+
+
 def ensembles(cells: list[dict[str, Any]], size: int | None = None) -> list[dict[str, Any]]:
-    """The jobs of ``cells``: each a dict ``{"key", "cells", "value", "trial", "method"}`` of up to
-    ``size`` cells (None: no limit) that differ only in their seeds, in the order of their first
-    cell. ``key`` is the SHA-256 of the members' keys; ``value``, ``trial`` and ``method`` are the
-    first member's (for messages)."""
+    """The jobs of ``cells``: each a dict ``{"key", "cells", "value", "trial", "method", "alone"}``
+    of up to ``size`` cells (None: no limit) that differ only in their seeds, in the order of their
+    first cell; a cell that must run by itself (:func:`alone`) is a job of its own with
+    ``alone = True``. ``key`` is the SHA-256 of the members' keys; ``value``, ``trial`` and
+    ``method`` are the first member's (for messages)."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for c in cells:
-        groups.setdefault(_group_key(c), []).append(c)
+        groups.setdefault(c["key"] if alone(c) else _group_key(c), []).append(c)
     jobs = []
     for members in groups.values():
-        step = size or len(members)
+        single = alone(members[0])
+        step = 1 if single else (size or len(members))
         for i in range(0, len(members), step):
             part = members[i : i + step]
             key = hashlib.sha256("".join(c["key"] for c in part).encode()).hexdigest()
             jobs.append({"key": key, "cells": part, "value": part[0]["value"],
-                         "trial": part[0]["trial"], "method": part[0]["method"]})
+                         "trial": part[0]["trial"], "method": part[0]["method"], "alone": single})
     return jobs
 
 
@@ -57,11 +77,15 @@ def run_ensemble(job: dict[str, Any]) -> list[Any]:
     """Train the cells of ``job`` (:func:`ensembles`) as one ensemble (in a worker; one torch
     thread). Returns, per cell in order, the dict :func:`~lcs_cvx.study.cells.run_cell` returns
     for it, or the :class:`lcs_cvx.SolverError` of a cell whose training diverged (the other
-    cells go on)."""
+    cells go on). A job of a cell that runs by itself (``job["alone"]``) is that cell's
+    :func:`~lcs_cvx.study.cells.run_cell` (its time limit included)."""
     import torch
 
     from .. import fit_ensemble, relative_error
+    from .cells import run_cell
 
+    if job.get("alone"):
+        return [run_cell(c) for c in job["cells"]]
     torch.set_num_threads(1)
     cells = job["cells"]
     K = len(cells)

@@ -49,7 +49,7 @@ from .state import Outcome, TrainState
 __all__ = ["fit_ensemble"]
 
 
-def _check_supported(opts: FitOptions, restarts: bool = False) -> None:
+def check_supported(opts: FitOptions, restarts: bool = False) -> None:
     """:class:`LCSInputError` for an option the ensemble loop does not run (module docstring);
     ``restarts``: the runs are a :func:`lcs_cvx.fit`'s restarts (``restarts > 1`` allowed)."""
     a = opts.adam
@@ -166,7 +166,7 @@ def fit_ensemble(
         check_learnable(m)
     opts = [_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
             for k in range(K)]
-    _check_supported(opts[0])
+    check_supported(opts[0])
     members = [
         _Member(m, _check_data(f"trains[{k}]", trains[k], m),
                 None if tests is None else _check_data(f"tests[{k}]", tests[k], m), opts[k])
@@ -193,7 +193,7 @@ def train_together(states: list[TrainState], *, throw: bool, elapsed: Callable[[
     ``k``'s error message. Package-internal: :func:`fit_ensemble` and :func:`lcs_cvx.fit`'s
     ``ensemble=True`` restarts end here."""
     o = states[0].options
-    _check_supported(o, restarts=True)
+    check_supported(o, restarts=True)
     sizes = {min(o.adam.batch_size, len(st.train)) for st in states}
     if len(sizes) > 1:
         raise LCSInputError(
