@@ -227,7 +227,7 @@ def test_job_keys_follow_the_function_and_every_argument():
     changed[3, 1] += 1e-12
     assert key != job_key("fit_mlp", {**args, "z": changed})  # arrays by their bytes
     assert key != job_key("fit_mlp", {**args, "z": args["z"].astype(np.float32)})
-    with pytest.raises(ValueError, match=r"function: expected one of \('fit_lcs', 'fit_mlp'\), received 'fit_svm'"):
+    with pytest.raises(ValueError, match=r"function: expected one of \('fit_lcs', 'fit_mlp', 'fit_parc'\), received 'fit_svm'"):
         make_job("fit_svm", args)
 
 
