@@ -11,14 +11,8 @@ the config's time limit, and baseline cells whose own fit failed (``status = "fa
 PARC at thousands of modes), have no e_test: they are left out of the statistics and counted in
 a line of the table's notes each (the failed ones with their distinct error messages).
 
-A study whose config has ``compare = NAME`` is reported beside the study of that name in the same
-database (the latest one, if several have it): per swept value its table adds the compared
-study's mean and median e_test for each of this study's losses (its methods of the same loss:
-``"violation"`` under its own recipe), the ratios "compared mean / this study's mean" and, where
-the anchors have the loss's means, "authors' mean / this study's mean", and the mean fit wall
-time per cell (``fit_wall_time``) of both and its ratio; its notes say whether the paired cells
-(same value and trial) drew the same truth, data and start; its figure draws the compared boxes
-beside this study's. A compared study missing from the database is said in one line of the notes.
+A study whose config has ``compare = NAME`` is reported beside the study of that name in the
+same database (:mod:`lcs_cvx.study.compare`).
 """
 
 from __future__ import annotations
@@ -31,7 +25,9 @@ from pathlib import Path
 from typing import Any
 
 from .._checks import LCSInputError
+from ._stats import anchor, e_tests, fmt, stat
 from .cells import REFERENCE, expand
+from .compare import compare_columns, comparison, described, value_index
 from .config import method_parts, read_toml
 from .store import Store
 
@@ -75,13 +71,6 @@ def _anchor_sets(study: dict[str, Any], anchors: dict[str, Any]) -> list[dict[st
     return entry.get("sets", []) if entry.get("param") == study["config"]["sweep"]["param"] else []
 
 
-def _anchor(aset: dict[str, Any], value: float, metric: str) -> Any:
-    for row in aset["rows"]:
-        if math.isclose(float(row["value"]), float(value), rel_tol=1e-9) and metric in row:
-            return row[metric]
-    return None
-
-
 def summarize(store: Store, study: dict[str, Any]) -> dict[str, Any]:
     """Finished cells of ``study`` grouped by swept value and method (report's input); its
     ``failures`` are the logged failures of cells not stored since (still to retry)."""
@@ -99,20 +88,6 @@ def summarize(store: Store, study: dict[str, Any]) -> dict[str, Any]:
             "n_done": len(found),
             "failures": [f for f in store.failures(study["config_hash"]) if f["key"] not in found],
             "cell_time": sum(r["wall_time"] for r in found.values())}
-
-
-def _e(rows: list[dict[str, Any]]) -> list[float]:
-    return [r["e_test"] for r in rows if r["e_test"] is not None]
-
-
-def _fmt(v: Any) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return "–"
-    return f"{v:.3g}" if isinstance(v, float) else str(v)
-
-
-def _stat(xs: list[float], f) -> float | None:
-    return f(xs) if xs else None
 
 
 def short_error(text: str, width: int = 100) -> str:
@@ -137,134 +112,6 @@ def _colour_key(method: str, recipe: str) -> str:
     return method if own in (None, "paper") or method != loss else f"{loss}@{own}"
 
 
-def _value_index(values: list[Any], value: Any) -> int | None:
-    for j, v in enumerate(values):
-        if math.isclose(float(v), float(value), rel_tol=1e-9):
-            return j
-    return None
-
-
-def _same_draws(this: dict[str, Any], other: dict[str, Any],
-                pairs: list[tuple[str, str]]) -> str:
-    """Whether each cell of ``this`` config and the cell of ``other`` with the same swept value,
-    trial and paired method draw the same truth, data and start (seeds, system, data, learner)."""
-    partners: dict[str, list[str]] = {}
-    for m, m2 in pairs:
-        partners.setdefault(m, []).append(m2)
-    theirs = {(float(c["value"]), c["trial"], c["method"]): c
-              for c in expand(other) if c["value"] is not None}
-    n, differ = 0, []
-    for c in expand(this):
-        for m2 in partners.get(c["method"], []) if c["value"] is not None else []:
-            o = theirs.get((float(c["value"]), c["trial"], m2))
-            if o is None:
-                continue
-            n += 1
-            if any(c[k] != o[k] for k in ("seeds", "system", "data", "learner")):
-                differ.append(c)
-    if not n:
-        return "no paired cells (no common swept value and trial)"
-    if not differ:
-        return f"yes, in all {n} paired cells (same seeds, system, data and learner)"
-    c = differ[0]
-    return (f"no: {len(differ)} of {n} paired cells differ (e.g. {c['value']:g}, trial "
-            f"{c['trial']}: seeds, system, data or learner)")
-
-
-def comparison(summary: dict[str, Any], summaries: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """The study named by ``summary``'s ``compare`` among ``summaries`` (the latest of that name)
-    and the pairs (this study's method, its method of the same loss); None without ``compare``.
-    ``{"name", "summary": None}`` when no study of that name is there."""
-    config = summary["study"]["config"]
-    name = config.get("compare")
-    if name is None:
-        return None
-    found = [s for s in summaries if s["study"]["name"] == name]
-    if not found:
-        return {"name": name, "summary": None}
-    other = found[-1]
-    oconfig = other["study"]["config"]
-    pairs, unpaired = [], []
-    for m in config["methods"]:
-        loss = method_parts(m, config["recipe"])[0]
-        same = [m2 for m2 in oconfig["methods"] if method_parts(m2, oconfig["recipe"])[0] == loss]
-        pairs += [(m, m2) for m2 in same]
-        if not same:
-            unpaired.append(m)
-    return {"name": name, "summary": other, "n_same_name": len(found), "pairs": pairs,
-            "unpaired": unpaired, "draws": _same_draws(config, oconfig, pairs)}
-
-
-def _described(method: str, recipe: str, study: str | None = None) -> str:
-    """``"violation (paper recipe, fig1a_n_lam)"``; a baseline keeps its name."""
-    loss, own = method_parts(method, recipe)
-    inside = ", ".join(x for x in ((f"{own} recipe" if own else None), study) if x)
-    return f"{loss} ({inside})" if inside else loss
-
-
-def _fit_time(rows: list[dict[str, Any]]) -> float | None:
-    return _stat([r["fit_wall_time"] for r in rows if r.get("fit_wall_time") is not None],
-                 statistics.fmean)
-
-
-def _ratio(a: Any, b: Any) -> float | None:
-    return a / b if a is not None and b is not None and b > 0 else None
-
-
-def _compare_columns(summary: dict[str, Any], compared: dict[str, Any],
-                     sets: list[dict[str, Any]]) -> tuple[list[str], list[list[str]], list[str]]:
-    """The comparison's header, its cells per swept value and its notes."""
-    config = summary["study"]["config"]
-    other = compared["summary"]
-    oconfig, oname = other["study"]["config"], compared["name"]
-    pairs = compared["pairs"]
-    ours_m = list(dict.fromkeys(m for m, _ in pairs))
-    theirs_m = list(dict.fromkeys(m2 for _, m2 in pairs))
-    loss = {m: method_parts(m, config["recipe"])[0] for m in config["methods"]}
-    # a method is named by its loss, unless two of this study's methods share it
-    tag = {m: (loss[m] if list(loss.values()).count(loss[m]) == 1 else m) for m in loss}
-    described = {m2: _described(m2, oconfig["recipe"], oname) for m2 in theirs_m}
-    anchored = [(k, s, m) for m in config["methods"] for k, s in enumerate(sets)
-                if any(f"{loss[m]}_mean" in r for r in s["rows"])]
-    head = [f"{described[m2]} {stat}" for m2 in theirs_m for stat in ("mean", "median")]
-    head += [f"{tag[m]} mean: {oname}{'' if len(theirs_m) == 1 else ' ' + m2} / this study"
-             for m, m2 in pairs]
-    head += [f"authors{' ' + str(k + 1) if len(sets) > 1 else ''} / this study: {tag[m]} mean"
-             for k, _, m in anchored]
-    head += ["fit s / cell", f"fit s / cell ({oname})", f"fit s / cell: this study / {oname}"]
-    rows = []
-    for i, v in enumerate(summary["values"]):
-        j = _value_index(other["values"], v)
-        theirs = {m2: _e(other["per"][(j, m2)]) if j is not None else [] for m2 in theirs_m}
-        mean = {m: _stat(_e(summary["per"][(i, m)]), statistics.fmean) for m in config["methods"]}
-        cells = [_fmt(_stat(theirs[m2], f)) for m2 in theirs_m
-                 for f in (statistics.fmean, statistics.median)]
-        cells += [_fmt(_ratio(_stat(theirs[m2], statistics.fmean), mean[m])) for m, m2 in pairs]
-        cells += [_fmt(_ratio(_anchor(s, v, f"{loss[m]}_mean"), mean[m])) for _, s, m in anchored]
-        mine = _fit_time([r for m in ours_m for r in summary["per"][(i, m)]])
-        fits = (_fit_time([r for m2 in theirs_m for r in other["per"][(j, m2)]])
-                if j is not None else None)
-        cells += [_fmt(mine), _fmt(fits), _fmt(_ratio(mine, fits))]
-        rows.append(cells)
-    study = other["study"]
-    methods = ", ".join(f"`{m2}`" for m2 in theirs_m) or "no"
-    done = sum(len(other["per"][(j, m2)]) for m2 in theirs_m for j in range(len(other["values"])))
-    several = (f" (the latest of {compared['n_same_name']} studies of that name)"
-               if compared["n_same_name"] > 1 else "")
-    notes = [f"- Compared with `{oname}`{several}: config `{study['path']}` (hash "
-             f"`{study['config_hash']}`), recipe `{oconfig['recipe']}`; its {methods} cells, "
-             f"{done} finished. Same truth, data and start per swept value and trial: "
-             f"{compared['draws']}.",
-             "- `fit s / cell`: mean `fit_wall_time` (seconds in the fit) of each study's compared "
-             "cells; wall times are comparable only when both studies ran under the same load. "
-             "The ratios divide means: an e_test ratio `… / this study` above 1 means this "
-             "study's mean e_test is lower, a fit time ratio `this study / …` below 1 that its "
-             "fits are faster."]
-    notes += [f"- `{oname}` has no method with the loss of `{m}`: no comparison columns for it."
-              for m in compared["unpaired"]]
-    return head, rows, notes
-
-
 def markdown(summary: dict[str, Any], anchors: dict[str, Any],
              compared: dict[str, Any] | None = None) -> str:
     """The study's markdown table and notes; ``compared``: :func:`comparison`'s result."""
@@ -275,7 +122,7 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any],
     sets = _anchor_sets(study, anchors)
     head = [label, "cells", "modes (mean)", "σ_min(F+Fᵀ) (mean)"]
     for m in methods:
-        d = _described(m, config["recipe"]) if compared is not None else m
+        d = described(m, config["recipe"]) if compared is not None else m
         head += [f"{d} mean", f"{d} median"]
     anchor_cols = [(k, s, metric) for k, s in enumerate(sets)
                    for metric in ("prediction_mean", "violation_mean", "modes")
@@ -288,7 +135,7 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any],
         compare_notes.append(f"- Compared study `{compared['name']}` (`compare`): not in this "
                              "database; run its config with the same `--out` to show it here.")
     elif compared is not None:
-        extra_head, extra_rows, compare_notes = _compare_columns(summary, compared, sets)
+        extra_head, extra_rows, compare_notes = compare_columns(summary, compared, sets)
         head += extra_head
     lines = [f"# {config['name']}" + (f" — Fig. 1({config['panel']})" if config.get("panel") else ""),
              "",
@@ -303,21 +150,21 @@ def markdown(summary: dict[str, Any], anchors: dict[str, Any],
     for i, v in enumerate(summary["values"]):
         rows = [r for m in methods for r in summary["per"][(i, m)]]
         expected = config["trials"] * len(methods)
-        cells = [_fmt(v), f"{len(rows)}/{expected}",
-                 _fmt(_stat([float(r["modes"]) for r in rows], statistics.fmean)),
-                 _fmt(_stat([r["sigma_min"] for r in rows], statistics.fmean))]
+        cells = [fmt(v), f"{len(rows)}/{expected}",
+                 fmt(stat([float(r["modes"]) for r in rows], statistics.fmean)),
+                 fmt(stat([r["sigma_min"] for r in rows], statistics.fmean))]
         for m in methods:
-            xs = _e(summary["per"][(i, m)])
-            cells += [_fmt(_stat(xs, statistics.fmean)), _fmt(_stat(xs, statistics.median))]
-        cells += [_fmt(_anchor(s, v, metric)) for _, s, metric in anchor_cols]
+            xs = e_tests(summary["per"][(i, m)])
+            cells += [fmt(stat(xs, statistics.fmean)), fmt(stat(xs, statistics.median))]
+        cells += [fmt(anchor(s, v, metric)) for _, s, metric in anchor_cols]
         cells += extra_rows[i]
         lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     for m in refs:
-        xs = _e(summary["per"][(REFERENCE, m)])
+        xs = e_tests(summary["per"][(REFERENCE, m)])
         lines.append(f"- Reference `{m}` (trained once per trial, independent of {label}): "
-                     f"{len(xs)}/{config['trials']} cells, mean {_fmt(_stat(xs, statistics.fmean))}, "
-                     f"median {_fmt(_stat(xs, statistics.median))}.")
+                     f"{len(xs)}/{config['trials']} cells, mean {fmt(stat(xs, statistics.fmean))}, "
+                     f"median {fmt(stat(xs, statistics.median))}.")
     for k, s in enumerate(sets):
         note = " " + " ".join(s["note"].split()) if s.get("note") else ""
         lines.append(f"- Authors{' ' + str(k + 1) if len(sets) > 1 else ''}: {s['label']}.{note}")
@@ -363,7 +210,7 @@ def _series(summary: dict[str, Any], compared: dict[str, Any] | None) -> list[di
     n = len(summary["values"])
     if compared is None or compared["summary"] is None:
         return [{"key": m, "label": m, "color": _COLORS.get(m, "grey"),
-                 "data": [_e(summary["per"][(i, m)]) for i in range(n)]}
+                 "data": [e_tests(summary["per"][(i, m)]) for i in range(n)]}
                 for m in config["methods"]]
     other = compared["summary"]
     oconfig = other["study"]["config"]
@@ -378,13 +225,13 @@ def _series(summary: dict[str, Any], compared: dict[str, Any] | None) -> list[di
             if color in used:
                 color = next(spare, "grey")
             used.add(color)
-            idx = [_value_index(other["values"], v) for v in summary["values"]]
+            idx = [value_index(other["values"], v) for v in summary["values"]]
             out.append({"key": ("compared", m2), "color": color,
-                        "label": _described(m2, oconfig["recipe"], compared["name"]),
-                        "data": [_e(other["per"][(j, m2)]) if j is not None else [] for j in idx]})
-        out.append({"key": m, "label": _described(m, config["recipe"]),
+                        "label": described(m2, oconfig["recipe"], compared["name"]),
+                        "data": [e_tests(other["per"][(j, m2)]) if j is not None else [] for j in idx]})
+        out.append({"key": m, "label": described(m, config["recipe"]),
                     "color": _COLORS.get(_colour_key(m, config["recipe"]), "grey"),
-                    "data": [_e(summary["per"][(i, m)]) for i in range(n)]})
+                    "data": [e_tests(summary["per"][(i, m)]) for i in range(n)]})
     return out
 
 
@@ -421,13 +268,13 @@ def plot(summary: dict[str, Any], anchors: dict[str, Any], stem: str,
             patch.set_alpha(0.6)
         ax.plot([], [], "s", color=g["color"], label=g["label"])
     for m in config["reference_methods"]:
-        xs = _e(summary["per"][(REFERENCE, m)])
+        xs = e_tests(summary["per"][(REFERENCE, m)])
         if xs:
             ax.axhline(statistics.median(xs), color=_COLORS.get(m, "grey"), ls="--",
                        label=f"{m} (reference, median)")
     for k, s in enumerate(_anchor_sets(study, anchors)):
         for m in methods + config["reference_methods"]:
-            pts = [(p + offsets.get(m, 0.0), _anchor(s, v, f"{m}_mean"))
+            pts = [(p + offsets.get(m, 0.0), anchor(s, v, f"{m}_mean"))
                    for p, v in zip(pos, summary["values"], strict=True)]
             pts = [(p, a) for p, a in pts if a is not None]
             if pts:
