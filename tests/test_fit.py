@@ -150,7 +150,7 @@ def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small):
 
 
 @pytest.mark.parametrize("value", [0.5, float("nan"), "3", True])
-def test_restart_tolerance_is_checked(small, value):
+def test_restart_tolerance_is_checked(value):
     with pytest.raises(LCSInputError, match="restart_tolerance"):
         resolve_options(restarts=2, restart_tolerance=value)
 

@@ -220,12 +220,13 @@ def test_parc_job_finds_the_pieces_of_a_piecewise_affine_map_and_is_rebuilt_exac
 
 @needs_parc
 def test_parc_job_reports_a_failed_fit(monkeypatch):
-    from lcs_cvx.study.baselines import baseline_options
+    from lcs_cvx.study.baselines import BaselineFailed, baseline_options
     from lcs_cvx.study.baselines import parc as parc_baseline
     from studies.physics.models import fit_parc, parc_from_result
 
-    def broken(*args, **kwargs):
-        raise np.linalg.LinAlgError("Singular matrix")
+    def broken(*args, **kwargs):  # as the wrapper raises when pyparc's fit fails
+        raise BaselineFailed("PARC failed: LinAlgError: Singular matrix") from np.linalg.LinAlgError(
+            "Singular matrix")
 
     monkeypatch.setattr(parc_baseline, "fit", broken)
     x = np.zeros((20, 2))
@@ -296,10 +297,12 @@ def test_smoke_study_runs_through_the_runner_and_resumes(tmp_path, monkeypatch):
     assert again["jobs"] == {"total": 14, "run_now": 0}
     assert again["sizes"] == m["sizes"] and again["target"] == m["target"]
     # another PARC seed runs the two PARC jobs only; where pyparc raises, the rows say so
+    from lcs_cvx.study.baselines import BaselineFailed
     from lcs_cvx.study.baselines import parc as parc_baseline
 
-    def broken(*args, **kwargs):
-        raise np.linalg.LinAlgError("Singular matrix")
+    def broken(*args, **kwargs):  # as the wrapper raises when pyparc's fit fails
+        raise BaselineFailed("PARC failed: LinAlgError: Singular matrix") from np.linalg.LinAlgError(
+            "Singular matrix")
 
     monkeypatch.setattr(parc_baseline, "fit", broken)
     other = tmp_path / "other_seed.toml"

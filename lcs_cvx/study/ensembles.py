@@ -59,17 +59,20 @@ def ensembles(cells: list[dict[str, Any]], size: int | None = None) -> list[dict
     ``alone = True``. ``key`` is the SHA-256 of the members' keys; ``value``, ``trial`` and
     ``method`` are the first member's (for messages)."""
     groups: dict[str, list[dict[str, Any]]] = {}
+    single: dict[str, bool] = {}
     for c in cells:
-        groups.setdefault(c["key"] if alone(c) else _group_key(c), []).append(c)
+        by_itself = alone(c)
+        key = c["key"] if by_itself else _group_key(c)
+        groups.setdefault(key, []).append(c)
+        single[key] = by_itself
     jobs = []
-    for members in groups.values():
-        single = alone(members[0])
-        step = 1 if single else (size or len(members))
+    for group, members in groups.items():
+        step = 1 if single[group] else (size or len(members))
         for i in range(0, len(members), step):
             part = members[i : i + step]
             key = hashlib.sha256("".join(c["key"] for c in part).encode()).hexdigest()
             jobs.append({"key": key, "cells": part, "value": part[0]["value"],
-                         "trial": part[0]["trial"], "method": part[0]["method"], "alone": single})
+                         "trial": part[0]["trial"], "method": part[0]["method"], "alone": single[group]})
     return jobs
 
 

@@ -307,12 +307,11 @@ def fit_parc(job: dict[str, Any]) -> dict[str, Any]:
     train = Dataset.from_arrays(job["x"], job["u"], job["x_next"])
     try:
         model, info = fit(train, job["options"], seed=job["seed"], modes=job["modes"])
-        arrays = PARCModel.from_predictor(model.predictor)
-    except Exception as exc:  # noqa: BLE001 -- any failure of pyparc's fit is reported in the study's tables
-        # BaselineFailed wraps pyparc's own exception: name that one
-        cause = exc.__cause__ if isinstance(exc, BaselineFailed) and exc.__cause__ else exc
+    except BaselineFailed as exc:  # pyparc's own fit failed: a result, reported in the tables
+        cause = exc.__cause__ or exc  # name pyparc's exception, which BaselineFailed wraps
         return {"omega": None, "gamma": None, "coef": None, "intercept": None, "info": None,
                 "wall_time": time.perf_counter() - t0, "error": f"{type(cause).__name__}: {cause}"}
+    arrays = PARCModel.from_predictor(model.predictor)
     return {"omega": arrays.omega, "gamma": arrays.gamma, "coef": arrays.coef, "intercept": arrays.intercept,
             "info": info, "wall_time": time.perf_counter() - t0, "error": None}
 
