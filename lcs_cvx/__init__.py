@@ -20,6 +20,7 @@ from .losses import prediction_loss_info as prediction_loss_info
 from .losses import regularizer as regularizer
 from .losses import violation_loss as violation_loss
 from .losses import violation_loss_info as violation_loss_info
+from .metrics import affine_error as affine_error
 from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
 from .problems import convex_lcp_problem as convex_lcp_problem

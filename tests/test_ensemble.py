@@ -259,4 +259,4 @@ def test_fit_restarts_together_refuse_what_they_do_not_run():
     with pytest.raises(LCSInputError, match=r"callbacks: expected none with ensemble=True"):
         lcs_cvx.fit(model, train, restarts=2, ensemble=True, callbacks=[lambda rec, m: None], progress=False)
     with pytest.raises(LCSInputError, match=r"extra_units: fit_ensemble runs the Adam phase only"):
-        lcs_cvx.fit(model, train, recipe="best", restarts=2, ensemble=True, progress=False)
+        lcs_cvx.fit(model, train, recipe="best", restarts=2, restart_tolerance=None, ensemble=True, progress=False)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -131,6 +132,7 @@ def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypat
         return next(verdicts)
 
     monkeypatch.setattr(driver, "kept_fit", verdict)
+    monkeypatch.setattr(driver, "affine_error", lambda train, test: math.inf)  # every run beats it
     result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
                          eval_every=10, refine="gauss-newton", refine_iterations=2, restarts=4,
                          restart_tolerance=3.0)
@@ -139,7 +141,10 @@ def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypat
     assert {h["restart"] for h in result.history} == {0, 1}
 
 
-def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small):
+def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small, monkeypatch):
+    from lcs_cvx.train import driver
+
+    monkeypatch.setattr(driver, "affine_error", lambda train, test: math.inf)
     _, train, _ = small
     options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
                    refine_iterations=2, restarts=3)
@@ -147,6 +152,54 @@ def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small):
     every = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, **options)
     assert len(once.restart_scores) == 1 and len(every.restart_scores) == 3
     assert once.restart_scores[0] == every.restart_scores[0]  # the same first run
+
+
+def test_restart_tolerance_runs_restarts_until_one_beats_the_affine_map(small, monkeypatch):
+    """A run that kept its fit but whose held-out error is not below AFFINE_MARGIN times the
+    affine map's has not succeeded: the next restart runs."""
+    from lcs_cvx.train import driver
+
+    _, train, _ = small
+    options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
+                   refine_iterations=2, restarts=3, restart_tolerance=1e9, holdout=0.2)
+    every = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4), train, **{**options, "restart_tolerance": None})
+    scores = every.restart_scores
+    fit_part, holdout = train.split(0.8, seed=0)
+    calls = []
+
+    def level(fit_data, test):  # an affine error that run 1 beats and run 0 does not
+        calls.append((len(fit_data), len(test)))
+        return scores[1] / driver.AFFINE_MARGIN * 1.0001
+
+    assert scores[0] > scores[1]  # the fixture's runs: the first is the worse
+    monkeypatch.setattr(driver, "affine_error", level)
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4), train, **options)
+    assert result.restart_scores == scores[:2]  # run 0 did not beat it, run 1 did: run 2 skipped
+    assert calls == [(len(fit_part), len(holdout))]  # computed once, on the fit and held-out parts
+
+
+def test_init_tuple_starts_restart_k_from_its_kth_entry(small, monkeypatch):
+    from lcs_cvx.train import driver
+
+    _, train, _ = small
+    kinds = []
+    real = driver.start
+
+    def spy(base, init, scaling, data, exact):
+        kinds.append((init, exact))
+        return real(base, init, scaling, data, exact)
+
+    monkeypatch.setattr(driver, "start", spy)
+    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=10, restarts=3,
+                init=("increment", "model"))
+    assert kinds == [("increment", True), ("model", False), ("increment", False)]
+    assert resolve_options(init=["affine", "model"]).run.init == ("affine", "model")  # TOML lists
+
+
+@pytest.mark.parametrize("value", [(), ["model", "random"], ("increment", 3)])
+def test_init_tuple_is_checked(value):
+    with pytest.raises(LCSInputError, match="init: expected one of"):
+        resolve_options(init=value)
 
 
 @pytest.mark.parametrize("value", [0.5, float("nan"), "3", True])

@@ -649,3 +649,24 @@ def test_setup_cell_is_the_work_run_cell_measures():
     ran = run_cell(cell)
     assert lcs_cvx.relative_error(result.model, test) == ran["e_test"]
     assert truth.sigma_min == ran["sigma_min"]
+
+
+def test_a_recipe_past_version_1_is_in_its_cells_keys_and_checked_when_run():
+    """A cell trained under an earlier version of its recipe is never taken for a current one:
+    the version is part of the key of a recipe past version 1 (paper-recipe keys unchanged), and
+    a cell made for another version is refused by name."""
+    from lcs_cvx.train.recipes import RECIPE_VERSIONS
+
+    config = load_config(CONFIGS / "fig1a_n_lam_best_smoke.toml")
+    cells = expand(config)
+    assert {c["recipe"] for c in cells} == {"best"}
+    assert all(c["recipe_version"] == RECIPE_VERSIONS["best"] > 1 for c in cells)
+    paper = expand(load_config(CONFIGS / "fig1a_n_lam_smoke.toml"))
+    assert not any("recipe_version" in c for c in paper)
+    old = {k: v for k, v in cells[0].items() if k not in ("recipe_version", "key")}
+    from lcs_cvx.study.cells import cell_key
+
+    assert cell_key(old) != cells[0]["key"]
+    stale = {**cells[0], "recipe_version": 1}
+    with pytest.raises(lcs_cvx.LCSInputError, match="recipe_version: .*version 1 of recipe 'best'"):
+        run_cell(stale)

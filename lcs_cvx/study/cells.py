@@ -40,7 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from .._checks import LCSInputError
 from ..system import ACTIVE_TOL
+from ..train.recipes import RECIPE_VERSIONS
 from .baselines import BASELINES, BaselineFailed
 from .config import config_hash, fit_options, method_parts
 
@@ -84,8 +86,10 @@ def _cell(config: dict, h: str, index: int, value: Any, trial: int, method: str)
     if method in BASELINES:
         cell.update(recipe=None, fit=None, baseline=config["baselines"][method])
     else:
-        cell.update(recipe=method_parts(method, config["recipe"])[1],
-                    fit=fit_options(config, method, value))
+        recipe = method_parts(method, config["recipe"])[1]
+        cell.update(recipe=recipe, fit=fit_options(config, method, value))
+        if recipe is not None and RECIPE_VERSIONS[recipe] > 1:  # keys of version 1 unchanged
+            cell["recipe_version"] = RECIPE_VERSIONS[recipe]
     if config.get("time_limit") is not None:
         cell["time_limit"] = config["time_limit"]
     return cell
@@ -210,6 +214,12 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
             fit_time = time.perf_counter() - t_fit
             settings, final_loss, curve = {**cell["baseline"], **info}, None, []
         else:
+            version = RECIPE_VERSIONS.get(cell["recipe"], 1) if cell["recipe"] else 1
+            if cell.get("recipe_version", 1) != version:  # e.g. a worker with other code
+                raise LCSInputError(
+                    f"recipe_version: cell {cell['key'][:12]} was made for version "
+                    f"{cell.get('recipe_version', 1)} of recipe {cell['recipe']!r}; this "
+                    f"installation has version {version}")
             result = fit(learner, train, test=test, recipe=cell["recipe"], progress=False,
                          seed=cell["seeds"]["fit"], **options)
             model, fit_time, curve = result.model, result.wall_time, result.history

@@ -28,7 +28,7 @@ import torch
 from .._checks import LCSInputError
 from ..data import Dataset
 from ..io import atomic_write
-from ..metrics import relative_error
+from ..metrics import affine_error, relative_error
 from ..scaling import Scaling
 from ..structure import check_learnable
 from ..system import LCS
@@ -42,6 +42,9 @@ __all__ = ["FitResult", "fit", "CHECKPOINT_FORMAT"]
 
 #: 3: the run state of :class:`TrainState` and grouped options.
 CHECKPOINT_FORMAT = 3
+#: With ``restart_tolerance``, a run succeeds only with a held-out error below this fraction of
+#: the least-squares affine map's (:func:`lcs_cvx.metrics.affine_error`).
+AFFINE_MARGIN = 0.5
 
 
 @dataclass(frozen=True)
@@ -302,7 +305,15 @@ def fit(
     def learner_for(restart: int) -> LCS:
         """The start of a restart in the coordinates of learning (restart 0: from ``model``)."""
         base = model if restart == 0 else fresh_like(model, seed=r.seed * 7919 + restart)
-        return start(base, r.init, scaling, fit_data, exact=restart == 0)
+        return start(base, r.init_for(restart), scaling, fit_data, exact=restart == 0)
+
+    affine_score: list[float] = []  # the affine map's held-out error, computed once when needed
+
+    def succeeded(run: dict) -> bool:
+        """Whether a finished run kept its fit and beat the affine map (``restart_tolerance``)."""
+        if not affine_score:
+            affine_score.append(affine_error(fit_user, holdout))
+        return run.get("kept", False) and run["score"] < AFFINE_MARGIN * affine_score[0]
 
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False
@@ -320,7 +331,7 @@ def fit(
             if bar is not None:
                 bar.update(bar.total - bar.n)
         for restart in range(len(done), r.restarts):
-            if r.restart_tolerance is not None and any(d.get("kept", False) for d in done):
+            if r.restart_tolerance is not None and any(succeeded(d) for d in done):
                 break
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart,

@@ -222,10 +222,13 @@ class RunOptions:
             fraction of the data is returned.
         holdout: see ``restarts`` (only used when ``restarts > 1``).
         restart_tolerance: with ``restarts > 1``, run a further restart only while no finished
-            run *kept its fit*: ended (after pruning and refinement) at a training loss at most
-            ``restart_tolerance`` times its loss at the end of the Adam phase (pruning extra
-            units can lose the fit Adam found; the training guide has measurements). A run
-            without pruning or refinement always keeps its fit. None: every restart runs.
+            run *succeeded*: kept its fit -- ended (after pruning and refinement) at a training
+            loss at most ``restart_tolerance`` times its loss at the end of the Adam phase
+            (pruning extra units can lose the fit Adam found) -- and beat the affine model: a
+            held-out error below ``AFFINE_MARGIN`` (one half) of the least-squares affine map's
+            (:func:`lcs_cvx.metrics.affine_error`; a run at that level has not used its
+            complementarity units). The training guide has measurements. A run without pruning
+            or refinement always keeps its fit. None: every restart runs.
         seed: seed of minibatches, restarts' initialisations and re-initialisations.
         eval_every: Adam and polish steps between history records.
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
@@ -241,7 +244,10 @@ class RunOptions:
             random draw in the coordinates of learning (a fresh :class:`lcs_cvx.LCS`'s
             ``init_scale * N(0, 1)``: hyperplanes at the data's scale whatever its units).
             ``"affine"``: as ``"increment"``, with ``(A, B, d)`` from the least-squares affine fit
-            ``x' ~ A x + B u + d``. Fixed parameters keep their values in every case.
+            ``x' ~ A x + B u + d``. Fixed parameters keep their values in every case. A tuple
+            of these names: restart ``k`` starts from ``init[k % len(init)]`` (a restart after
+            the first is a fresh draw, so ``"model"`` there means that draw, taken in the
+            coordinates of learning).
     """
 
     restarts: int = 1
@@ -252,11 +258,17 @@ class RunOptions:
     checkpoint_every: int = 500
     keep_best: bool = False
     normalize: bool = True
-    init: str = "increment"
+    init: str | tuple[str, ...] = "increment"
 
     def __post_init__(self) -> None:
         _count(self, 1, "restarts", "eval_every", "checkpoint_every")
-        _choice(self, "init", INITS)
+        if isinstance(self.init, (list, tuple)):  # a TOML or JSON list is the tuple
+            object.__setattr__(self, "init", tuple(self.init))
+            if not self.init or any(k not in INITS for k in self.init):
+                raise option_error("init", f"one of {INITS} or a non-empty tuple of them",
+                                   list(self.init))
+        else:
+            _choice(self, "init", INITS)
         if not isinstance(self.normalize, bool):
             raise option_error("normalize", "True or False", self.normalize)
         if not (_number(self.holdout) and 0 < self.holdout < 1):
@@ -266,6 +278,11 @@ class RunOptions:
             raise option_error("restart_tolerance", "None or a finite number >= 1", t)
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise option_error("seed", "an integer", self.seed)
+
+    def init_for(self, restart: int) -> str:
+        """The start of restart ``restart`` (0 is the first run): ``init``, or its entry
+        ``restart % len(init)`` when ``init`` is a tuple."""
+        return self.init[restart % len(self.init)] if isinstance(self.init, tuple) else self.init
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from typing import Any
 from .._checks import LCSInputError
 from .options import GROUPS, OPTIMIZERS, RECIPE_NAMES, FitOptions, RefineOptions, option_error
 
-__all__ = ["FLAT_OPTIONS", "RECIPES", "resolve_options", "from_flat", "to_flat", "split_groups"]
+__all__ = ["FLAT_OPTIONS", "RECIPES", "RECIPE_VERSIONS", "resolve_options", "from_flat", "to_flat", "split_groups"]
 
 #: flat keyword -> (group, field), for the keywords whose meaning does not depend on the optimizer
 _FLAT: dict[str, tuple[str, str]] = {
@@ -55,13 +55,23 @@ _RECIPE_KEYWORDS: dict[str, dict[str, Any]] = {
               "refine": None, "restarts": 1, "reinit_saturated": False, "normalize": False,
               "init": "model"},
     # cosine lr from 1e-2, eps continuation, saturated-unit re-initialisation, extra units then
-    # pruning, a Gauss--Newton refinement: 4,000 Adam steps instead of 10,000
+    # pruning, a Gauss--Newton refinement: 4,000 Adam steps instead of 10,000; a second run, from
+    # another kind of start, only when the first lost its fit or ended at the affine map's error
     "best": {"optimizer": "adam", "lr": 1e-2, "lr_schedule": "cosine", "eps_start": 1e-2,
              "eps_fraction": 0.6, "reinit_saturated": True, "iterations": 4000,
              "extra_units": "auto", "prune_repair": 1, "refine": "gauss-newton",
-             "refine_iterations": 10, "refine_batch": 500},
+             "refine_iterations": 10, "refine_batch": 500, "restarts": 2,
+             "restart_tolerance": 4.0, "init": ("increment", "model")},
 }
 assert tuple(_RECIPE_KEYWORDS) == RECIPE_NAMES
+
+#: A recipe's version goes up whenever its options change. A study cell of a recipe past version 1
+#: carries the version in its key (:func:`lcs_cvx.study.cells.cell_key`), so a resumed study never
+#: takes a cell trained under an earlier version for one of the current recipe. ``"best"``
+#: version 2 added the restart that runs when the first run lost its fit or ended at the affine
+#: map's error.
+RECIPE_VERSIONS: dict[str, int] = {"paper": 1, "best": 2}
+assert tuple(RECIPE_VERSIONS) == RECIPE_NAMES
 
 
 def split_groups(overrides: dict[str, Any]) -> dict[str, Any]:

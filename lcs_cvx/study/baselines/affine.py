@@ -11,6 +11,8 @@ from typing import Any
 
 import torch
 
+from ...metrics import affine_lstsq
+
 __all__ = ["AffineModel", "fit"]
 
 
@@ -29,9 +31,6 @@ class AffineModel:
 
 
 def fit(train: Any, options: dict[str, Any], *, seed: int, modes: int) -> tuple[AffineModel, dict]:
-    """Least squares on ``train`` (an :class:`lcs_cvx.Dataset`); ``options``, ``seed`` and
-    ``modes`` are unused (the fit is deterministic and has one piece)."""
-    x, u, xn = (t.detach().to(torch.float64) for t in (train.x, train.u, train.x_next))
-    Z = torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=torch.float64)], dim=1)
-    W = torch.linalg.lstsq(Z, xn).solution
-    return AffineModel(W), {}
+    """Least squares on ``train`` (an :class:`lcs_cvx.Dataset`, :func:`lcs_cvx.metrics.affine_lstsq`);
+    ``options``, ``seed`` and ``modes`` are unused (the fit is deterministic and has one piece)."""
+    return AffineModel(affine_lstsq(train)), {}
