@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import os
 import sys
@@ -307,13 +308,14 @@ def fit(
         base = model if restart == 0 else fresh_like(model, seed=r.seed * 7919 + restart)
         return start(base, r.init_for(restart), scaling, fit_data, exact=restart == 0)
 
-    affine_score: list[float] = []  # the affine map's held-out error, computed once when needed
+    @functools.cache
+    def affine_score() -> float:
+        """The affine map's held-out error (computed once, when first needed)."""
+        return affine_error(fit_user, holdout)
 
     def succeeded(run: dict) -> bool:
         """Whether a finished run kept its fit and beat the affine map (``restart_tolerance``)."""
-        if not affine_score:
-            affine_score.append(affine_error(fit_user, holdout))
-        return run.get("kept", False) and run["score"] < AFFINE_MARGIN * affine_score[0]
+        return run.get("kept", False) and run["score"] < AFFINE_MARGIN * affine_score()
 
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False
