@@ -29,7 +29,7 @@ from .scaling import Scaling as Scaling
 from .selection import Selection as Selection
 from .selection import select_n_lam as select_n_lam
 from .system import LCS as LCS
-from .system import random_lcs as random_lcs
+from .data import random_lcs as random_lcs
 from .train import RECIPES as RECIPES
 from .train import AdamOptions as AdamOptions
 from .train import FitOptions as FitOptions

@@ -24,9 +24,9 @@ from dataclasses import asdict, dataclass
 
 import torch
 
-from .data import make_dataset
+from .data import make_dataset, random_lcs
 from .losses import prediction_loss, prediction_loss_info, violation_loss, violation_loss_info
-from .system import LCS, random_lcs
+from .system import LCS
 
 __all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time"]
 

@@ -1,4 +1,5 @@
-"""Transition data ``(x, u, x')`` and the paper's data generator (Sec. 5).
+"""Transition data ``(x, u, x')`` and the paper's data generator (Sec. 5): the random ground truth
+(:func:`random_lcs`) and its transitions (:func:`make_dataset`).
 
 :func:`make_dataset` samples ``x ~ U[-x_scale, x_scale]^{n_x}``, ``u ~ U[-u_scale, u_scale]^{n_u}``
 (the paper: 10 and 5), steps the system with the exact LCP, and adds ``N(0, noise^2)`` to ``x'``
@@ -20,8 +21,9 @@ import torch
 
 from ._checks import LCSInputError, as_batch, check_positive
 from .io import atomic_write, read_npz
+from .system import DEFAULT_STIFFNESS, LCS, PARAMETER_NAMES
 
-__all__ = ["Dataset", "make_dataset"]
+__all__ = ["Dataset", "make_dataset", "random_lcs"]
 
 #: The arrays of a dataset, in the order :meth:`Dataset.from_csv` reads their columns.
 _GROUPS = ("x", "u", "x_next", "lam")
@@ -345,3 +347,36 @@ def csv_columns(
             )
         names[g] = [idx[i] for i in range(len(idx))]
     return names
+
+
+def random_lcs(
+    n_x: int,
+    n_u: int,
+    n_lam: int,
+    stiffness: float = DEFAULT_STIFFNESS,
+    seed: int = 0,
+    dtype: torch.dtype = torch.float64,
+    g_scale: float = 1.0,
+) -> LCS:
+    """The paper's random ground truth (Sec. 5): every entry of A, B, C, d, D, E, G, H, c
+    uniform in [-1, 1], ``F = G G^T + H - H^T + s I``.
+
+    ``g_scale`` multiplies ``G`` after the draw (the other entries are unchanged): ``g_scale=0``
+    gives ``F + F^T = 2 s I`` exactly, the stiff systems of Fig. 1(c) (``sigma_min = 2 s``).
+
+    The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``). Its
+    parameters do not require grad: every parameter is fixed (see :class:`LCS`), as a ground
+    truth's; ``.requires_grad_(True)`` makes them learnable (e.g. to prune or train it).
+    """
+    if isinstance(g_scale, bool) or not isinstance(g_scale, (int, float)) \
+            or not 0 <= g_scale < float("inf"):
+        raise LCSInputError(f"g_scale: expected a finite number >= 0, received {g_scale!r}")
+    model = LCS(n_x, n_u, n_lam, stiffness=stiffness, init_scale=0.0, dtype=dtype)
+    gen = torch.Generator().manual_seed(int(seed))
+    with torch.no_grad():
+        for name in PARAMETER_NAMES:
+            p = getattr(model, name)
+            p.copy_((torch.rand(p.shape, generator=gen, dtype=torch.float64) * 2.0 - 1.0).to(dtype))
+        model.G.mul_(float(g_scale))
+    model.requires_grad_(False)
+    return model

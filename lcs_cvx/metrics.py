@@ -10,7 +10,7 @@ import torch
 from ._checks import LCSInputError
 from .system import ACTIVE_TOL
 
-__all__ = ["relative_error", "count_modes", "affine_lstsq", "affine_error"]
+__all__ = ["relative_error", "count_modes", "AffineMap", "affine_lstsq", "affine_error"]
 
 
 def relative_error(model: Any, dataset: Any) -> float:
@@ -45,28 +45,32 @@ def count_modes(model: Any, dataset: Any, tol: float = ACTIVE_TOL) -> int:
     return int(torch.unique(active, dim=0).shape[0])
 
 
-def _features(dataset: Any) -> torch.Tensor:
-    x, u = (t.detach().to(torch.float64) for t in (dataset.x, dataset.u))
-    return torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=torch.float64, device=x.device)], 1)
+
+class AffineMap:
+    """``x' = [x, u, 1] W``, ``W = [A B d]^T`` ``(n_x + n_u + 1, n_x)`` float64: a model with one
+    mode (an LCS with no unit active anywhere), as :func:`relative_error` takes it."""
+
+    dtype = torch.float64
+
+    def __init__(self, W: torch.Tensor) -> None:
+        self.W = W
+
+    def step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """Next states ``(N, n_x)`` of states ``x`` ``(N, n_x)`` and inputs ``u`` ``(N, n_u)``."""
+        ones = torch.ones(x.shape[0], 1, dtype=self.dtype, device=x.device)
+        return torch.cat([x.to(self.dtype), u.to(self.dtype), ones], dim=1) @ self.W
 
 
-def affine_lstsq(dataset: Any) -> torch.Tensor:
-    """The least-squares affine map of ``dataset``, ``W = [A B d]^T`` ``(n_x + n_u + 1, n_x)``
-    float64: ``W = argmin sum_t || [x_t; u_t; 1]^T W - x'_t ||^2``, the best model with one mode
-    (an LCS with no unit active anywhere)."""
-    Z = _features(dataset)
-    return torch.linalg.lstsq(Z, dataset.x_next.detach().to(torch.float64)).solution
+def affine_lstsq(dataset: Any) -> AffineMap:
+    """The least-squares affine map of ``dataset``: ``W = argmin sum_t || [x_t; u_t; 1]^T W -
+    x'_t ||^2``, the best model with one mode."""
+    x, u, xn = (t.detach().to(torch.float64) for t in (dataset.x, dataset.u, dataset.x_next))
+    Z = torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=torch.float64, device=x.device)], 1)
+    return AffineMap(torch.linalg.lstsq(Z, xn).solution)
 
 
 def affine_error(train: Any, test: Any) -> float:
-    """e_test on ``test`` of the affine map :func:`affine_lstsq` fitted on ``train`` (both
-    :class:`lcs_cvx.Dataset`): the error level of a model whose complementarity units explain
-    nothing."""
-    if len(test) == 0:
-        raise LCSInputError("test: expected at least one sample, received an empty dataset")
-    target = test.x_next.detach().to(torch.float64)
-    pred = _features(test) @ affine_lstsq(train)
-    den = (target**2).sum()
-    if float(den) == 0.0:
-        raise LCSInputError("test: expected x_next not identically zero (e_test divides by it)")
-    return float(((pred - target) ** 2).sum() / den)
+    """e_test on ``test`` (:func:`relative_error`) of the affine map :func:`affine_lstsq` fitted on
+    ``train`` (both :class:`lcs_cvx.Dataset`): the error level of a model whose complementarity
+    units explain nothing."""
+    return relative_error(affine_lstsq(train), test)

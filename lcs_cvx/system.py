@@ -7,7 +7,7 @@ The parameterisation of F (paper Sec. 5) makes ``F + F^T >= 2 s I > 0`` for ever
 learnable ``G`` and ``H`` and the fixed ``stiffness`` ``s > 0`` -- Assumption 1 holds by
 construction, so the LCP has a unique solution for every ``(x, u)``.
 
-:class:`LCS` and :func:`random_lcs` share their defaults (``stiffness`` :data:`DEFAULT_STIFFNESS`,
+:class:`LCS` and :func:`lcs_cvx.data.random_lcs` share their defaults (``stiffness`` :data:`DEFAULT_STIFFNESS`,
 ``seed`` 0): a default model's set of ``F`` contains every default ground truth's ``F``.
 """
 
@@ -29,7 +29,6 @@ from .problems import sym_min_eig
 
 __all__ = [
     "LCS",
-    "random_lcs",
     "PARAMETER_NAMES",
     "MATRIX_NAMES",
     "ACTIVE_TOL",
@@ -440,35 +439,3 @@ class LCS(nn.Module):
             "c": m["c"],
         }
 
-
-def random_lcs(
-    n_x: int,
-    n_u: int,
-    n_lam: int,
-    stiffness: float = DEFAULT_STIFFNESS,
-    seed: int = 0,
-    dtype: torch.dtype = torch.float64,
-    g_scale: float = 1.0,
-) -> LCS:
-    """The paper's random ground truth (Sec. 5): every entry of A, B, C, d, D, E, G, H, c
-    uniform in [-1, 1], ``F = G G^T + H - H^T + s I``.
-
-    ``g_scale`` multiplies ``G`` after the draw (the other entries are unchanged): ``g_scale=0``
-    gives ``F + F^T = 2 s I`` exactly, the stiff systems of Fig. 1(c) (``sigma_min = 2 s``).
-
-    The result's ``sigma_min`` attribute is ``sigma_min(F + F^T)`` (``>= 2 s``). Its
-    parameters do not require grad: every parameter is fixed (see :class:`LCS`), as a ground
-    truth's; ``.requires_grad_(True)`` makes them learnable (e.g. to prune or train it).
-    """
-    if isinstance(g_scale, bool) or not isinstance(g_scale, (int, float)) \
-            or not 0 <= g_scale < float("inf"):
-        raise LCSInputError(f"g_scale: expected a finite number >= 0, received {g_scale!r}")
-    model = LCS(n_x, n_u, n_lam, stiffness=stiffness, init_scale=0.0, dtype=dtype)
-    gen = torch.Generator().manual_seed(int(seed))
-    with torch.no_grad():
-        for name in PARAMETER_NAMES:
-            p = getattr(model, name)
-            p.copy_((torch.rand(p.shape, generator=gen, dtype=torch.float64) * 2.0 - 1.0).to(dtype))
-        model.G.mul_(float(g_scale))
-    model.requires_grad_(False)
-    return model
