@@ -533,8 +533,26 @@ def test_ensembles_group_the_cells_that_differ_in_their_seeds_only():
     for job in jobs:
         assert len(job["cells"]) == 5 and {c["trial"] for c in job["cells"]} == set(range(5))
         assert len({(c["value"], c["method"]) for c in job["cells"]}) == 1
-    assert [len(j["cells"]) for j in ensembles(cells, size=2)] == [2, 2, 1] * 4
+    # largest first: the larger n_lam's two ensembles, then the smaller's, each pair in config order
+    values = sorted({c["value"] for c in cells}, reverse=True)
+    methods = list(dict.fromkeys(c["method"] for c in cells))
+    assert [(j["value"], j["method"]) for j in jobs] == [(v, m) for v in values for m in methods]
+    assert sorted(len(j["cells"]) for j in ensembles(cells, size=2)) == [1] * 4 + [2] * 8
+    assert [len(j["cells"]) for j in ensembles(cells, size=2)][:4] == [2, 2, 2, 2]
     assert sorted(c["key"] for j in jobs for c in j["cells"]) == sorted(c["key"] for c in cells)
+
+
+def test_ensemble_work_orders_by_problem_size():
+    from lcs_cvx.study.ensembles import work
+
+    cell = {"fit": {"iterations": 10, "batch_size": 20}, "system": {"n_x": 2, "n_u": 1, "n_lam": 3}}
+    assert work([cell]) == 10 * 20 * 36 and work([cell, cell]) == 2 * work([cell])
+    assert work([{"fit": None, "system": {}}]) == 1  # a baseline: every missing field counts 1
+
+
+def test_ensemble_size_without_ensemble_is_refused(tmp_path):
+    with pytest.raises(lcs_cvx.LCSInputError, match="ensemble_size.*ensemble=False"):
+        run_config(CONFIGS / "fig1a_n_lam_smoke.toml", out=tmp_path, ensemble_size=2, progress=False)
 
 
 def test_ensembles_leave_baselines_and_unsupported_options_to_run_alone():

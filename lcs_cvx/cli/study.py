@@ -33,6 +33,9 @@ def configure_study(p: argparse.ArgumentParser) -> None:
     run.add_argument("--ensemble", action="store_true",
                      help="train the trials of each swept value and method together, in one "
                      "batched loop per worker (the same results as one by one)")
+    run.add_argument("--ensemble-size", type=positive_int, default=None, metavar="K",
+                     help="with --ensemble: at most K cells per ensemble (default: all the trials "
+                     "of a swept value and method)")
     rep = sub.add_parser("report", help="figures and tables of every study in a directory",
                          description="Write <name>.png, <name>.pdf and <name>.md for every study "
                          "in DIR/studies.sqlite, with the authors' numbers from studies/anchors.toml.")
@@ -56,7 +59,7 @@ def run_study_command(args: argparse.Namespace) -> int:
     try:
         summary = run_config(args.config, out=args.out, workers=args.workers,
                              scheduler=args.scheduler, only=only, max_cells=args.max_cells,
-                             ensemble=args.ensemble)
+                             ensemble=args.ensemble, ensemble_size=args.ensemble_size)
     except StudyError as exc:
         print(f"{PROG} study: {exc}", file=sys.stderr)
         return 1

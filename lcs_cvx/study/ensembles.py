@@ -24,7 +24,7 @@ from typing import Any
 from ..system import ACTIVE_TOL
 from .cells import setup_cell
 
-__all__ = ["ensembles", "run_ensemble", "alone", "ENSEMBLE_FIELDS"]
+__all__ = ["ensembles", "run_ensemble", "alone", "work", "ENSEMBLE_FIELDS"]
 
 #: Cells that agree on these fields (all but their seeds and bookkeeping) train as one ensemble.
 ENSEMBLE_FIELDS = ("system", "data", "learner", "recipe", "fit", "method")
@@ -54,10 +54,14 @@ def alone(cell: dict[str, Any]) -> bool:
 
 def ensembles(cells: list[dict[str, Any]], size: int | None = None) -> list[dict[str, Any]]:
     """The jobs of ``cells``: each a dict ``{"key", "cells", "value", "trial", "method", "alone"}``
-    of up to ``size`` cells (None: no limit) that differ only in their seeds, in the order of their
-    first cell; a cell that must run by itself (:func:`alone`) is a job of its own with
-    ``alone = True``. ``key`` is the SHA-256 of the members' keys; ``value``, ``trial`` and
-    ``method`` are the first member's (for messages)."""
+    of up to ``size`` cells (None: no limit) that differ only in their seeds; a cell that must run
+    by itself (:func:`alone`) is a job of its own with ``alone = True``. ``key`` is the SHA-256 of
+    the members' keys; ``value``, ``trial`` and ``method`` are the first member's (for messages).
+
+    The ensembles come first, largest :func:`work` first, then the cells that run alone, each
+    part in the order of the jobs' first cells: a pool that takes its jobs in this order starts
+    the longest ensembles while the others still have work to fill in beside them, instead of
+    ending on two long ones (longest-processing-time-first scheduling)."""
     groups: dict[str, list[dict[str, Any]]] = {}
     single: dict[str, bool] = {}
     for c in cells:
@@ -73,7 +77,19 @@ def ensembles(cells: list[dict[str, Any]], size: int | None = None) -> list[dict
             key = hashlib.sha256("".join(c["key"] for c in part).encode()).hexdigest()
             jobs.append({"key": key, "cells": part, "value": part[0]["value"],
                          "trial": part[0]["trial"], "method": part[0]["method"], "alone": single[group]})
-    return jobs
+    return sorted(jobs, key=lambda job: (job["alone"], 0 if job["alone"] else -work(job["cells"])))
+
+
+def work(cells: list[dict[str, Any]]) -> int:
+    """A proxy of the work of training ``cells`` (one ensemble), for ordering jobs only: cells x
+    iterations x batch size x ``(n_x + n_u + n_lam)^2``, the size of a sample's products (a
+    missing field counts 1)."""
+    total = 0
+    for c in cells:
+        fit, system = c.get("fit") or {}, c.get("system") or {}
+        n = sum(int(system.get(f, 0)) for f in ("n_x", "n_u", "n_lam")) or 1
+        total += int(fit.get("iterations", 1)) * int(fit.get("batch_size", 1)) * n * n
+    return total
 
 
 def run_ensemble(job: dict[str, Any]) -> list[Any]:

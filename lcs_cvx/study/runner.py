@@ -183,6 +183,7 @@ def run_config(
     max_cells: int | None = None,
     progress: bool = True,
     ensemble: bool = False,
+    ensemble_size: int | None = None,
 ) -> RunSummary | None:
     """Run the study of the config at ``path`` into ``out`` (see the module docstring).
 
@@ -197,10 +198,15 @@ def run_config(
         ensemble: train the cells that differ only in their seeds (a swept value's trials, one
             method) together, one ensemble per worker (:mod:`lcs_cvx.study.ensembles`); the
             results are those of the cells run one by one.
+        ensemble_size: at most this many cells per ensemble (None: a swept value's trials of
+            one method); smaller ensembles share the work between more workers.
 
     Returns:
         A :class:`RunSummary`; None for a ``kind = "module"`` config (its module writes its own).
     """
+    if ensemble_size is not None and not ensemble:
+        raise LCSInputError(f"ensemble_size: applies to ensembles only (ensemble=True), received "
+                            f"ensemble_size={ensemble_size!r} with ensemble=False")
     config = load_config(path)
     workers = workers or os.cpu_count() or 1
     out = os.fspath(out)
@@ -228,7 +234,7 @@ def run_config(
         bar = _Progress(config["name"], len(cells), skipped, len(todo), progress)
         stored: dict[str | None, int] = {}
         if todo:
-            jobs, fn = (ensembles(todo), run_ensemble) if ensemble else (todo, None)
+            jobs, fn = (ensembles(todo, ensemble_size), run_ensemble) if ensemble else (todo, None)
             kw = {} if fn is None else {"fn": fn}
             executor = (process_pool(jobs, workers, **kw) if scheduler is None
                         else dask_cluster(jobs, scheduler, workers, **kw))
