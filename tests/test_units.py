@@ -35,9 +35,9 @@ def test_grow_keeps_the_old_block_and_submodel_recovers_it():
         assert torch.equal(getattr(back, name), getattr(sys, name)), name
 
 
-def test_prune_removes_the_useless_unit():
-    """Unit 3 is decoupled (F block diagonal) and has C[:, 3] = 0: it never changes x', so
-    pruning to 3 units removes it and keeps the system's predictions exactly."""
+def _useless_unit() -> tuple[lcs_cvx.LCS, lcs_cvx.LCS]:
+    """A (4, 2, 3) system and the same with a 4th unit that is decoupled (F block diagonal), active
+    on some samples and has C[:, 3] = 0."""
     sys = lcs_cvx.random_lcs(4, 2, 3, seed=0)
     F = torch.zeros(4, 4, dtype=torch.float64)
     F[:3, :3] = sys.F
@@ -50,11 +50,43 @@ def test_prune_removes_the_useless_unit():
         E=torch.cat([sys.E, torch.ones(1, 2, dtype=torch.float64)], 0),
         c=torch.cat([sys.c, -torch.ones(1, dtype=torch.float64)]),
     )
+    return sys, big
+
+
+def test_prune_removes_the_useless_unit():
+    """The useless unit never changes x', so pruning to 3 units removes it and keeps the
+    system's predictions exactly."""
+    sys, big = _useless_unit()
     data = lcs_cvx.make_dataset(sys, 300, seed=1)
     assert bool((big.solve_lcp(data.x, data.u).lam[:, 3] > 0).any())  # the unit is active somewhere
     small = prune(big, 3, data.x, data.u, data.x_next)
     assert small.n_lam == 3
     assert torch.allclose(small.step(data.x, data.u), data.x_next, atol=1e-8)
+
+
+@pytest.mark.parametrize("lookahead", [1, 2, 3])
+def test_prune_lookahead_keeps_the_best_repaired_candidate(lookahead):
+    """The repair below spoils the first candidate it is given (the lowest loss before repair)
+    beyond what a refit of (A, B, C, d) undoes. With lookahead 1 that candidate is kept; with
+    k > 1 the k best are repaired and the best after repair (a lossless one) is kept."""
+    sys, big = _useless_unit()
+    data = lcs_cvx.make_dataset(sys, 300, seed=1)
+    seen: list[lcs_cvx.LCS] = []
+
+    def repair(model: lcs_cvx.LCS) -> None:
+        seen.append(model)
+        if len(seen) == 1:
+            with torch.no_grad():
+                model.c.add_(1e3)  # every unit inactive: no refit of the output brings it back
+
+    small = prune(big, 3, data.x, data.u, data.x_next, repair=repair, lookahead=lookahead)
+    assert len(seen) == lookahead  # one removal, the k best candidates repaired
+    with torch.no_grad():
+        err = float((small.step(data.x, data.u) - data.x_next).abs().max())
+    if lookahead == 1:
+        assert small is seen[0] and err > 1e-3
+    else:
+        assert small is not seen[0] and err < 1e-6
 
 
 def _always_active(seed: int = 0) -> lcs_cvx.LCS:
@@ -131,6 +163,7 @@ def test_prune_eliminates_an_always_active_unit():
         (lambda s: pivot(s, True), r"j: expected a unit index"),
         (lambda s: pivot(submodel(s, [0]), 0), r"n_lam >= 2, received 0 \(n_lam = 1\)"),
         (lambda s: prune(s, 0, *([torch.zeros(1, 4)] * 3)), r"n_lam: expected an integer in \[1, 3\]"),
+        (lambda s: prune(s, 2, *([torch.zeros(1, 4)] * 3), lookahead=0), r"lookahead: expected an integer >= 1"),
     ],
 )
 def test_invalid_units(call, match):

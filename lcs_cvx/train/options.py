@@ -157,14 +157,18 @@ class PruneOptions:
     Attributes:
         repair: Gauss--Newton steps on the pruning's samples after each removal (0: none).
         batch_size: the samples that score the candidate removals.
+        lookahead: the candidates of lowest loss repaired and scored again at each removal, the
+            best kept (1: the best candidate only; needs ``repair`` > 0 to differ).
     """
 
     repair: int = 1
     batch_size: int = 1000
+    lookahead: int = 1
 
     def __post_init__(self) -> None:
         _count(self, 0, "repair")
         _count(self, 1, "batch_size")
+        _count(self, 1, "lookahead")
 
 
 @dataclass(frozen=True)

@@ -184,7 +184,7 @@ class PrunePhase(Phase):
                 fallbacks[1] = max(fallbacks[1], res.max_residual)
 
         pruned = prune(state.work, state.model.n_lam, x, u, x_next, reg=o.objective.reg,
-                       repair=repair if o.prune.repair else None)
+                       repair=repair if o.prune.repair else None, lookahead=o.prune.lookahead)
         state.model.load_state_dict(pruned.state_dict())
         state.work = state.model
         return Outcome(None, o.objective.eps, None, fallbacks[0], fallbacks[1])

@@ -23,6 +23,7 @@ _FLAT: dict[str, tuple[str, str]] = {
     **{k: ("adam", k) for k in ("lr", "betas", "adam_eps", "lr_schedule", "lr_floor", "eps_start",
                                 "eps_fraction", "reinit_saturated", "reinit_every", "extra_units")},
     "prune_repair": ("prune", "repair"), "prune_batch": ("prune", "batch_size"),
+    "prune_lookahead": ("prune", "lookahead"),
     "refine": ("refine", "method"), "refine_iterations": ("refine", "iterations"),
     "refine_batch": ("refine", "batch_size"), "damping": ("refine", "damping"),
     "polish_iterations": ("polish", "iterations"), "polish_lr": ("polish", "lr"),
