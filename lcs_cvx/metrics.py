@@ -55,18 +55,22 @@ class AffineMap:
     def __init__(self, W: torch.Tensor) -> None:
         self.W = W
 
+    @classmethod
+    def features(cls, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``[x, u, 1]`` ``(N, n_x + n_u + 1)`` float64 (detached)."""
+        ones = torch.ones(x.shape[0], 1, dtype=cls.dtype, device=x.device)
+        return torch.cat([x.detach().to(cls.dtype), u.detach().to(cls.dtype), ones], dim=1)
+
     def step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         """Next states ``(N, n_x)`` of states ``x`` ``(N, n_x)`` and inputs ``u`` ``(N, n_u)``."""
-        ones = torch.ones(x.shape[0], 1, dtype=self.dtype, device=x.device)
-        return torch.cat([x.to(self.dtype), u.to(self.dtype), ones], dim=1) @ self.W
+        return self.features(x, u) @ self.W
 
 
 def affine_lstsq(dataset: Any) -> AffineMap:
     """The least-squares affine map of ``dataset``: ``W = argmin sum_t || [x_t; u_t; 1]^T W -
     x'_t ||^2``, the best model with one mode."""
-    x, u, xn = (t.detach().to(torch.float64) for t in (dataset.x, dataset.u, dataset.x_next))
-    Z = torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=torch.float64, device=x.device)], 1)
-    return AffineMap(torch.linalg.lstsq(Z, xn).solution)
+    Z = AffineMap.features(dataset.x, dataset.u)
+    return AffineMap(torch.linalg.lstsq(Z, dataset.x_next.detach().to(AffineMap.dtype)).solution)
 
 
 def affine_error(train: Any, test: Any) -> float:
