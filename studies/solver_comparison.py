@@ -1,4 +1,4 @@
-"""Solver-comparison study: loss + gradient throughput of each solver path (issue: losses).
+"""Solver-comparison study: loss + gradient throughput of each solver path.
 
 Writes ``studies/results/solver_comparison.md`` (markdown table, with the command and the
 machine) and ``solver_comparison.png`` (samples/s per size, log scale, one bar per path).

@@ -52,8 +52,9 @@ def test_recovers_small_system(small, options):
     model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     result = lcs_cvx.fit(model, train, test=test, progress=False, **options)
     assert result.model is model
-    assert result.history[-1]["e_test"] < 1e-5
-    assert lcs_cvx.relative_error(model, test) == pytest.approx(result.history[-1]["e_test"])
+    last = result.kept_history[-1]
+    assert last["e_test"] < 1e-5
+    assert lcs_cvx.relative_error(model, test) == pytest.approx(last["e_test"])
 
 
 def test_second_order_needs_far_fewer_iterations_than_adam(small):
@@ -107,6 +108,20 @@ def test_restarts_pick_the_best_on_holdout(small):
     _, holdout = train.split(0.8, seed=0)
     assert lcs_cvx.relative_error(result.model, holdout) == pytest.approx(min(result.restart_scores))
     assert {h["restart"] for h in result.history} == {0, 1, 2}
+    kept = result.kept_restart
+    assert result.restart_scores[kept] == min(result.restart_scores)
+
+
+def test_the_kept_restart_names_the_returned_models_records(small):
+    _, train, test = small
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test,
+                         progress=False, optimizer="gauss-newton", iterations=3, restarts=3)
+    records = result.kept_history
+    assert {h["restart"] for h in records} == {result.kept_restart}
+    assert records[-1]["e_test"] == pytest.approx(lcs_cvx.relative_error(result.model, test))
+    one = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False,
+                      optimizer="gauss-newton", iterations=1)
+    assert one.restart_scores == [] and one.kept_restart == 0 and one.kept_history == one.history
 
 
 def test_kept_fit_compares_the_last_refined_loss_with_the_last_adam_loss():

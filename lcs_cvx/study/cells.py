@@ -224,7 +224,7 @@ def work(cell: dict[str, Any], report: Any = None) -> dict[str, Any]:
                          seed=cell["seeds"]["fit"], **options)
             model, fit_time, curve = result.model, result.wall_time, result.history
             settings = result.settings.flat()
-            final_loss = result.history[-1]["loss"] if result.history else float("nan")
+            final_loss = result.kept_history[-1]["loss"] if result.history else float("nan")
         if model is not None:
             e_test = relative_error(model, test)
     return {

@@ -48,6 +48,11 @@ CHECKPOINT_FORMAT = 3
 AFFINE_MARGIN = 0.5
 
 
+def _lowest(scores: list[float]) -> int:
+    """Index of the lowest score, the first of equal ones: the restart :func:`fit` keeps."""
+    return min(range(len(scores)), key=scores.__getitem__)
+
+
 @dataclass(frozen=True)
 class FitResult:
     """What :func:`fit` returns.
@@ -75,6 +80,19 @@ class FitResult:
     restart_scores: list[float] = field(default_factory=list)
     wall_time: float = 0.0
     scaling: Scaling | None = None
+
+    @property
+    def kept_restart(self) -> int:
+        """The run :attr:`model` comes from: the index of the lowest of :attr:`restart_scores`
+        (the first of equal ones; 0 with one run). The history holds every run's records, so
+        ``history[-1]`` is the last run's record, not necessarily the returned model's: that
+        run's records are :attr:`kept_history`."""
+        return _lowest(self.restart_scores) if self.restart_scores else 0
+
+    @property
+    def kept_history(self) -> list[dict[str, Any]]:
+        """The records of the :attr:`kept_restart` run (the whole history with one run)."""
+        return [h for h in self.history if h.get("restart", 0) == self.kept_restart]
 
     @property
     def n_fallback(self) -> int:
@@ -361,7 +379,7 @@ def fit(
             bar.close()
     scores = [d["score"] for d in done] if r.restarts > 1 else []
     if done:  # the chosen run (also when a resumed checkpoint had finished them all)
-        best = min(range(len(done)), key=lambda i: done[i]["score"]) if r.restarts > 1 else -1
+        best = _lowest(scores) if r.restarts > 1 else -1
         if learner is None:  # every restart came from the checkpoint
             learner = learner_for(0)
         learner.load_state_dict(done[best]["params"])
