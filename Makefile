@@ -1,20 +1,35 @@
 # Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
-# package and every extra (studies, physics, docs, dev, baselines) installed.
+# package and every extra (studies, physics, docs, dev, baselines) installed at the versions of
+# constraints.txt (the versions the suite last passed with); `make lock` refreshes that file.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+EXTRAS := studies,physics,docs,dev,baselines
+# torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
+# `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
+TORCH  := torch==2.13.0
 
-.PHONY: demo test docs lint bench clean
+.PHONY: demo test docs lint bench lock clean
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	# torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
-	# `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[studies,physics,docs,dev,baselines]'
+	$(PY) -m pip install --quiet -c constraints.txt $(TORCH)
+	$(PY) -m pip install --quiet -c constraints.txt -e '.[$(EXTRAS)]'
 	touch $(STAMP)
+
+# constraints.txt anew: a throw-away environment with the newest versions pyproject.toml allows,
+# frozen. Run `make test` after it; commit the file when the suite passes with it.
+lock:
+	rm -rf .lock-venv
+	$(PYTHON) -m venv .lock-venv
+	.lock-venv/bin/python -m pip install --quiet --upgrade pip
+	.lock-venv/bin/python -m pip install --quiet $(TORCH)
+	.lock-venv/bin/python -m pip install --quiet -e '.[$(EXTRAS)]'
+	{ echo "# The versions the test suite passes with; written by 'make lock' (pip freeze)."; \
+	  .lock-venv/bin/python -m pip freeze --exclude-editable; } > constraints.txt
+	rm -rf .lock-venv
 
 demo: $(STAMP)
 	$(VENV)/bin/lcs-cvx demo
@@ -32,4 +47,4 @@ bench: $(STAMP)
 	$(VENV)/bin/lcs-cvx bench
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache site
+	rm -rf $(VENV) .lock-venv *.egg-info .pytest_cache site

@@ -4,9 +4,10 @@ from ._checks import FallbackWarning as FallbackWarning
 from ._checks import LayerAccuracyWarning as LayerAccuracyWarning
 from ._checks import LCSInputError as LCSInputError
 from ._checks import SolverError as SolverError
+from ._version import __version__ as __version__
 from .data import Dataset as Dataset
 from .data import make_dataset as make_dataset
-from .ensemble import Ensemble as Ensemble
+from .data import random_lcs as random_lcs
 from .hessian import violation_hessian as violation_hessian
 from .hessian import violation_hvp as violation_hvp
 from .io import load_metadata as load_metadata
@@ -29,7 +30,6 @@ from .scaling import Scaling as Scaling
 from .selection import Selection as Selection
 from .selection import select_n_lam as select_n_lam
 from .system import LCS as LCS
-from .data import random_lcs as random_lcs
 from .train import RECIPES as RECIPES
 from .train import AdamOptions as AdamOptions
 from .train import FitOptions as FitOptions
@@ -44,4 +44,47 @@ from .train import fit_ensemble as fit_ensemble
 from .trajectories import Trajectories as Trajectories
 from .trajectories import rollout_error as rollout_error
 
-__version__ = "0.1.0"
+__all__ = [
+    "AdamOptions",
+    "affine_error",
+    "convex_lcp_problem",
+    "count_modes",
+    "Dataset",
+    "FallbackWarning",
+    "fit",
+    "fit_ensemble",
+    "FitOptions",
+    "FitResult",
+    "LayerAccuracyWarning",
+    "LCPSolution",
+    "LCS",
+    "LCSInputError",
+    "load_metadata",
+    "load_model",
+    "LossInfo",
+    "make_dataset",
+    "ObjectiveOptions",
+    "PolishOptions",
+    "prediction_loss",
+    "prediction_loss_info",
+    "PruneOptions",
+    "random_lcs",
+    "RECIPES",
+    "RefineOptions",
+    "regularizer",
+    "relative_error",
+    "rollout_error",
+    "RunOptions",
+    "save_model",
+    "Scaling",
+    "select_n_lam",
+    "Selection",
+    "solve_lcp",
+    "SolverError",
+    "Trajectories",
+    "violation_hessian",
+    "violation_hvp",
+    "violation_loss",
+    "violation_loss_info",
+    "violation_problem",
+]

@@ -87,13 +87,13 @@ def _loss_fn(loss: str, gamma: float, eps: float) -> Callable:
 MIN_REPEAT_S = 0.05
 
 #: Before the timed repeats a path is called for at least this long (once if one call takes
-#: longer): on this machine the first few hundred calls of a process ran 1.2-1.8x slower than
-#: the steady state, and the first row of a benchmark measured them.
+#: longer): the first calls of a process run slower than the steady state (allocations,
+#: imports, caches), and the first row of a benchmark would otherwise measure them.
 WARMUP_S = 0.5
 
-#: A path is timed for at least this long, in more repeats than asked if they are short: this
-#: shared machine has slow phases (1.5x, ~1 s long) that a window of a few repeats of 50 ms
-#: can fall into entirely; the median over 3 s is the machine's usual speed.
+#: A path is timed for at least this long, in more repeats than asked if they are short: a
+#: shared machine can have slow phases longer than a few short repeats, which would then fall
+#: into one entirely; the median over a longer window is the machine's usual speed.
 MIN_TIMED_S = 3.0
 
 

@@ -1,6 +1,6 @@
-r"""Hessian of the violation-based loss, Lemma 4 (lemma.cn.hessian), and its products with vectors.
+r"""Hessian of the violation-based loss, Lemma 4, and its products with vectors.
 
-Per sample ``t`` the violation problem (V), eq. (equ.contactnet.2), is
+Per sample ``t`` the violation problem (V), eq. (9b), is
 
     l_t(theta) = min_{z >= 0} J_t(theta, z),      z = (lam, phi) in R^{2 n_lam},
     J_t = 1/2 ||C lam + r_t||^2 + (1/eps) (lam^T phi + ||F lam + q_t - phi||^2 / (2 gamma)),

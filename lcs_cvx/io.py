@@ -7,7 +7,7 @@ parameterisation ``F = G G^T + H - H^T + s I`` (paper Sec. 5):
 =============  ===================  =====================================================
 array          shape                meaning
 =============  ===================  =====================================================
-``A``          ``(n_x, n_x)``       ``x' = A x + B u + C lam + d``  (eq. equ.lcs)
+``A``          ``(n_x, n_x)``       ``x' = A x + B u + C lam + d``  (eq. (1))
 ``B``          ``(n_x, n_u)``
 ``C``          ``(n_x, n_lam)``
 ``d``          ``(n_x,)``
@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from ._checks import LCSInputError
+from ._version import __version__
 from .system import LCS, MASKABLE, PARAMETER_NAMES, parameter_shapes
 
 __all__ = ["save_model", "load_model", "load_metadata", "atomic_write", "FORMAT", "FORMAT_VERSION"]
@@ -75,8 +76,6 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         LCSInputError: ``model`` is not an LCS, ``metadata`` is not a JSON-serialisable dict,
             or ``path`` is not a writable file in an existing directory.
     """
-    from . import __version__  # lazy: the package re-exports this module
-
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
     if metadata is not None and not isinstance(metadata, Mapping):

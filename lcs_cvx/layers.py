@@ -11,6 +11,9 @@ The layers run on CPU; tensors on another device are moved there and back.
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any
 
 import torch
 from cvxpylayers.torch import CvxpyLayer
@@ -20,32 +23,32 @@ from .problems import convex_lcp_problem, violation_problem
 
 __all__ = ["LAYER_SOLVERS", "lcp_layer", "violation_layer", "solve_layer"]
 
-#: diffcp options per cone solver. n_jobs=1: one process, one thread (measurements, CI).
-LAYER_SOLVERS: dict[str, dict] = {
-    "clarabel": {
+#: diffcp options per cone solver (read-only). n_jobs=1: one process, one thread.
+LAYER_SOLVERS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
+    "clarabel": MappingProxyType({
         "solve_method": "Clarabel",
         "n_jobs_forward": 1,
         # passed on to Clarabel's settings (its defaults, 1e-8, leave |dlam| ~ 1e-6 on (V))
         "tol_gap_abs": 1e-10,
         "tol_gap_rel": 1e-10,
         "tol_feas": 1e-10,
-    },
-    "scs": {
+    }),
+    "scs": MappingProxyType({
         "solve_method": "SCS",
         "n_jobs_forward": 1,
         "eps_abs": 1e-10,
         "eps_rel": 1e-10,
         "max_iters": 100_000,
-    },
-}
+    }),
+})
 
 
-def _check_cone_solver(cone_solver: str) -> dict:
+def _check_cone_solver(cone_solver: str) -> dict[str, Any]:
     if cone_solver not in LAYER_SOLVERS:
         raise LCSInputError(
             f"cone_solver: expected one of {sorted(LAYER_SOLVERS)}, received {cone_solver!r}"
         )
-    return LAYER_SOLVERS[cone_solver]
+    return dict(LAYER_SOLVERS[cone_solver])
 
 
 @functools.cache

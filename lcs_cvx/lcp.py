@@ -1,4 +1,4 @@
-r"""Exact batched solution of the LCP of eq. (equ.lcp): ``0 <= lam _|_ F lam + q >= 0``.
+r"""Exact batched solution of the LCP of eq. (2): ``0 <= lam _|_ F lam + q >= 0``.
 
 Three solvers, one answer (Assumption 1, ``F + F^T > 0``, makes it unique):
 
@@ -145,7 +145,7 @@ def finish(F: torch.Tensor, q: torch.Tensor, sol: kernel.Pivoted, *, max_iter: i
     """The :class:`LCPSolution` of the kernel's answer ``sol`` for ``(F, q)`` (detached): its
     unconverged samples reported (:func:`lcs_cvx._checks.report_unconverged`) and solved by a
     reference (in place in ``sol``'s tensors), and the residual if asked for. Package-internal:
-    :func:`solve_lcp_fast` and the stacked prediction loss (:mod:`lcs_cvx.ensemble`, per model)
+    :func:`solve_lcp_fast` and the stacked prediction loss (:mod:`lcs_cvx.stacked`, per model)
     end here."""
     n = q.shape[1]
     lam, w, free, bad_idx = sol.lam, sol.w, sol.free, sol.unconverged

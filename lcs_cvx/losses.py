@@ -1,11 +1,11 @@
 r"""The two learning losses of the paper and the regulariser.
 
-- :func:`violation_loss` -- ``L_eps`` of eq. (equ.contactnet), the batch mean of the optimal
+- :func:`violation_loss` -- ``L_eps`` of eq. (9), the batch mean of the optimal
   value of (V). The solver runs without autograd; the (lam, phi) objective is then evaluated at
   the detached optimum with the envelope gradients of Lemma 3 as its backward
   (``grad_A = mean e_dyn x^T``, ``grad_D = mean e_lcp x^T``, ...), which equals autograd through
   the objective: no solver differentiation, no matrix inverse.
-- :func:`prediction_loss` -- ``L_pred`` of eq. (equ.prednet), the batch mean of
+- :func:`prediction_loss` -- ``L_pred`` of eq. (6), the batch mean of
   ``1/2 ||x'_theta - x'||^2`` with ``lam`` the exact LCP solution. Its gradient is the implicit
   function theorem on the solution's active set (Lemma 1): ``lam_I = -F_II^{-1} q_I`` is
   differentiated on the free set found by the solver. An index with ``lam_i = w_i = 0``
@@ -68,14 +68,18 @@ class LossInfo:
     Attributes:
         loss: the loss, a 0-dim tensor differentiable in the model's parameters.
         lam: ``(B, n_lam)`` the per-sample ``lam`` (detached).
-        phi: ``(B, n_lam)`` (violation loss) or ``w = F lam + q`` (prediction loss), detached.
+        phi: ``(B, n_lam)`` the violation loss's ``phi`` (detached); None for the prediction loss.
+        w: ``(B, n_lam)`` the prediction loss's ``w = F lam + q`` (detached); None for the
+            violation loss.
         iterations: pivoting sweeps of the fast solver (0 on the layer paths).
         n_fallback: samples the fast solver handed to a reference solver.
         n_degenerate: samples with some ``lam_i = w_i = 0`` (prediction loss; 0 otherwise).
-        max_residual: largest relative KKT residual over the batch (a layer solution above
-            ``LAYER_RESIDUAL_TOL`` also raises a :class:`lcs_cvx.LayerAccuracyWarning`); from
-            the package-internal fast paths without the residual, the largest over the samples
-            a reference solved (0.0 if none: converged pivoting is exact to its tolerance).
+        max_residual: the largest relative KKT residual over every sample of the batch (a layer
+            solution above ``LAYER_RESIDUAL_TOL`` also raises a
+            :class:`lcs_cvx.LayerAccuracyWarning`); None where it was not computed (the
+            package-internal fast paths, which skip it).
+        fallback_residual: the largest relative KKT residual over the samples a reference
+            solver answered (0.0 if none: converged pivoting is exact to its tolerance).
         active: the fast solver's final active sets, bool -- ``(B, 2 n_lam)`` ``[lam_i > 0,
             phi_i = 0]`` (violation) or ``(B, n_lam)`` ``lam_i > 0`` (prediction) -- to pass as
             ``warm_start`` when the same samples come again; None on the layer paths.
@@ -83,11 +87,13 @@ class LossInfo:
 
     loss: torch.Tensor
     lam: torch.Tensor
-    phi: torch.Tensor
+    phi: torch.Tensor | None = None
+    w: torch.Tensor | None = None
     iterations: int = 0
     n_fallback: int = 0
     n_degenerate: int = 0
-    max_residual: float = 0.0
+    max_residual: float | None = None
+    fallback_residual: float = 0.0
     active: torch.Tensor | None = None
 
 
@@ -105,7 +111,7 @@ def _check_layer(residual: torch.Tensor, what: str) -> float:
     return worst
 
 
-class _EnvelopeLoss(torch.autograd.Function):
+class EnvelopeLoss(torch.autograd.Function):
     """``apply(batch, lam, phi, gamma, eps, *params)``: the value of
     :func:`lcs_cvx._kernels.losses.envelope_forward` with Lemma 3's gradients
     (:func:`~lcs_cvx._kernels.losses.envelope_backward`) in the model's parameters ``params``
@@ -124,7 +130,7 @@ class _EnvelopeLoss(torch.autograd.Function):
         return (None,) * 5 + kernel.envelope_backward(ctx.saved, grad, ctx.needs_input_grad[5:])
 
 
-class _ImplicitLoss(torch.autograd.Function):
+class ImplicitLoss(torch.autograd.Function):
     """``apply(batch, lam, free, *params)``: the value of
     :func:`lcs_cvx._kernels.losses.implicit_forward` with Lemma 1's gradient in closed form
     (:func:`~lcs_cvx._kernels.losses.implicit_backward`). The same numbers as autograd through
@@ -145,8 +151,7 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
                    residual: bool = False, arrays: str = "auto") -> LossInfo:
     """The fast path of :func:`violation_loss_info` on validated tensors of the model's dtype
     and device (package-internal: the trainer validates its data once). ``residual``: also
-    compute every sample's KKT residual (else ``max_residual`` covers the fallback samples
-    only); ``arrays``: the kernels' array library (:func:`lcs_cvx.lcp.solve_lcp_fast`)."""
+    compute every sample's KKT residual (``max_residual``; else None); ``arrays``: the kernels' array library (:func:`lcs_cvx.lcp.solve_lcp_fast`)."""
     stiffness = float(model.stiffness)
     check_positive("gamma", gamma)
     if not gamma < 2.0 * stiffness:  # F + F^T >= 2 s I by construction: below, no check needed
@@ -166,9 +171,11 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
         sol = finish(pivoted, values, max_iter=MAX_ITER, residual=residual)
         lam = xp.wrap(sol.lam)
         phi = kernel_violation.phi(xp, lam, b.F, b.q, gamma)
-        loss = _EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
-    worst = float(sol.residual.max()) if residual else sol.fallback_residual
-    return LossInfo(loss, sol.lam, xp.unwrap(phi), sol.iterations, sol.n_fallback, 0, worst, sol.active)
+        loss = EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
+    worst = float(sol.residual.max()) if residual else None
+    return LossInfo(loss, sol.lam, phi=xp.unwrap(phi), iterations=sol.iterations,
+                    n_fallback=sol.n_fallback, max_residual=worst,
+                    fallback_residual=sol.fallback_residual, active=sol.active)
 
 
 def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
@@ -183,10 +190,12 @@ def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.
         sol = solve_lcp_fast(xp.unwrap(b.F), xp.unwrap(b.q), max_iter=MAX_ITER,
                              warm_start=warm_start, residual=residual, arrays=arrays)
         lam = xp.wrap(sol.lam)
-        loss = _ImplicitLoss.apply(b, lam, xp.wrap(sol.free), *params)
+        loss = ImplicitLoss.apply(b, lam, xp.wrap(sol.free), *params)
         n_deg = kernel.degenerate_count(xp, lam, xp.wrap(sol.w), b.q, DEGENERATE_TOL)
-    worst = float(sol.residual.max()) if residual else sol.fallback_residual
-    return LossInfo(loss, sol.lam, sol.w, sol.iterations, sol.n_fallback, n_deg, worst, sol.free)
+    worst = float(sol.residual.max()) if residual else None
+    return LossInfo(loss, sol.lam, w=sol.w, iterations=sol.iterations, n_fallback=sol.n_fallback,
+                    n_degenerate=n_deg, max_residual=worst,
+                    fallback_residual=sol.fallback_residual, active=sol.free)
 
 
 def _check_solver(solver: str, warm_start: Any) -> str:
@@ -220,7 +229,7 @@ def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual) ->
         "violation_loss",
     )
     loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
-    return LossInfo(loss, lam.detach(), phi.detach(), 0, 0, 0, worst, None)
+    return LossInfo(loss, lam.detach(), phi=phi.detach(), max_residual=worst)
 
 
 def violation_loss(
@@ -233,7 +242,7 @@ def violation_loss(
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    r"""Violation-based loss ``L_eps`` (eq. equ.contactnet), averaged over the batch.
+    r"""Violation-based loss ``L_eps`` (eq. (9)), averaged over the batch.
 
     .. math::
         l_\epsilon = \min_{\lambda, \phi \ge 0} \tfrac12\|A x + B u + C\lambda + d - x'\|^2
@@ -287,7 +296,7 @@ def _prediction(model, x, u, x_next, solver, warm_start, residual) -> LossInfo:
         lam_d, q_d = lam.detach(), q.detach()
         w = lam_d @ F.detach().mT + q_d
         n_deg = kernel.degenerate_count(TORCH, lam_d, w, q_d, DEGENERATE_TOL)
-    return LossInfo(loss, lam_d, w, 0, 0, n_deg, worst, None)
+    return LossInfo(loss, lam_d, w=w, n_degenerate=n_deg, max_residual=worst)
 
 
 def prediction_loss(
@@ -298,7 +307,7 @@ def prediction_loss(
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    r"""Prediction-based loss ``L_pred`` (eq. equ.prednet), averaged over the batch.
+    r"""Prediction-based loss ``L_pred`` (eq. (6)), averaged over the batch.
 
     ``mean_t 1/2 ||A x_t + B u_t + C lam_t + d - x'_t||^2`` with ``lam_t = LCP(F, D x_t + E u_t + c)``.
     The gradient differentiates through the LCP by the implicit function theorem on the active
@@ -320,7 +329,7 @@ def prediction_loss_info(
     warm_start: torch.Tensor | None = None,
 ) -> LossInfo:
     """:func:`prediction_loss` (same arguments) with its diagnostics: a :class:`LossInfo` whose
-    ``loss`` is the differentiable scalar, ``phi`` is ``w = F lam + q`` and ``max_residual``
+    ``loss`` is the differentiable scalar, ``w = F lam + q`` and ``max_residual``
     every sample's LCP residual."""
     return _prediction(model, x, u, x_next, solver, warm_start, residual=True)
 

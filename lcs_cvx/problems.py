@@ -1,13 +1,13 @@
 r"""The two per-sample convex problems of the paper, each declared once.
 
-(P) -- the convex reformulation of the LCP, eq. (equ.convexlcp)::
+(P) -- the convex reformulation of the LCP, eq. (5)::
 
     lam*(q) = argmin_lam  1/2 lam^T (F + F^T) lam + q^T lam   s.t.  lam >= 0,  F lam + q >= 0
 
   DPP form: parameters ``R`` (with ``R^T R = F + F^T``), ``F`` and ``q``; objective
   ``1/2 ||R lam||^2 + q^T lam``.
 
-(V) -- the violation-based per-sample problem, eq. (equ.contactnet.2)::
+(V) -- the violation-based per-sample problem, eq. (9b)::
 
     l_eps = min_{lam >= 0, phi >= 0}  1/2 ||C lam + r||^2
                                      + (1/eps) (lam^T phi + ||F lam + q - phi||^2 / (2 gamma))
@@ -41,7 +41,9 @@ objective.
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import cvxpy as cp
 import numpy as np
@@ -62,11 +64,11 @@ __all__ = [
 
 #: Clarabel settings for the reference solves (tighter than the defaults: the reference
 #: is what the fast kernels are tested against).
-CLARABEL_OPTIONS: dict[str, float | int] = {
+CLARABEL_OPTIONS: Mapping[str, float | int] = MappingProxyType({
     "tol_gap_abs": 1e-10,
     "tol_gap_rel": 1e-10,
     "tol_feas": 1e-10,
-}
+})
 
 
 def sym_min_eig(F: torch.Tensor) -> torch.Tensor:
@@ -96,7 +98,7 @@ def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
 
 @dataclass(frozen=True, eq=False)
 class ConvexLCPProblem:
-    """Declaration of (P), eq. (equ.convexlcp), for ``n_lam`` complementarity variables.
+    """Declaration of (P), eq. (5), for ``n_lam`` complementarity variables.
 
     Attributes:
         n_lam: dimension of ``lam``.
@@ -139,7 +141,7 @@ class ConvexLCPProblem:
 
 @dataclass(frozen=True, eq=False)
 class ViolationProblem:
-    """Declaration of (V), eq. (equ.contactnet.2), in the DPP form of the module docstring.
+    """Declaration of (V), eq. (9b), in the DPP form of the module docstring.
 
     Attributes:
         n_lam: dimension of ``lam``.
@@ -222,7 +224,7 @@ class ViolationProblem:
         gamma: float,
         eps: float,
     ) -> torch.Tensor:
-        """Per-sample value of eq. (equ.contactnet.2) at ``(lam, phi)``, shape ``(B,)``.
+        """Per-sample value of eq. (9b) at ``(lam, phi)``, shape ``(B,)``.
 
         ``1/2 ||C lam + r||^2 + (1/eps) (lam^T phi + ||F lam + q - phi||^2 / (2 gamma))``.
         At the detached optimum, autograd of this expression gives Lemma 3's envelope gradients.
@@ -283,7 +285,7 @@ def _solve_reference(problem: cp.Problem, what: str) -> None:
     status = "no solve"
     for options in (CLARABEL_OPTIONS, {}):
         try:
-            problem.solve(solver=cp.CLARABEL, warm_start=False, **options)
+            problem.solve(solver=cp.CLARABEL, warm_start=False, **dict(options))
         except cp.error.SolverError as exc:
             status = f"solver error ({exc})"
             continue
@@ -295,7 +297,7 @@ def _solve_reference(problem: cp.Problem, what: str) -> None:
 
 @functools.cache
 def convex_lcp_problem(n_lam: int) -> ConvexLCPProblem:
-    """The DPP declaration of (P), eq. (equ.convexlcp), for ``n_lam`` variables (cached)."""
+    """The DPP declaration of (P), eq. (5), for ``n_lam`` variables (cached)."""
     n = check_positive("n_lam", n_lam, integer=True)
     lam = cp.Variable(n, name="lam")
     R = cp.Parameter((n, n), name="R")
@@ -309,7 +311,7 @@ def convex_lcp_problem(n_lam: int) -> ConvexLCPProblem:
 
 @functools.cache
 def violation_problem(n_lam: int) -> ViolationProblem:
-    """The DPP declaration of (V), eq. (equ.contactnet.2), for ``n_lam`` variables (cached)."""
+    """The DPP declaration of (V), eq. (9b), for ``n_lam`` variables (cached)."""
     n = check_positive("n_lam", n_lam, integer=True)
     lam = cp.Variable(n, name="lam")
     L = cp.Parameter((n, n), name="L")

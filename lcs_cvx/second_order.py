@@ -12,16 +12,17 @@ Gauss--Newton. ``l_t = 1/2 ||rho_t||^2 + lam_t^T phi_t / eps`` with the residual
 is Lemma 3's. Why not the cheaper matrix with ``z`` held fixed (``I (x) mean zeta zeta^T`` with
 ``zeta = [x; u; lam; 1]``, Kronecker-structured, a majorise--minimise step)? Its curvature in
 ``(D, E, F, c)`` is ``1/(eps gamma)`` while ``L_eps``'s is not: it ignores that ``z`` follows
-``theta``. Measured on a (2, 1, 2) system from the same start, it stalled at e_test 2e-3 after 200
-steps at every eps in {1, 0.1, 0.01}; this Gauss--Newton and Newton reach ~1e-9.
+``theta``, so its steps are tiny and it stalls far from the minimum, where this Gauss--Newton and
+Newton converge (the documentation's Benchmarks page, "Measurements behind the training
+defaults", has the comparison).
 
 Newton. The full Hessian of Lemma 4 (:func:`lcs_cvx.violation_hessian`, dense for up to
 ``dense_max`` parameters) or its products (:func:`lcs_cvx.hessian.hvp_operator`, truncated
 conjugate gradients) in the model's own parameters, damped by ``mu`` until positive definite, with a
 backtracking (Armijo) line search on the regularised loss.
 
-Known structure (:mod:`lcs_cvx.structure`). Both steps move only the free coordinates ``f``
-(:func:`lcs_cvx.structure.free_vector`: not fixed, not masked): the step solves
+Known structure (:mod:`lcs_cvx.parameter_constraints`). Both steps move only the free coordinates ``f``
+(:func:`lcs_cvx.parameter_constraints.free_vector`: not fixed, not masked): the step solves
 ``(M_ff + mu I) d_f = -g_f`` -- the dense matrix indexed, or conjugate gradients on the operator
 projected onto the free coordinates -- and ``d`` is exactly 0 elsewhere, so fixed parameters come
 back bit-identical and masked entries stay 0. This is the step of the reduced problem in the free
@@ -47,7 +48,7 @@ from .hessian import (
     violation_hessian,
 )
 from .losses import regularizer, violation_fast
-from .structure import check_learnable, free_vector
+from .parameter_constraints import check_learnable, free_vector
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -69,7 +70,7 @@ class StepResult:
         damping: the damping ``mu`` to use next.
         tries: trial steps evaluated.
         n_fallback: samples the fast solver handed to the reference over the step's solves of (V).
-        max_residual: the worst relative KKT residual of those reference answers (0.0: none).
+        fallback_residual: the worst relative KKT residual of those reference answers (0.0: none).
     """
 
     loss: float
@@ -77,7 +78,7 @@ class StepResult:
     damping: float
     tries: int
     n_fallback: int = 0
-    max_residual: float = 0.0
+    fallback_residual: float = 0.0
 
 
 class _Objective:
@@ -87,16 +88,16 @@ class _Objective:
     def __init__(self, model: LCS, x, u, x_next, gamma: float, eps: float, reg: float) -> None:
         self.model, self.gamma, self.eps, self.reg = model, gamma, eps, reg
         self.x, self.u, self.x_next = as_transitions(model, x, u, x_next)
-        self.n_fallback, self.max_residual = 0, 0.0
+        self.n_fallback, self.fallback_residual = 0, 0.0
 
     def __call__(self) -> torch.Tensor:
         info = violation_fast(self.model, self.x, self.u, self.x_next, gamma=self.gamma, eps=self.eps)
         self.n_fallback += info.n_fallback
-        self.max_residual = max(self.max_residual, info.max_residual)
+        self.fallback_residual = max(self.fallback_residual, info.fallback_residual)
         return info.loss + regularizer(self.model, self.reg)
 
     def result(self, loss: float, accepted: bool, damping: float, tries: int) -> StepResult:
-        return StepResult(loss, accepted, damping, tries, self.n_fallback, self.max_residual)
+        return StepResult(loss, accepted, damping, tries, self.n_fallback, self.fallback_residual)
 
 
 def _assign(model: LCS, values: dict[str, torch.Tensor]) -> None:

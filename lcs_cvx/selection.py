@@ -27,6 +27,7 @@ from ._checks import LCSInputError
 from .data import Dataset
 from .metrics import relative_error
 from .system import DEFAULT_STIFFNESS, LCS
+from .train.driver import fit
 
 __all__ = ["Selection", "select_n_lam", "choose"]
 
@@ -195,8 +196,6 @@ def select_n_lam(
         >>> [row["n_lam"] for row in sel.table], sel.model.n_lam == sel.n_lam
         ([1, 2, 3], True)
     """
-    from . import fit  # looked up at run time: tests replace lcs_cvx.fit
-
     if not isinstance(train, Dataset):
         raise LCSInputError(f"train: expected an lcs_cvx.Dataset, received {type(train).__name__}")
     if isinstance(candidates, (str, bytes)) or not isinstance(candidates, Iterable):

@@ -1,4 +1,4 @@
-r"""The linear complementarity system, eq. (equ.lcs), as a ``torch.nn.Module``.
+r"""The linear complementarity system, eq. (1), as a ``torch.nn.Module``.
 
     x' = A x + B u + C lam + d
     0 <= lam  _|_  D x + E u + F lam + c >= 0,      F = G G^T + H - H^T + s I
@@ -235,6 +235,31 @@ class LCS(nn.Module):
             >>> m.A[1, 0].item(), m.masks["A"].tolist()
             (0.0, [[True, True], [False, True]])
         """
+        new = self._patterns(patterns)
+        with torch.no_grad():
+            for k, m in new.items():
+                if m is None:
+                    self._masks.pop(k, None)
+                    continue
+                self._masks[k] = m
+                getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
+        return self
+
+    def replace_masks(self, masks: dict[str, Any], *, zero: bool = True) -> LCS:
+        """Replace every mask by ``masks`` (validated as in :meth:`mask`; parameters not named
+        lose their mask); returns ``self``. With ``zero=False`` the masked entries keep their
+        values: for models derived from another one (a unit eliminated), whose masked entries
+        are checked afterwards rather than set.
+        """
+        new = self._patterns(masks)
+        self._masks = {k: m for k, m in new.items() if m is not None}
+        if zero:
+            with torch.no_grad():
+                for k, m in self._masks.items():
+                    getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
+        return self
+
+    def _patterns(self, patterns: dict[str, Any]) -> dict[str, torch.Tensor | None]:
         shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
         new: dict[str, torch.Tensor | None] = {}
         for k, v in patterns.items():
@@ -246,14 +271,7 @@ class LCS(nn.Module):
                     f"{k!r}{why}"
                 )
             new[k] = None if v is None else as_pattern(k, v, shapes[k])
-        with torch.no_grad():
-            for k, m in new.items():
-                if m is None:
-                    self._masks.pop(k, None)
-                    continue
-                self._masks[k] = m
-                getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
-        return self
+        return new
 
     @property
     def masks(self) -> dict[str, torch.Tensor]:
@@ -342,7 +360,7 @@ class LCS(nn.Module):
         return x, u
 
     def lcp_offset(self, x: Any, u: Any) -> torch.Tensor:
-        """``q = D x + E u + c`` ``(N, n_lam)`` (eq. equ.lcp)."""
+        """``q = D x + E u + c`` ``(N, n_lam)`` (eq. (2))."""
         x, u = self._xu(x, u)
         return x @ self.D.mT + u @ self.E.mT + self.c
 
@@ -418,7 +436,7 @@ class LCS(nn.Module):
         """The LCS in the convention of the C3 MPC code, as numpy arrays.
 
         C3 writes ``x' = A x + B u + D lam + d``, ``0 <= lam _|_ E x + F lam + H u + c >= 0``;
-        the same system as eq. (equ.lcs) with the letters renamed::
+        the same system as eq. (1) with the letters renamed::
 
             C3 key:   A  B  D  d  E  F  H  c
             ours:     A  B  C  d  D  F  E  c      (C -> D, D -> E, E -> H)

@@ -1,4 +1,4 @@
-r"""Fast batched solver of the violation problem (V), eq. (equ.contactnet.2).
+r"""Fast batched solver of the violation problem (V), eq. (9b).
 
 It consumes the parameters of the declared problem (:func:`lcs_cvx.problems.violation_problem`)::
 

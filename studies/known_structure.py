@@ -11,7 +11,7 @@ recipe with its Gauss--Newton refinement on the whole training set (on its defau
 500 the refinement stops at the accuracy of 500 samples). The second table varies the Adam
 iterations (``iterations=``; default 4,000) at one training size. For each size the "floor" is the
 e_test of the truth's ``(D, E, F, c)`` with ``(A, B, C, d)`` refitted by least squares on the
-noisy training data (:func:`lcs_cvx.units.refit_output`): what the noise leaves when the modes
+noisy training data (:func:`lcs_cvx.resizing.refit_dynamics`): what the noise leaves when the modes
 are known. "At the floor" counts the runs whose final e_test is <= 2 x that floor; "iterations"
 is the first recorded iteration with e_test <= 2 x that floor (during the Adam phase of the
 "best" recipe: of the model with its extra units, before pruning; the history records every 100
@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 import lcs_cvx
-from lcs_cvx.units import refit_output
+from lcs_cvx.resizing import refit_dynamics
 
 N_X, N_U, N_LAM, NOISE = 4, 2, 3, 0.01
 HEADERS = {"n": "N", "iterations": "Adam iterations"}
@@ -43,7 +43,7 @@ def floor(truth: lcs_cvx.LCS, train: lcs_cvx.Dataset, test: lcs_cvx.Dataset, kno
     oracle.load_state_dict(truth.state_dict())
     if known_ab:
         oracle.fix(A=truth.A, B=truth.B)
-    refit_output(oracle, train.x, train.u, train.x_next)
+    refit_dynamics(oracle, train.x, train.u, train.x_next)
     return lcs_cvx.relative_error(oracle, test)
 
 

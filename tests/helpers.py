@@ -83,7 +83,7 @@ def lcp_terms(model, data):
 
 
 def violation_objective(model, data, lam, phi, gamma, eps):
-    """Per-sample value of eq. (equ.contactnet.2) at ``(lam, phi)``, written out from the paper:
+    """Per-sample value of eq. (9b) at ``(lam, phi)``, written out from the paper:
     ``1/2 |A x + B u + C lam + d - x'|^2 + (lam^T phi + |D x + E u + F lam + c - phi|^2 / (2 gamma)) / eps``.
     """
     with torch.no_grad():
@@ -97,7 +97,7 @@ def violation_objective(model, data, lam, phi, gamma, eps):
 
 
 def lemma3_gradients(model, data, lam, phi, gamma, eps, magnitude=False):
-    """Eq. (equ.diffvioloss) as batch means, with F mapped back to G and H.
+    """Eq. (10) as batch means, with F mapped back to G and H.
 
     ``e_dyn = A x + B u + C lam + d - x'``, ``e_lcp = (D x + E u + F lam + c - phi) / (eps gamma)``;
     ``F = G G^T + H - H^T + s I`` gives ``grad_G = (grad_F + grad_F^T) G``,
@@ -133,7 +133,7 @@ def lemma3_gradients(model, data, lam, phi, gamma, eps, magnitude=False):
 def certified_violation_solution(model, data, lam, phi, gamma, eps, dps=50, sweeps=6):
     """A certificate for the (V) minimiser, independent of the library's DPP form.
 
-    Works on the paper's (lam, phi) QP (eq. equ.contactnet.2) with Hessian
+    Works on the paper's (lam, phi) QP (eq. (9b)) with Hessian
     ``Q = [[C^T C + F^T F/(eps gamma), (I - F^T/gamma)/eps], [(I - F/gamma)/eps, I/(eps gamma)]]``.
     On the support ``J`` of the given point, iterative refinement with gradients evaluated in
     ``dps``-digit arithmetic (mpmath) and float64 corrections from ``Q_JJ`` (which converge

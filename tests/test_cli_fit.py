@@ -234,7 +234,7 @@ class _Result:
     history: list
     settings: _Settings
     n_fallback: int = 0
-    max_residual: float = 0.0
+    fallback_residual: float = 0.0
 
 
 class _FakeFit:
@@ -429,7 +429,7 @@ def test_fit_reports_fallbacks_in_one_line(files, tmp_path, capsys, monkeypatch)
     assert "fallbacks" not in _facts(capsys.readouterr().out)
     real = phases.violation_fast
     monkeypatch.setattr(phases, "violation_fast", lambda *a, **k: dataclasses.replace(
-        real(*a, **k), n_fallback=1, max_residual=2e-8))
+        real(*a, **k), n_fallback=1, fallback_residual=2e-8))
     assert main(argv) == 0
     facts = _facts(capsys.readouterr().out)
     assert facts["fallbacks"] == ("20 training samples were solved by the reference solver "
@@ -484,7 +484,7 @@ class _TruthFit(_FakeFit):
 
 def test_fit_n_lam_auto_passes_options_and_holds_out(files, monkeypatch, truth, capsys):
     fake_fit = _TruthFit(truth)
-    monkeypatch.setattr(lcs_cvx, "fit", fake_fit)
+    monkeypatch.setattr(lcs_cvx.selection, "fit", fake_fit)  # select_n_lam's trainer
     out = files["data"].with_name("auto.npz")
     argv = ["fit", "--data", str(files["data"]), "--test", str(files["test"]), "--n-lam", "auto",
             "--holdout", "0.25", "--tolerance", "0", "--iterations", "7", "--seed", "4",

@@ -1,4 +1,4 @@
-"""Ensembles (lcs_cvx.ensemble, lcs_cvx.fit_ensemble): K models in one batched loop, each with
+"""Ensembles (lcs_cvx.stacked, lcs_cvx.fit_ensemble): K models in one batched loop, each with
 the numbers of its own run -- bit for bit on CPU tensors (the NumPy kernels), to round-off on the
 torch kernels."""
 
@@ -12,8 +12,8 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
-from lcs_cvx.ensemble import Ensemble, prediction_losses, violation_losses
 from lcs_cvx.losses import prediction_fast, regularizer, violation_fast
+from lcs_cvx.stacked import StackedLCS, prediction_losses, violation_losses
 from lcs_cvx.system import PARAMETER_NAMES
 
 F64 = torch.float64
@@ -50,7 +50,7 @@ def test_stacked_losses_are_each_models_own(loss, n_lam, arrays):
     K, B = 4, 60
     cells = _cells(K, n_lam)
     x, u, xn = _stack(cells, B)
-    ens = Ensemble([c[2] for c in cells])
+    ens = StackedLCS([c[2] for c in cells])
     kw = {"gamma": GAMMA, "eps": EPS} if loss == "violation" else {}
     stacked_fn, own_fn = ((violation_losses, violation_fast) if loss == "violation"
                           else (prediction_losses, prediction_fast))
@@ -86,7 +86,7 @@ def test_stacked_fallbacks_are_each_models_own(loss, monkeypatch):
     monkeypatch.setattr(lcs_cvx.losses, "MAX_ITER", 0)
     cells = _cells(3, 3)
     x, u, xn = _stack(cells, 40)
-    ens = Ensemble([c[2] for c in cells])
+    ens = StackedLCS([c[2] for c in cells])
     kw = {"gamma": GAMMA, "eps": EPS} if loss == "violation" else {}
     stacked_fn, own_fn = ((violation_losses, violation_fast) if loss == "violation"
                           else (prediction_losses, prediction_fast))
@@ -99,7 +99,7 @@ def test_stacked_fallbacks_are_each_models_own(loss, monkeypatch):
             own = own_fn(model, x[k], u[k], xn[k], **kw)
         messages += [str(w.message) for w in caught]
         assert own.n_fallback > 0 and info.n_fallback[k] == own.n_fallback
-        assert info.max_residual[k] == own.max_residual
+        assert info.fallback_residual[k] == own.fallback_residual
         torch.testing.assert_close(info.loss[k], own.loss, rtol=1e-12, atol=0.0)
         assert torch.equal(info.active[k], own.active)
     assert sorted(str(w.message) for w in caught_stacked) == sorted(messages)
@@ -107,7 +107,7 @@ def test_stacked_fallbacks_are_each_models_own(loss, monkeypatch):
 
 def test_ensemble_stacks_and_checks_its_models():
     models = [lcs_cvx.LCS(3, 1, 2, seed=k) for k in range(3)]
-    ens = Ensemble(models)
+    ens = StackedLCS(models)
     assert len(ens) == 3 and ens.A.shape == (3, 3, 3) and ens.c.shape == (3, 2)
     for k, m in enumerate(models):
         assert torch.equal(ens.F[k], m.F.detach())
@@ -116,17 +116,17 @@ def test_ensemble_stacks_and_checks_its_models():
     sub = ens.select([2, 0])
     assert torch.equal(sub.G[0], ens.G[2]) and torch.equal(sub.stiffness, ens.stiffness[[2, 0]])
     with pytest.raises(LCSInputError, match=r"models\[1\]: expected \(n_x, n_u, n_lam, dtype, device\)"):
-        Ensemble([models[0], lcs_cvx.LCS(3, 1, 3)])
+        StackedLCS([models[0], lcs_cvx.LCS(3, 1, 3)])
     with pytest.raises(LCSInputError, match=r"models\[1\]: expected an lcs_cvx.LCS, received str"):
-        Ensemble([models[0], "model"])
+        StackedLCS([models[0], "model"])
     with pytest.raises(LCSInputError, match=r"models: expected a non-empty list"):
-        Ensemble([])
+        StackedLCS([])
     with pytest.raises(LCSInputError, match=r"models\[1\]: expected a model without masks"):
-        Ensemble([models[0], lcs_cvx.LCS(3, 1, 2).mask(A=torch.eye(3, dtype=torch.bool))])
+        StackedLCS([models[0], lcs_cvx.LCS(3, 1, 2).mask(A=torch.eye(3, dtype=torch.bool))])
     fixed = lcs_cvx.LCS(3, 1, 2)
     fixed.A.requires_grad_(False)
     with pytest.raises(LCSInputError, match=r"models\[1\]: expected the fixed parameters of models\[0\] \(\[\]\), received \['A'\]"):
-        Ensemble([models[0], fixed])
+        StackedLCS([models[0], fixed])
 
 
 def _fit_both(cells, seeds, **options):
@@ -171,7 +171,7 @@ def test_fit_ensemble_is_fit_model_by_model(options):
 def test_fit_ensemble_on_the_torch_kernels_agrees_to_round_off(monkeypatch):
     """The torch kernels (the CUDA path, here on CPU tensors) give each model its own run's
     numbers to round-off amplified by a short training."""
-    import lcs_cvx.ensemble as ensemble_module
+    import lcs_cvx.stacked as ensemble_module
 
     def with_torch(fn):
         return lambda *a, **kw: fn(*a, **{**kw, "arrays": "torch"})

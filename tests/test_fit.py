@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ast
+import dataclasses
 import math
 import os
 import signal
@@ -15,7 +17,15 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
-from lcs_cvx.train import FitOptions, extra_units, resolve_options
+from lcs_cvx.train import (
+    FLAT_OPTIONS,
+    AdamOptions,
+    FitOptions,
+    PolishOptions,
+    RefineOptions,
+    extra_units,
+    resolve_options,
+)
 
 
 @pytest.fixture(scope="module")
@@ -426,7 +436,7 @@ def test_fallbacks_are_recorded(small, monkeypatch):
     _, train, _ = small
     clean = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=30,
                         eval_every=10, optimizer="adam")
-    assert clean.n_fallback == 0 and clean.max_residual == 0.0
+    assert clean.n_fallback == 0 and clean.fallback_residual == 0.0
     assert all(h["n_fallback"] == 0 for h in clean.history)
     monkeypatch.setattr(lcs_cvx.losses, "MAX_ITER", 0)
     best = {"recipe": "best", "iterations": 20, "eval_every": 10, "prune_batch": 100,
@@ -438,8 +448,8 @@ def test_fallbacks_are_recorded(small, monkeypatch):
         assert any("solved them with the Clarabel reference" in str(w.message) for w in caught)
         counts = [h["n_fallback"] for h in result.history]
         assert all(c > 0 for c in counts) and result.n_fallback == sum(counts)
-        assert 0.0 < result.max_residual < 1e-3  # Clarabel's interior-point answers: ~1e-9 to ~1e-6
-        assert result.max_residual == max(h["max_residual"] for h in result.history)
+        assert 0.0 < result.fallback_residual < 1e-3  # Clarabel's interior-point answers: ~1e-9 to ~1e-6
+        assert result.fallback_residual == max(h["fallback_residual"] for h in result.history)
 
 
 def test_old_checkpoint_format_is_refused(small, tmp_path):
@@ -448,3 +458,122 @@ def test_old_checkpoint_format_is_refused(small, tmp_path):
     torch.save({"format": 2, "options": {}, "done": []}, ckpt)
     with pytest.raises(LCSInputError, match=r"checkpoint: .* has format 2, expected 3 \(written by another version"):
         lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, checkpoint=ckpt, resume=True)
+
+
+# -- the flat keywords are aliases of fields: replace changes exactly what it names -------------
+def _changed(a: FitOptions, b: FitOptions) -> set[tuple[str, str]]:
+    """The fields (group, name) in which ``a`` and ``b`` differ, compared field by field."""
+    out = {("recipe", "")} if a.recipe != b.recipe else set()
+    for group in ("objective", "adam", "prune", "refine", "polish", "run"):
+        ga, gb = getattr(a, group), getattr(b, group)
+        out |= {(group, f.name) for f in dataclasses.fields(ga)
+                if getattr(ga, f.name) != getattr(gb, f.name)}
+    return out
+
+
+#: a valid value other than the default for every flat keyword
+_NEW_VALUES = {
+    "optimizer": "gauss-newton", "iterations": 33, "batch_size": 77, "loss": "prediction",
+    "gamma": 0.02, "eps": 2e-4, "reg": 0.0, "lr": 5e-3, "betas": (0.8, 0.95), "adam_eps": 1e-7,
+    "lr_schedule": "cosine", "lr_floor": 0.1, "eps_start": 1e-2, "eps_fraction": 0.5,
+    "reinit_saturated": True, "reinit_every": 100, "extra_units": 2, "prune_repair": 2,
+    "prune_batch": 300, "prune_lookahead": 2, "refine": "newton", "refine_iterations": 3,
+    "refine_batch": 100, "damping": 1e-2, "polish_iterations": 10, "polish_lr": 1e-3,
+    "restarts": 3, "holdout": 0.2, "restart_tolerance": 2.0, "seed": 5, "eval_every": 7,
+    "checkpoint_every": 11, "keep_best": True, "normalize": False, "init": ("affine", "model"),
+}
+
+
+def test_replace_keeps_fields_no_keyword_names():
+    """Regression: replace() went through the flat keywords and back, which have no slot for the
+    polish's batch size or the refinement's record interval, so both fell back to their
+    defaults (batch 200, record_every 1) on any replace."""
+    opts = FitOptions(polish=PolishOptions(iterations=100, batch_size=1000),
+                      refine=RefineOptions(method="gauss-newton", record_every=5))
+    new = opts.replace(lr=2e-3)
+    assert new.polish.batch_size == 1000 and new.refine.record_every == 5
+    assert new == dataclasses.replace(opts, adam=dataclasses.replace(opts.adam, lr=2e-3))
+    assert _changed(opts, new) == {("adam", "lr")}
+
+
+def test_fit_overrides_keep_fields_no_keyword_names(small):
+    _, train, _ = small
+    opts = FitOptions(adam=AdamOptions(iterations=4), polish=PolishOptions(iterations=2, batch_size=1000),
+                      refine=RefineOptions(method="gauss-newton", iterations=1, record_every=5))
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, options=opts, lr=2e-3, progress=False)
+    assert result.settings.polish.batch_size == 1000 and result.settings.refine.record_every == 5
+    assert result.settings == dataclasses.replace(opts, adam=dataclasses.replace(opts.adam, lr=2e-3))
+
+
+@pytest.mark.parametrize("keyword", FLAT_OPTIONS)
+def test_replace_with_a_keyword_changes_exactly_its_fields(keyword):
+    aliases = lcs_cvx.train.options.FLAT_ALIASES
+    assert set(_NEW_VALUES) == set(FLAT_OPTIONS) and FLAT_OPTIONS == ("optimizer", *aliases)
+    if keyword == "optimizer":  # the optimizer's fields and its documented defaults
+        base = FitOptions()
+        new = base.replace(optimizer="gauss-newton")
+        assert new == resolve_options(optimizer="gauss-newton")
+        assert _changed(base, new) == {  # refine.batch_size and record_every: 5000 and 1 already
+            ("adam", "iterations"), ("refine", "method"), ("refine", "iterations"),
+            ("adam", "batch_size"), ("polish", "batch_size"), ("run", "eval_every"),
+            ("run", "checkpoint_every")}
+        return
+    # a refinement for extra_units to prune into; none with the prediction loss (Lemma 4)
+    base = FitOptions() if keyword == "loss" else FitOptions(refine=RefineOptions(method="gauss-newton"))
+    new = base.replace(**{keyword: _NEW_VALUES[keyword]})
+    assert _changed(base, new) == set(aliases[keyword])
+    assert all(getattr(getattr(new, g), f) == _NEW_VALUES[keyword] for g, f in aliases[keyword])
+    assert new.flat()[keyword] == (list if keyword == "betas" else lambda v: v)(_NEW_VALUES[keyword])
+
+
+def test_keywords_with_a_second_order_optimizer():
+    """iterations, batch_size and eval_every alias the refinement's fields (which is then the
+    optimizer); refine, refine_iterations and refine_batch alias none."""
+    gn = resolve_options(optimizer="gauss-newton")
+    assert _changed(gn, gn.replace(iterations=7)) == {("refine", "iterations")}
+    assert _changed(gn, gn.replace(batch_size=64)) == {
+        ("refine", "batch_size"), ("adam", "batch_size"), ("polish", "batch_size")}
+    assert _changed(gn, gn.replace(eval_every=3)) == {("run", "eval_every"), ("refine", "record_every")}
+    assert _changed(gn, gn.replace(lr=5e-3)) == {("adam", "lr")}
+    assert gn.replace(refine=None, refine_iterations=3, refine_batch=100, optimizer="gauss-newton") == gn
+    assert _changed(gn, gn.replace(optimizer="newton")) == {("refine", "method")}
+    with pytest.raises(LCSInputError, match=r"refine: a refinement follows the Adam phase"):
+        gn.replace(refine="newton")
+    # back to Adam: no refinement, Adam's defaults; named keywords win over the defaults
+    assert gn.replace(optimizer="adam") == resolve_options()
+    assert gn.replace(optimizer="adam", iterations=9).adam.iterations == 9
+    assert FitOptions().replace(optimizer="newton", iterations=7) == resolve_options(optimizer="newton", iterations=7)
+    with pytest.raises(LCSInputError, match=r"refine: a refinement follows the Adam phase"):
+        lcs_cvx.RECIPES["best"].replace(optimizer="gauss-newton")  # the recipe refines after Adam
+
+
+def test_batch_size_sets_the_polish_batch_too():
+    """The polish has no keyword for its batch: batch_size sets Adam's and the polish's (as fit
+    always has); the polish's own survives a replace that does not name batch_size."""
+    assert resolve_options(batch_size=300).polish.batch_size == 300
+    opts = FitOptions(polish=PolishOptions(iterations=5, batch_size=1000))
+    assert opts.replace(iterations=50).polish.batch_size == 1000
+    assert _changed(opts, opts.replace(batch_size=300)) == {("adam", "batch_size"), ("polish", "batch_size")}
+
+
+@pytest.mark.parametrize("call", [
+    lambda: FitOptions().replace(learning_rate=1e-3),
+    lambda: resolve_options("best", learning_rate=1e-3),
+    lambda: lcs_cvx.RECIPES["paper"].replace(lr=1e-3, learning_rate=1e-3),
+])
+def test_unknown_keyword_is_named_with_the_valid_ones(call):
+    with pytest.raises(LCSInputError, match=r"unknown option\(s\) \['learning_rate'\]; valid options are") as info:
+        call()
+    assert all(repr(k) in str(info.value) for k in FLAT_OPTIONS)
+
+
+def test_recipes_are_read_only_and_options_do_not_import_recipes():
+    with pytest.raises(TypeError):
+        lcs_cvx.RECIPES["paper"] = FitOptions()  # type: ignore[index]
+    with pytest.raises(TypeError):
+        lcs_cvx.train.recipes.RECIPE_VERSIONS["best"] = 1  # type: ignore[index]
+    with open(lcs_cvx.train.options.__file__) as f:
+        tree = ast.parse(f.read())
+    imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    assert not any("recipes" in (m or "") for m in imported), imported

@@ -1,4 +1,4 @@
-"""The LCP solvers of :mod:`lcs_cvx.lcp`: ``0 <= lam _|_ F lam + q >= 0`` (eq. equ.lcp).
+"""The LCP solvers of :mod:`lcs_cvx.lcp`: ``0 <= lam _|_ F lam + q >= 0`` (eq. (2)).
 
 Three solvers must give the one solution Assumption 1 guarantees: batched block pivoting
 (``fast``), enumeration of the 2^n active sets (``brute``) and the declared problem (P) solved

@@ -1,13 +1,13 @@
 """The learning losses of :mod:`lcs_cvx.losses` against the paper's lemmas.
 
-- Lemma 3 (lemma.contactnet, eq. equ.diffvioloss): the gradient of the violation loss
-  ``L_eps`` (eq. equ.contactnet) is the envelope gradient -- checked three ways: against the
+- Lemma 3, eq. (10): the gradient of the violation loss
+  ``L_eps`` (eq. (9)) is the envelope gradient -- checked three ways: against the
   closed form written out here, central finite differences and the cvxpylayers (diffcp +
   Clarabel) path.
-- Lemma 1 (lemma.lcpdiff): the prediction loss ``L_pred`` (eq. equ.prednet) is differentiable
+- Lemma 1: the prediction loss ``L_pred`` (eq. (6)) is differentiable
   under strict complementarity -- against autograd through the active-set map (the closed
   form), finite differences and the cvxpylayers path of (P).
-- Lemma 5 (lemma.approximation): ``L_eps -> L_pred`` as ``eps -> 0``, with ``L_eps <= L_pred``.
+- Lemma 5: ``L_eps -> L_pred`` as ``eps -> 0``, with ``L_eps <= L_pred``.
 - Input checks, the regulariser, devices and array back-ends, :class:`lcs_cvx.LossInfo` (also of
   the trainer's fast paths) and warm starts.
 
@@ -165,7 +165,7 @@ def test_prediction_gradient_matches_finite_differences(model_kind):
     model, data = make_problem(model=model_kind)
     _, info, _ = autograd(prediction_loss_info, model, data)
     # Lemma 1's hypothesis, strict complementarity, with a margin far above the FD step.
-    lam, w = info.lam, info.phi
+    lam, w = info.lam, info.w
     margin = torch.where(info.lam > 0, lam, w)
     assert float(margin.min()) > 1e-4
     assert bool((info.lam > 0).any()) and bool((info.lam == 0).any())  # both kinds of index occur
@@ -255,7 +255,7 @@ def test_violation_loss_is_below_prediction_loss_per_sample(eps):
         info_p = prediction_loss_info(model, data.x, data.u, data.x_next)
         info_v = violation_loss_info(model, data.x, data.u, data.x_next, gamma=gamma, eps=eps)
         l_pred, l_eps = info_p.loss, info_v.loss
-        lam_lcp, w = info_p.lam, info_p.phi
+        lam_lcp, w = info_p.lam, info_p.w
         pred = data.x @ model.A.mT + data.u @ model.B.mT + lam_lcp @ model.C.mT + model.d
         per_pred = 0.5 * ((pred - data.x_next) ** 2).sum(-1)
     assert float(per_pred.mean()) == pytest.approx(float(l_pred), rel=1e-13)
@@ -410,7 +410,8 @@ def test_fast_losses_in_torch_arrays_match_numpy(dtype):
             info.loss.backward()
             out[arrays] = (float(info.loss.detach()), info, {k: getattr(model, k).grad.clone() for k in PARAMETER_NAMES})
         (v0, info0, g0), (value, info, g) = out["auto"], out["torch"]
-        assert info.lam.dtype == dtype and info.phi.dtype == dtype and info.loss.dtype == dtype
+        slack = info.phi if fn is violation_fast else info.w
+        assert info.lam.dtype == dtype and slack.dtype == dtype and info.loss.dtype == dtype
         if dtype == torch.float32:  # the same algorithm: single-precision round-off
             assert value == pytest.approx(v0, rel=1e-5)
             assert torch.equal(info.active, info0.active)
@@ -503,7 +504,7 @@ def test_loss_info_counts_degenerate_samples(build, lam_star):
     assert torch.allclose(
         info.lam[degenerate], torch.tensor(lam_star, dtype=F64).expand(4, 3), atol=1e-12
     )
-    assert float(info.phi[degenerate, 0].abs().max()) <= 1e-12  # w_0 = 0 there
+    assert float(info.w[degenerate, 0].abs().max()) <= 1e-12  # w_0 = 0 there
     # the non-degenerate samples are not counted
     rest = [i for i in range(12) if i not in degenerate]
     info_rest = prediction_loss_info(model, x[rest], u[rest], x_next[rest])
@@ -524,10 +525,11 @@ def test_loss_info_prediction_fields():
     with torch.no_grad():  # the plain loss: the same scalar
         assert float(prediction_loss(model, data.x, data.u, data.x_next)) == float(info.loss.detach())
     # phi is w = F lam + q; lam solves the LCP
-    assert torch.allclose(info.phi, info.lam @ model.F.detach().mT + q, rtol=0, atol=1e-12)
+    assert info.phi is None
+    assert torch.allclose(info.w, info.lam @ model.F.detach().mT + q, rtol=0, atol=1e-12)
     assert bool((info.lam >= 0).all())
-    assert float(info.phi.min()) >= -1e-10
-    assert float((info.lam * info.phi).abs().max()) <= 1e-9
+    assert float(info.w.min()) >= -1e-10
+    assert float((info.lam * info.w).abs().max()) <= 1e-9
     assert info.n_fallback == 0 and info.n_degenerate == 0 and info.max_residual <= 1e-13
     assert not info.lam.requires_grad
 
@@ -535,8 +537,9 @@ def test_loss_info_prediction_fields():
 @pytest.mark.parametrize("loss", ["violation", "prediction"])
 def test_trainer_fast_paths_report_the_fallbacks_residual(monkeypatch, loss):
     """``violation_fast`` / ``prediction_fast`` (the trainer's, on validated tensors): the public
-    loss's value, gradient and active sets; without the full residual, ``max_residual`` is the
-    worst residual of the samples a reference solved -- 0.0 when pivoting converged on all."""
+    loss's value, gradient and active sets; without the full residual, ``max_residual`` is None and
+    ``fallback_residual`` the worst residual of the samples a reference solved -- 0.0 when
+    pivoting converged on all."""
     model, data = make_problem(n_lam=6, model="perturbed", seed=11)
     x, u, xn = data.x, data.u, data.x_next
     if loss == "violation":
@@ -547,7 +550,8 @@ def test_trainer_fast_paths_report_the_fallbacks_residual(monkeypatch, loss):
     info = fast(model, x, u, xn, **kw)
     assert float(info.loss.detach()) == float(ref.loss.detach())
     assert torch.equal(info.lam, ref.lam) and torch.equal(info.active, ref.active)
-    assert info.n_fallback == 0 and info.max_residual == 0.0 < ref.max_residual + 1e-300
+    assert info.n_fallback == 0 and info.max_residual is None and info.fallback_residual == 0.0
+    assert ref.fallback_residual == 0.0 <= ref.max_residual
     model.zero_grad()
     info.loss.backward()
     g_fast = {k: getattr(model, k).grad.clone() for k in PARAMETER_NAMES}
@@ -562,15 +566,16 @@ def test_trainer_fast_paths_report_the_fallbacks_residual(monkeypatch, loss):
     assert lean.n_fallback == full.n_fallback >= 1
     assert float((lean.lam - ref.lam).abs().max()) <= 1e-6 * (1 + float(ref.lam.abs().max()))
     if loss == "violation":  # Clarabel's answers: accurate, not round-off exact
-        assert 0.0 < lean.max_residual == pytest.approx(full.max_residual, rel=1e-12)
+        assert 0.0 < lean.fallback_residual == pytest.approx(full.fallback_residual, rel=1e-12)
+        assert lean.fallback_residual <= full.max_residual
     else:  # n_lam = 6: enumeration, exact; the samples whose first guess q < 0 was wrong
         q, _ = lcp_terms(model, data)
         fell_back = ((ref.lam > 0) != (q < 0)).any(-1)
         assert int(fell_back.sum()) == lean.n_fallback
         expected = float(lcs_cvx.lcp.lcp_residual(model.F.detach(), q[fell_back], lean.lam[fell_back]).max())
         # round-off both (the loss forms F in its arrays, model.F is torch's: 1 ulp apart)
-        assert lean.max_residual == pytest.approx(expected, abs=1e-15)
-        assert lean.max_residual <= full.max_residual <= 1e-13
+        assert lean.fallback_residual == pytest.approx(expected, abs=1e-15)
+        assert lean.fallback_residual <= full.max_residual <= 1e-13
 
 
 # -- warm starts of the fast solvers ---------------------------------------------------------

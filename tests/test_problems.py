@@ -1,5 +1,5 @@
-"""The two CVXPY declarations of :mod:`lcs_cvx.problems`: (P), eq. (equ.convexlcp), and (V),
-eq. (equ.contactnet.2), in its DPP form: phi eliminated, the whole objective times ``eps``,
+"""The two CVXPY declarations of :mod:`lcs_cvx.problems`: (P), eq. (5), and (V),
+eq. (9b), in its DPP form: phi eliminated, the whole objective times ``eps``,
 constants dropped.
 
 (V) with ``C = 0`` and ``r = 0`` is Lemma 2's QP ``min_{lam, phi >= 0} lam^T phi +

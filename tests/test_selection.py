@@ -141,7 +141,7 @@ class _FakeFit:
 @pytest.fixture
 def fake_fit(monkeypatch):
     fake = _FakeFit()
-    monkeypatch.setattr(lcs_cvx, "fit", fake)
+    monkeypatch.setattr(lcs_cvx.selection, "fit", fake)
     return fake
 
 

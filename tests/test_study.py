@@ -523,7 +523,7 @@ def test_ensembles_give_every_cell_its_own_result(tmp_path):
 
 
 def test_ensembles_group_the_cells_that_differ_in_their_seeds_only():
-    from lcs_cvx.study.ensembles import ensembles
+    from lcs_cvx.study.batched_cells import ensembles
 
     config = load_config(CONFIGS / "fig1a_n_lam_smoke.toml")
     config["trials"] = 5
@@ -543,7 +543,7 @@ def test_ensembles_group_the_cells_that_differ_in_their_seeds_only():
 
 
 def test_ensemble_work_orders_by_problem_size():
-    from lcs_cvx.study.ensembles import work
+    from lcs_cvx.study.batched_cells import work
 
     cell = {"fit": {"iterations": 10, "batch_size": 20}, "system": {"n_x": 2, "n_u": 1, "n_lam": 3}}
     assert work([cell]) == 10 * 20 * 36 and work([cell, cell]) == 2 * work([cell])
@@ -558,7 +558,7 @@ def test_ensemble_size_without_ensemble_is_refused(tmp_path):
 def test_ensembles_leave_baselines_and_unsupported_options_to_run_alone():
     """A baseline cell, or a cell whose fit options the ensemble loop does not run (the best
     recipe's extra units and refinement), is a job of its own, run by ``run_cell``."""
-    from lcs_cvx.study.ensembles import alone, ensembles
+    from lcs_cvx.study.batched_cells import alone, ensembles
 
     cells = expand(load_config(CONFIGS / "pwa_compare_smoke.toml"))
     jobs = ensembles(cells)

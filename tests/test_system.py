@@ -1,4 +1,4 @@
-"""The LCS model (:mod:`lcs_cvx.system`), eq. (equ.lcs):
+"""The LCS model (:mod:`lcs_cvx.system`), eq. (1):
 
     x' = A x + B u + C lam + d,    0 <= lam _|_ D x + E u + F lam + c >= 0,
     F = G G^T + H - H^T + s I.

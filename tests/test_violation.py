@@ -1,4 +1,4 @@
-"""The fast solver of the violation problem (V), eq. (equ.contactnet.2) (:mod:`lcs_cvx.violation`).
+"""The fast solver of the violation problem (V), eq. (9b) (:mod:`lcs_cvx.violation`).
 
 Its answer is certified exact against a high-precision refinement of the paper's (lam, phi) QP,
 independent of the library's DPP form, in the paper's and in a stiff setting; the two array

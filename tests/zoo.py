@@ -1,4 +1,4 @@
-"""The problem zoo: LCPs ``0 <= lam _|_ F lam + q >= 0`` (eq. equ.lcp) with known answers, and
+"""The problem zoo: LCPs ``0 <= lam _|_ F lam + q >= 0`` (eq. (2)) with known answers, and
 random P-matrix families, each a :class:`Problem`; and the solver paths that must all solve them
 (:data:`SOLVERS`). ``tests/test_zoo.py`` runs every solver on every problem.
 

@@ -1,4 +1,4 @@
-r"""The LCP kernel: block pivoting on ``0 <= lam _|_ w = F lam + q >= 0`` (eq. equ.lcp).
+r"""The LCP kernel: block pivoting on ``0 <= lam _|_ w = F lam + q >= 0`` (eq. (2)).
 
 Each sweep solves ``F_II lam_I = -q_I`` (``lam_J = 0``) on the current free sets ``I`` for the
 whole batch with one batched LU, and marks infeasible a free ``lam_i < 0`` or a bound

@@ -7,7 +7,7 @@ form (:func:`envelope_backward`: Lemma 3; :func:`implicit_backward`: Lemma 1), e
 products, and taken from ``F`` to ``(G, H)`` by :func:`F_adjoint`. :mod:`lcs_cvx.losses` wraps
 them in ``torch.autograd.Function`` adapters.
 
-Every function also takes a stack of ``K`` models (:mod:`lcs_cvx.ensemble`): parameters with a
+Every function also takes a stack of ``K`` models (:mod:`lcs_cvx.stacked`): parameters with a
 leading model axis (``(K, n, n)``, ``(K, n)``), per-sample arrays ``(K, B, .)`` (model ``k``'s
 samples in row ``k``), a stiffness ``(K, 1, 1)``; the loss values are then ``(K,)``, one per
 model, and their gradients stacked. Each model's numbers are those of its own call.

@@ -1,8 +1,8 @@
 """Batched block principal pivoting: the active-set engine behind both fast kernels.
 
 Both per-sample problems of the paper reduce to a linear complementarity problem with a
-P-matrix: the LCP of eq. (equ.lcp) itself, and the KKT system of the strongly convex
-violation QP (eq. equ.contactnet.2), whose Hessian is positive definite (Lemma 3a).
+P-matrix: the LCP of eq. (2) itself, and the KKT system of the strongly convex
+violation QP (eq. (9b)), whose Hessian is positive definite (Lemma 3a).
 For a P-matrix LCP ``0 <= z  _|_  M z + p >= 0`` every guess of the *free set* I
 (``z_I`` free, ``z_J = 0``) gives one linear solve, and the guess is right iff the
 result is feasible. Block principal pivoting (Judice & Pires, 1994) flips every

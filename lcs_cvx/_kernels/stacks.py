@@ -3,7 +3,7 @@
 A kernel call solves a batch of per-sample problems whose matrices (``F``; (V)'s ``L^T L`` and
 ``K``) belong to a model. With one model (:class:`Shared`) every sample uses the same matrices,
 kept as they are (``(n, n)``, a flat row ``(1, n * n)``). A stack of ``M`` models
-(:class:`Stacked`, :mod:`lcs_cvx.ensemble`) has them along a leading model axis (``(M, n, n)``,
+(:class:`Stacked`, :mod:`lcs_cvx.stacked`) has them along a leading model axis (``(M, n, n)``,
 ``(M, n * n)``) and its samples model-major: ``B`` per model, sample ``t`` of model ``t // B``.
 
 The pivoting (:mod:`.pivoting`) calls its ``solve(free, idx)`` on the whole batch or on a work

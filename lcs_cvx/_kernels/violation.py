@@ -1,4 +1,4 @@
-r"""The kernel of the violation problem (V), eq. (equ.contactnet.2), in the form it consumes.
+r"""The kernel of the violation problem (V), eq. (9b), in the form it consumes.
 
 (V) is declared once, in :func:`lcs_cvx.problems.violation_problem`; with ``phi`` eliminated and
 the objective times ``eps`` it reads::

@@ -7,6 +7,8 @@ import argparse
 from .. import LCSInputError
 from ._args import positive_int, reraise_for, sizes
 
+__all__ = ["configure_bench", "run_bench"]
+
 
 def configure_bench(p: argparse.ArgumentParser) -> None:
     from ..bench import LOSSES, PATHS

@@ -12,6 +12,8 @@ import torch
 from .. import count_modes, make_dataset, random_lcs, solve_lcp
 from ._args import PROG, positive_int, seed
 
+__all__ = ["configure_demo", "run_demo"]
+
 #: Standard deviation of the noise on the paper's training data (Sec. 5).
 TRAIN_NOISE = 1e-2
 

@@ -31,6 +31,8 @@ from ._args import (
     seed,
 )
 
+__all__ = ["configure_fit", "run_fit", "configure_predict", "run_predict"]
+
 
 def configure_fit(p: argparse.ArgumentParser) -> None:
     # required, but checked by run_fit: every command parses with no arguments (test_cli)
@@ -178,7 +180,7 @@ def run_fit(args: argparse.Namespace) -> int:
         raise reraise_for("out", exc) from None
     if result.n_fallback:
         print(f"fallbacks: {result.n_fallback} training samples were solved by the reference "
-              f"solver (worst relative KKT residual {result.max_residual:.2e})")
+              f"solver (worst relative KKT residual {result.fallback_residual:.2e})")
     if test is not None:
         print(f"e_test: {relative_error_for('test', result.model, test):.6g}")
     print(f"train relative error: {relative_error_for('data', result.model, train):.6g}")

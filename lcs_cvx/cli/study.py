@@ -8,6 +8,8 @@ import sys
 from .. import LCSInputError
 from ._args import PROG, positive_int
 
+__all__ = ["configure_study", "run_study_command"]
+
 
 def configure_study(p: argparse.ArgumentParser) -> None:
     from ..study.runner import DEFAULT_OUT

@@ -260,7 +260,7 @@ def fit_options(config: dict[str, Any], method: str, value: Any = None) -> dict[
     tables picked and the ``"authors"`` convention converted; the seed is added per cell.
 
     The authors' code writes the violation loss without the 1/2 factors,
-    ``|e_dyn|^2 + (1/eps')(lam.phi + |w - phi|^2 / gamma')``: twice eq. (equ.contactnet) with
+    ``|e_dyn|^2 + (1/eps')(lam.phi + |w - phi|^2 / gamma')``: twice eq. (9) with
     ``eps = 2 eps'`` and ``gamma = gamma' / 2``; their ``omega'`` then weighs half as much:
     ``reg = omega' / 2``. The prediction loss is passed unchanged.
 

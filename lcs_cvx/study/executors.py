@@ -50,7 +50,7 @@ def _context() -> mp.context.BaseContext:
     if "forkserver" in mp.get_all_start_methods():
         ctx = mp.get_context("forkserver")
         # torch.optim's first Adam imports torch._dynamo (~2 s): once, in the server, not per worker
-        ctx.set_forkserver_preload(["lcs_cvx", "lcs_cvx.study.cells", "lcs_cvx.study.ensembles",
+        ctx.set_forkserver_preload(["lcs_cvx", "lcs_cvx.study.cells", "lcs_cvx.study.batched_cells",
                                     "torch._dynamo"])
         return ctx
     return mp.get_context("spawn")

@@ -10,7 +10,7 @@ whose own fitting algorithm failed on the cell's data (PARC at thousands of mode
 ``status = "failed"``: the method's result on that problem, finished, never run again.
 
 With ``ensemble=True`` (``--ensemble``) the cells to run are grouped into ensembles
-(:mod:`lcs_cvx.study.ensembles`: the trials of one swept value and method), each trained by one
+(:mod:`lcs_cvx.study.batched_cells`: the trials of one swept value and method), each trained by one
 worker in one batched loop; every finished cell is stored exactly as on its own, when its
 ensemble finishes.
 
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from .._checks import LCSInputError
+from .batched_cells import ensembles, run_ensemble
 from .cells import expand
 from .config import config_hash, load_config
-from .ensembles import ensembles, run_ensemble
 from .executors import dask_cluster, process_pool
 from .store import Store
 
@@ -196,7 +196,7 @@ def run_config(
         max_cells: run at most this many unfinished cells (the rest on a later run).
         progress: a bar (terminal) or periodic lines on stderr.
         ensemble: train the cells that differ only in their seeds (a swept value's trials, one
-            method) together, one ensemble per worker (:mod:`lcs_cvx.study.ensembles`); the
+            method) together, one ensemble per worker (:mod:`lcs_cvx.study.batched_cells`); the
             results are those of the cells run one by one.
         ensemble_size: at most this many cells per ensemble (None: a swept value's trials of
             one method); smaller ensembles share the work between more workers.

@@ -34,9 +34,9 @@ on the problem, and running it again fails again.
 and the next run tries them again. Storing a cell (any status) removes its rows from
 ``failures``, so the table holds only the cells still to retry.
 
-Schema version 1 stored one row per curve record (~100 bytes each, 100 records a cell at the
-paper's 10,000 iterations: 6.7 MB for Fig. 1(a), (d), (e)); a version-1 database is converted
-in place when it is opened (one transaction, then ``VACUUM``), ~2.5x smaller.
+Schema version 1 stored one row per curve record, which made the databases of the full-scale
+studies several times larger; a version-1 database is converted in place when it is opened
+(one transaction, then ``VACUUM``).
 """
 
 from __future__ import annotations

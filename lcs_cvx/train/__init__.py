@@ -1,7 +1,10 @@
 """Training an LCS: :func:`fit` and its options.
 
-- :mod:`~lcs_cvx.train.options` -- :class:`FitOptions`, grouped by phase.
-- :mod:`~lcs_cvx.train.recipes` -- the flat keywords of :func:`fit` and the recipes.
+- :mod:`~lcs_cvx.train.options` -- :class:`FitOptions`, grouped by phase, and the flat keywords
+  of :func:`fit` as an alias table onto its fields.
+- :mod:`~lcs_cvx.train.recipes` -- the recipes, read-only :class:`FitOptions` values.
+- :mod:`~lcs_cvx.train.inputs` -- the data and options of a call, checked once.
+- :mod:`~lcs_cvx.train.result` -- :class:`FitResult`.
 - :mod:`~lcs_cvx.train.state` -- :class:`TrainState`, one run's state (serialises itself).
 - :mod:`~lcs_cvx.train.phases` -- Adam, pruning, second-order refinement and polish, on one loop.
 - :mod:`~lcs_cvx.train.driver` -- :func:`fit`: restarts, checkpoints and resume, progress.
@@ -9,7 +12,6 @@
 """
 
 from .driver import CHECKPOINT_FORMAT as CHECKPOINT_FORMAT
-from .driver import FitResult as FitResult
 from .driver import fit as fit
 from .ensemble import fit_ensemble as fit_ensemble
 from .options import AdamOptions as AdamOptions
@@ -23,6 +25,7 @@ from .options import extra_units as extra_units
 from .recipes import FLAT_OPTIONS as FLAT_OPTIONS
 from .recipes import RECIPES as RECIPES
 from .recipes import resolve_options as resolve_options
+from .result import FitResult as FitResult
 from .state import TrainState as TrainState
 
 __all__ = [

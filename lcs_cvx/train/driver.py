@@ -1,5 +1,5 @@
 r""":func:`fit`: learn an LCS from transitions by minimising ``L(theta) + omega ||C||_F^2``
-(paper eq. equ.loss), with restarts, checkpoints and resume.
+(paper eq. (4)), with restarts, checkpoints and resume.
 
 A run goes through the phases of :mod:`lcs_cvx.train.phases` (Adam, pruning, second-order
 refinement, polish; options in :mod:`lcs_cvx.train.options`). With ``restarts > 1`` the runs start
@@ -13,7 +13,6 @@ uninterrupted one (wall times aside).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import math
@@ -21,7 +20,6 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -30,12 +28,14 @@ from .._checks import LCSInputError
 from ..data import Dataset
 from ..io import atomic_write
 from ..metrics import affine_error, relative_error
-from ..scaling import Scaling
-from ..structure import check_learnable
+from ..parameter_constraints import check_learnable
+from ..scaling import Scaling, fold_back, in_user_coordinates
 from ..system import LCS
+from .ensemble import train_together
+from .inputs import check_data, fit_options
 from .options import FitOptions
 from .phases import run_phases
-from .recipes import resolve_options, split_groups
+from .result import FitResult, lowest
 from .starts import fresh_like, start
 from .state import TrainState
 
@@ -46,103 +46,6 @@ CHECKPOINT_FORMAT = 3
 #: With ``restart_tolerance``, a run succeeds only with a held-out error below this fraction of
 #: the least-squares affine map's (:func:`lcs_cvx.metrics.affine_error`).
 AFFINE_MARGIN = 0.5
-
-
-def _lowest(scores: list[float]) -> int:
-    """Index of the lowest score, the first of equal ones: the restart :func:`fit` keeps."""
-    return min(range(len(scores)), key=scores.__getitem__)
-
-
-@dataclass(frozen=True)
-class FitResult:
-    """What :func:`fit` returns.
-
-    Attributes:
-        model: the trained model (the same object as the ``model`` argument, updated in place).
-        history: one dict per record: ``iteration``, ``phase`` (``"adam"``, ``"gauss-newton"``,
-            ``"newton"`` or ``"polish"``), ``loss`` (mean regularised training loss since the last
-            record), ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s),
-            ``restart``, ``n_fallback`` (samples the fast solvers handed to the reference solver
-            since the last record) and ``max_residual`` (the worst relative KKT residual of those
-            reference answers; 0.0 when there were none -- pivoting's own answers are exact).
-        settings: the resolved :class:`FitOptions`.
-        restart_scores: held-out relative error of each restart that ran (empty with one run;
-            fewer than ``restarts`` when ``restart_tolerance`` stopped them early).
-        wall_time: seconds, summed over resumed pieces.
-        scaling: the normalised coordinates the model was learned in
-            (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
-            history is in those coordinates; ``e_test`` and the restart scores are in the user's.
-    """
-
-    model: LCS
-    history: list[dict[str, Any]]
-    settings: FitOptions
-    restart_scores: list[float] = field(default_factory=list)
-    wall_time: float = 0.0
-    scaling: Scaling | None = None
-
-    @property
-    def kept_restart(self) -> int:
-        """The run :attr:`model` comes from: the index of the lowest of :attr:`restart_scores`
-        (the first of equal ones; 0 with one run). The history holds every run's records, so
-        ``history[-1]`` is the last run's record, not necessarily the returned model's: that
-        run's records are :attr:`kept_history`."""
-        return _lowest(self.restart_scores) if self.restart_scores else 0
-
-    @property
-    def kept_history(self) -> list[dict[str, Any]]:
-        """The records of the :attr:`kept_restart` run (the whole history with one run)."""
-        return [h for h in self.history if h.get("restart", 0) == self.kept_restart]
-
-    @property
-    def n_fallback(self) -> int:
-        """Samples handed to the reference solver over the whole training."""
-        return sum(h.get("n_fallback", 0) for h in self.history)
-
-    @property
-    def max_residual(self) -> float:
-        """The worst relative KKT residual of the reference solver's answers (0.0: none)."""
-        return max((h.get("max_residual", 0.0) for h in self.history), default=0.0)
-
-
-def _check_data(name: str, data: Any, model: LCS) -> Dataset:
-    if not isinstance(data, Dataset):
-        raise LCSInputError(f"{name}: expected an lcs_cvx.Dataset, received {type(data).__name__}")
-    if data.n_x != model.n_x or data.n_u != model.n_u:
-        raise LCSInputError(
-            f"{name}: expected n_x={model.n_x}, n_u={model.n_u} (the model's), received "
-            f"n_x={data.n_x}, n_u={data.n_u}"
-        )
-    if len(data) == 0:
-        raise LCSInputError(f"{name}: expected at least one sample, received an empty dataset")
-    for field_name in ("x", "u", "x_next"):  # checked once here: the training loop does not
-        t = getattr(data, field_name)
-        if not t.is_floating_point() or not bool(torch.isfinite(t).all()):
-            raise LCSInputError(
-                f"{name}: expected finite real values in {field_name}, received "
-                f"{'dtype ' + str(t.dtype) if not t.is_floating_point() else 'NaN/inf entries'}"
-            )
-    if data.x.device == model.device and data.x.dtype == model.dtype:
-        return data
-    kw = {"device": model.device, "dtype": model.dtype}
-    return Dataset(data.x.to(**kw), data.u.to(**kw), data.x_next.to(**kw),
-                   None if data.lam is None else data.lam.to(**kw))
-
-
-def _options(options: FitOptions | None, recipe: str | None, overrides: dict[str, Any]) -> FitOptions:
-    if options is None:
-        groups = split_groups(overrides)
-        return resolve_options(recipe, **overrides).replace(**groups)
-    if not isinstance(options, FitOptions):
-        raise LCSInputError(
-            f"options: expected an lcs_cvx.FitOptions (e.g. lcs_cvx.RECIPES['best']), received "
-            f"{type(options).__name__}"
-        )
-    if recipe is not None:
-        raise LCSInputError(
-            f"recipe: expected None when options are given (they already hold one), received {recipe!r}"
-        )
-    return options.replace(**overrides)
 
 
 class _Checkpoint:
@@ -203,6 +106,18 @@ def kept_fit(history: list[dict[str, Any]], tolerance: float | None) -> bool:
     return refined[-1] <= tolerance * adam[-1]
 
 
+def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] | None) -> dict:
+    """A finished run as a checkpoint's ``done`` entry: its best iterate restored (with
+    ``keep_best``), its held-out score (NaN without a held-out part), its history, whether it
+    kept its fit (:func:`kept_fit`) and its parameters."""
+    if r.keep_best:
+        state.restore_best()
+    model = state.model
+    return {"score": holdout_score(model) if holdout_score is not None else math.nan,
+            "history": state.history, "kept": kept_fit(state.history, r.restart_tolerance),
+            "params": {k: v.detach().clone() for k, v in model.state_dict().items()}}
+
+
 def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitOptions,
                        learner_for: Callable[[int], LCS], fit_data: Dataset, test_data: Dataset | None,
                        score_on: Callable[[Dataset], Callable[[LCS], float]], test: Dataset | None,
@@ -210,19 +125,13 @@ def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitO
     """``fit(ensemble=True)``: the restarts not in ``done`` trained in one batched loop
     (:func:`lcs_cvx.train.ensemble.train_together`), then closed as the sequential loop closes
     each (best iterate, held-out score, ``done`` and ``history``). Returns the last learner."""
-    from .ensemble import train_together
-
     remaining = range(len(done), r.restarts)
     learners = [learner_for(k) for k in remaining]
     states = [TrainState(m, fit_data, test_data, opts, k, score=score_on(test) if test is not None else None)
               for m, k in zip(learners, remaining, strict=True)]
     train_together(states, throw=True, elapsed=elapsed)
     for st in states:
-        if r.keep_best:
-            st.restore_best()
-        score = score_on(holdout)(st.model) if holdout is not None else math.nan
-        done.append({"score": score, "history": st.history,
-                     "params": {k: v.detach().clone() for k, v in st.model.state_dict().items()}})
+        done.append(close_run(st, r, score_on(holdout) if holdout is not None else None))
         history.extend(st.history)
     return learners[-1]
 
@@ -281,9 +190,9 @@ def fit(
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
     check_learnable(model)
-    opts = _options(options, recipe, overrides)
-    train = _check_data("train", train, model)
-    test = _check_data("test", test, model) if test is not None else None
+    opts = fit_options(options, recipe, overrides)
+    train = check_data("train", train, model)
+    test = check_data("test", test, model) if test is not None else None
     store = _Checkpoint(os.fspath(checkpoint) if checkpoint is not None else None, opts)
     ckpt = store.load() if resume else None
     r = opts.run
@@ -297,11 +206,7 @@ def fit(
     test_data = scaling.encode(test) if scaling is not None and test is not None else test
 
     def in_units(m: LCS) -> LCS:
-        """A model being learned, in the user's units (a copy of ``model``'s structure: its
-        fixed parameters bit for bit)."""
-        if scaling is None:
-            return m
-        return scaling.to_physical(m, out=copy.deepcopy(model) if m.n_lam == model.n_lam else None)
+        return in_user_coordinates(scaling, m, model)
 
     def score_on(data: Dataset) -> Callable[[LCS], float]:
         return lambda m: relative_error(in_units(m), data)
@@ -365,12 +270,7 @@ def fit(
                 store.save(restart, done, state.state_dict(), elapsed())
 
             stopped = run_phases(state, callbacks=user_callbacks, save=save, elapsed=elapsed, bar=bar)
-            if r.keep_best:
-                state.restore_best()
-            score = score_on(holdout)(learner) if holdout is not None else math.nan
-            done.append({"score": score, "history": state.history,
-                         "kept": kept_fit(state.history, r.restart_tolerance),
-                         "params": {k: v.detach().clone() for k, v in learner.state_dict().items()}})
+            done.append(close_run(state, r, score_on(holdout) if holdout is not None else None))
             history.extend(state.history)
             if stopped:
                 break
@@ -379,14 +279,11 @@ def fit(
             bar.close()
     scores = [d["score"] for d in done] if r.restarts > 1 else []
     if done:  # the chosen run (also when a resumed checkpoint had finished them all)
-        best = _lowest(scores) if r.restarts > 1 else -1
+        best = lowest(scores) if r.restarts > 1 else -1
         if learner is None:  # every restart came from the checkpoint
             learner = learner_for(0)
         learner.load_state_dict(done[best]["params"])
-        if scaling is not None:
-            scaling.to_physical(learner, out=model)
-        elif learner is not model:
-            model.load_state_dict(learner.state_dict())
+        fold_back(scaling, learner, model)
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
     return FitResult(model, history, opts, scores, elapsed(), scaling)

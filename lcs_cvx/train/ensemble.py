@@ -5,8 +5,8 @@ Model ``k`` keeps everything of its own run -- its data, initialisation, minibat
 own generator, seeded from its own ``seed``), Adam moments, history and best iterate (a
 :class:`~lcs_cvx.train.state.TrainState` each) -- and only the arithmetic is shared: at every
 step the ``K`` minibatches go through one call of the stacked fast losses
-(:mod:`lcs_cvx.ensemble`), and one Adam over the stacked parameters, stepped on the sum of the
-``K`` regularised losses ``L_k(theta_k) + omega ||C_k||_F^2`` (eq. equ.loss), makes each
+(:mod:`lcs_cvx.stacked`), and one Adam over the stacked parameters, stepped on the sum of the
+``K`` regularised losses ``L_k(theta_k) + omega ||C_k||_F^2`` (eq. (4)), makes each
 model's own Adam step (Adam is elementwise, and slice ``k`` of the sum's gradient is model
 ``k``'s gradient). On CPU tensors each model's numbers are those of its own :func:`fit` bit for
 bit (tested); on other devices (torch kernels) to round-off.
@@ -24,8 +24,6 @@ model as it would a cell of its own).
 
 from __future__ import annotations
 
-import copy
-import math
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -35,14 +33,15 @@ import torch
 
 from .._checks import LCSInputError, SolverError
 from ..data import Dataset
-from ..ensemble import Ensemble, prediction_losses, violation_losses
 from ..metrics import relative_error
-from ..scaling import Scaling
-from ..structure import check_learnable
+from ..parameter_constraints import check_learnable
+from ..scaling import Scaling, fold_back, in_user_coordinates
+from ..stacked import StackedLCS, prediction_losses, violation_losses
 from ..system import LCS
-from .driver import FitResult, _check_data, _options
+from .inputs import check_data, fit_options
 from .options import FitOptions
-from .phases import AdamPhase
+from .phases import AdamPhase, divergence
+from .result import FitResult
 from .starts import start
 from .state import Outcome, TrainState
 
@@ -81,24 +80,19 @@ class _Member:
         self.state = TrainState(self.learner, fit_data, test_data, opts, 0, score=score)
 
     def in_units(self, m: LCS) -> LCS:
-        """The learner in the user's units (as :func:`lcs_cvx.fit`'s)."""
-        if self.scaling is None:
-            return m
-        return self.scaling.to_physical(m, out=copy.deepcopy(self.model))
+        """The learner in the user's coordinates (as :func:`lcs_cvx.fit`'s)."""
+        return in_user_coordinates(self.scaling, m, self.model)
 
     def finish(self, wall_time: float) -> FitResult:
         """The model folded back into the user's units and its :class:`FitResult`."""
         st = self.state
         if self.opts.run.keep_best:
             st.restore_best()
-        if self.scaling is not None:
-            self.scaling.to_physical(self.learner, out=self.model)
-        elif self.learner is not self.model:
-            self.model.load_state_dict(self.learner.state_dict())
+        fold_back(self.scaling, self.learner, self.model)
         return FitResult(self.model, st.history, self.opts, [], wall_time, self.scaling)
 
 
-def _moved_adam(adam: torch.optim.Adam, old: Ensemble, new: Ensemble, keep: list[int]) -> torch.optim.Adam:
+def _moved_adam(adam: torch.optim.Adam, old: StackedLCS, new: StackedLCS, keep: list[int]) -> torch.optim.Adam:
     """An Adam over ``new`` (the models ``keep`` of ``old``) with their moments and step counts."""
     group = {k: v for k, v in adam.param_groups[0].items() if k != "params"}
     moved = torch.optim.Adam(new.parameters(), **group)
@@ -164,12 +158,12 @@ def fit_ensemble(
         if not isinstance(m, LCS):
             raise LCSInputError(f"models[{k}]: expected an lcs_cvx.LCS, received {type(m).__name__}")
         check_learnable(m)
-    opts = [_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
+    opts = [fit_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
             for k in range(K)]
     check_supported(opts[0])
     members = [
-        _Member(m, _check_data(f"trains[{k}]", trains[k], m),
-                None if tests is None else _check_data(f"tests[{k}]", tests[k], m), opts[k])
+        _Member(m, check_data(f"trains[{k}]", trains[k], m),
+                None if tests is None else check_data(f"tests[{k}]", tests[k], m), opts[k])
         for k, m in enumerate(models)
     ]
     t_start = time.perf_counter()
@@ -222,7 +216,7 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
     a, obj = o.adam, o.objective
     phase = AdamPhase(o)
     alive = list(range(len(states)))  # the states still training, in stack order
-    ens = Ensemble([st.model for st in states])
+    ens = StackedLCS([st.model for st in states])
     adam = torch.optim.Adam(ens.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
     # every state's training set, end to end; state k's samples start at starts[k]
     trains = [st.train for st in states]
@@ -261,18 +255,15 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
         failed = []
         for j, k in enumerate(alive):
             st = states[k]
-            if not (math.isfinite(losses[j]) and finite_F[j]):
-                error = SolverError(
-                    f"{label(k)}training diverged at iteration {st.iteration + 1}: loss = "
-                    f"{losses[j]}, F {'finite' if finite_F[j] else 'not finite'}; lower lr (now {lr:g})"
-                )
+            error = divergence(st.iteration + 1, losses[j], finite_F[j], lr, label(k))
+            if error is not None:
                 if throw:
                     raise error
                 errors[k] = error
                 failed.append(j)
                 continue
             st.steps["adam"] += 1
-            st.add(Outcome(losses[j], eps, lr, info.n_fallback[j], info.max_residual[j]))
+            st.add(Outcome(losses[j], eps, lr, info.n_fallback[j], info.fallback_residual[j]))
             n = st.steps["adam"]
             if n % phase.record_every == 0 or n == a.iterations:
                 ens.copy_to(j, st.model)

@@ -1,36 +1,40 @@
 r"""The options of :func:`lcs_cvx.fit`, one frozen dataclass per training phase.
 
-A run minimises ``L(theta) + omega ||C||_F^2`` (paper eq. equ.loss) in up to four phases, in this
+A run minimises ``L(theta) + omega ||C||_F^2`` (paper eq. (4)) in up to four phases, in this
 order; each phase has its own options:
 
-- :class:`ObjectiveOptions` -- which loss (eq. equ.contactnet or equ.prednet) and its constants.
+- :class:`ObjectiveOptions` -- which loss (eq. (9) or (6)) and its constants.
 - :class:`AdamOptions` -- minibatch Adam (the paper's protocol, Sec. 5), with optional schedules
   (cosine learning rate, continuation in ``eps``), re-initialisation of saturated units and extra
   units that the pruning phase removes again.
 - :class:`PruneOptions` -- pruning the extra units back to the model's ``n_lam``
-  (:func:`lcs_cvx.units.prune`).
+  (:func:`lcs_cvx.resizing.prune_units`).
 - :class:`RefineOptions` -- Levenberg--Marquardt steps (Gauss--Newton or Newton, Lemma 4,
   :mod:`lcs_cvx.second_order`) on large batches.
-- :class:`PolishOptions` -- a final Adam polish on the prediction loss (eq. equ.prednet).
+- :class:`PolishOptions` -- a final Adam polish on the prediction loss (eq. (6)).
 - :class:`RunOptions` -- what is not a phase: restarts, seed, records, checkpoints.
 
-:class:`FitOptions` holds one of each. Most users pass flat keywords to :func:`lcs_cvx.fit`
-(``iterations=``, ``lr=``, ``optimizer=``, ...); :mod:`lcs_cvx.train.recipes` maps them onto the
-groups and holds the recipes.
+:class:`FitOptions` holds one of each; it is the only representation of a run's options. Most
+users pass flat keywords to :func:`lcs_cvx.fit` (``iterations=``, ``lr=``, ``optimizer=``, ...):
+each is an alias of one or more fields of the groups (:data:`FLAT_ALIASES`), applied by
+:meth:`FitOptions.replace` to exactly those fields. :mod:`lcs_cvx.train.recipes` holds the recipes.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Any
 
 from .._checks import LCSInputError
 
 __all__ = [
     "ObjectiveOptions", "AdamOptions", "PruneOptions", "RefineOptions", "PolishOptions",
-    "RunOptions", "FitOptions", "extra_units",
+    "RunOptions", "FitOptions", "extra_units", "FLAT_OPTIONS", "FLAT_ALIASES", "SECOND_ORDER_ALIASES",
+    "OPTIMIZER_DEFAULTS", "apply_flat",
 ]
 
 LOSSES = ("violation", "prediction")
@@ -81,7 +85,7 @@ class ObjectiveOptions:
     """The training objective ``L(theta) + reg ||C||_F^2``.
 
     Attributes:
-        loss: ``"violation"`` (``L_eps``, eq. equ.contactnet) or ``"prediction"`` (eq. equ.prednet).
+        loss: ``"violation"`` (``L_eps``, eq. (9)) or ``"prediction"`` (eq. (6)).
         gamma, eps: the violation loss's constants (Lemma 2: ``0 < gamma < sigma_min(F + F^T)``).
         reg: ``omega`` of the regulariser ``omega ||C||_F^2`` (paper Sec. 5: 1e-5).
     """
@@ -118,7 +122,7 @@ class AdamOptions:
             which the pruning phase removes again -- the escape from the permutation trap
             (two units on one mode boundary, another boundary unmodelled). Not with a fixed
             ``C, D, E, c, G, H`` or one masked differently per unit: ``"auto"`` then means 0
-            and a number > 0 is an error (:func:`lcs_cvx.structure.allowed_extra_units`).
+            and a number > 0 is an error (:func:`lcs_cvx.parameter_constraints.allowed_extra_units`).
     """
 
     iterations: int = 10_000
@@ -152,7 +156,7 @@ class AdamOptions:
 
 @dataclass(frozen=True)
 class PruneOptions:
-    """Pruning the extra units of the Adam phase (:func:`lcs_cvx.units.prune`).
+    """Pruning the extra units of the Adam phase (:func:`lcs_cvx.resizing.prune_units`).
 
     Attributes:
         repair: Gauss--Newton steps on the pruning's samples after each removal (0: none).
@@ -180,7 +184,8 @@ class RefineOptions:
         iterations: steps.
         batch_size: samples per step (capped at the data size).
         damping: the initial damping ``mu``.
-        record_every: steps between history records.
+        record_every: steps between history records (the flat keyword ``eval_every`` sets it
+            only with a second-order optimizer: :data:`SECOND_ORDER_ALIASES`).
     """
 
     method: str | None = None
@@ -198,12 +203,13 @@ class RefineOptions:
 
 @dataclass(frozen=True)
 class PolishOptions:
-    """A final Adam polish on the prediction loss (eq. equ.prednet), constant learning rate.
+    """A final Adam polish on the prediction loss (eq. (6)), constant learning rate.
 
     Attributes:
         iterations: steps (0: no polish).
         lr: the learning rate.
-        batch_size: minibatch size.
+        batch_size: minibatch size (the flat keyword ``batch_size`` sets it with the Adam
+            phase's: :data:`FLAT_ALIASES`).
     """
 
     iterations: int = 0
@@ -338,37 +344,198 @@ class FitOptions:
         return "adam"
 
     def flat(self) -> dict[str, Any]:
-        """These options as the flat keywords of :func:`lcs_cvx.fit`
-        (:data:`lcs_cvx.train.FLAT_OPTIONS`), with ``recipe``."""
-        from .recipes import to_flat
-
-        return to_flat(self)
+        """A read-only view of these options as the flat keywords of :func:`lcs_cvx.fit`
+        (:data:`FLAT_OPTIONS`), with ``recipe``: each keyword shows the first field it aliases
+        (:data:`FLAT_ALIASES`, :data:`SECOND_ORDER_ALIASES`). Passing the view back to
+        :func:`lcs_cvx.train.resolve_options` gives these options again when they came from
+        flat keywords."""
+        aliases = _aliases(self.optimizer)
+        out: dict[str, Any] = {"recipe": self.recipe}
+        for keyword in _VIEW_ORDER:
+            if keyword == "optimizer":
+                out[keyword] = self.optimizer
+            elif aliases[keyword]:
+                group, name = aliases[keyword][0]
+                out[keyword] = getattr(getattr(self, group), name)
+            else:
+                out[keyword] = _UNUSED[keyword]
+        out["betas"] = list(out["betas"])
+        return out
 
     def replace(self, **overrides: Any) -> FitOptions:
-        """A copy with ``overrides`` applied: flat keywords (:data:`lcs_cvx.train.FLAT_OPTIONS`)
-        or whole groups (``adam=AdamOptions(...)``)."""
-        from .recipes import from_flat, known, split_groups
-
+        """A copy with ``overrides`` applied: whole groups (``adam=AdamOptions(...)``) first,
+        then flat keywords (:data:`FLAT_OPTIONS`), each on exactly the fields it aliases
+        (:func:`apply_flat`); every other field keeps its value."""
         groups = split_groups(overrides)
         base = dataclasses.replace(self, **groups) if groups else self
-        if not overrides:
-            return base
-        flat = base.flat()
-        recipe = flat.pop("recipe")
-        return from_flat({**flat, **known(overrides)}, recipe)
+        return apply_flat(base, known(overrides)) if overrides else base
 
 
 GROUPS = {"objective": ObjectiveOptions, "adam": AdamOptions, "prune": PruneOptions,
            "refine": RefineOptions, "polish": PolishOptions, "run": RunOptions}
 
 
+# -- the flat keywords: aliases of fields ---------------------------------------------------
+#: A field of :class:`FitOptions`: ``(group, name)``, e.g. ``("adam", "lr")``.
+Field = tuple[str, str]
+
+
+def _same_names(group: str, *names: str) -> dict[str, tuple[Field, ...]]:
+    return {name: ((group, name),) for name in names}
+
+
+#: The flat keywords of :func:`lcs_cvx.fit` (all but ``optimizer``) as aliases: keyword -> the
+#: fields of :class:`FitOptions` it sets with ``optimizer="adam"``; :data:`SECOND_ORDER_ALIASES`
+#: lists the keywords that alias other fields with a second-order optimizer. A keyword sets
+#: exactly its fields, and no field has two keywords. ``iterations`` is the Adam phase's.
+#: ``batch_size`` is the minibatch of the Adam phase *and* of the polish: the polish has no
+#: keyword of its own for it, so ``batch_size=`` sets both (a flat-keyword user's polish runs on
+#: the training batch); ``polish=PolishOptions(batch_size=...)`` sets the polish's alone, and a
+#: later ``replace`` that does not name ``batch_size`` keeps it.
+FLAT_ALIASES: Mapping[str, tuple[Field, ...]] = MappingProxyType({
+    "iterations": (("adam", "iterations"),),
+    "batch_size": (("adam", "batch_size"), ("polish", "batch_size")),
+    **_same_names("objective", "loss", "gamma", "eps", "reg"),
+    **_same_names("adam", "lr", "betas", "adam_eps", "lr_schedule", "lr_floor", "eps_start",
+                  "eps_fraction", "reinit_saturated", "reinit_every", "extra_units"),
+    "prune_repair": (("prune", "repair"),), "prune_batch": (("prune", "batch_size"),),
+    "prune_lookahead": (("prune", "lookahead"),),
+    "refine": (("refine", "method"),), "refine_iterations": (("refine", "iterations"),),
+    "refine_batch": (("refine", "batch_size"),), "damping": (("refine", "damping"),),
+    "polish_iterations": (("polish", "iterations"),), "polish_lr": (("polish", "lr"),),
+    **_same_names("run", "restarts", "holdout", "restart_tolerance", "seed", "eval_every",
+                  "checkpoint_every", "keep_best", "normalize", "init"),
+})
+
+#: The keywords that alias other fields with ``optimizer="gauss-newton"`` or ``"newton"``: there
+#: is no Adam phase and the refinement is the optimizer, so ``iterations`` and ``batch_size`` are
+#: the refinement's (``batch_size`` still the Adam phase's and the polish's as well), and
+#: ``eval_every`` also sets the refinement's ``record_every``. ``refine``, ``refine_iterations`` and
+#: ``refine_batch`` describe a refinement *after* an Adam phase and set no field then:
+#: ``refine`` must be None, the other two are ignored (so a recipe's refinement settings do not
+#: stop a switch to a second-order optimizer), and :meth:`FitOptions.flat` shows None and the
+#: refinement's defaults for them.
+SECOND_ORDER_ALIASES: Mapping[str, tuple[Field, ...]] = MappingProxyType({
+    "iterations": (("refine", "iterations"),),
+    "batch_size": (("refine", "batch_size"), ("adam", "batch_size"), ("polish", "batch_size")),
+    "eval_every": (("run", "eval_every"), ("refine", "record_every")),
+    "refine": (), "refine_iterations": (), "refine_batch": (),
+})
+_SECOND_ORDER_TABLE = MappingProxyType({**FLAT_ALIASES, **SECOND_ORDER_ALIASES})
+#: What :meth:`FitOptions.flat` shows for the keywords without a field (second-order optimizer).
+_UNUSED: Mapping[str, Any] = MappingProxyType({
+    "refine": None, "refine_iterations": RefineOptions.iterations,
+    "refine_batch": RefineOptions.batch_size})
+
+#: Every flat keyword :func:`lcs_cvx.fit` takes: ``optimizer`` and the aliases
+#: (:data:`FLAT_ALIASES`). ``iterations`` and ``batch_size`` mean the Adam phase's with
+#: ``optimizer="adam"`` and the refinement's otherwise, and ``eval_every`` also sets the
+#: refinement's record interval then (:data:`SECOND_ORDER_ALIASES`); ``optimizer`` itself is
+#: applied by :func:`apply_flat`.
+FLAT_OPTIONS: tuple[str, ...] = ("optimizer", *FLAT_ALIASES)
+#: The order of the keys of :meth:`FitOptions.flat`.
+_VIEW_ORDER = (*FLAT_OPTIONS[3:], *FLAT_OPTIONS[:3])
+
+_SECOND_ORDER_DEFAULTS = MappingProxyType(
+    {"iterations": 50, "batch_size": 5000, "eval_every": 1, "checkpoint_every": 1})
+#: What ``optimizer=`` sets besides the optimizer when it changes the optimizer: these keywords'
+#: values, unless the same call names them. A second-order optimizer takes 50 steps on batches
+#: of 5,000 and records and checkpoints after every step (each step costs as much as many Adam
+#: steps); ``"adam"`` takes back the defaults of :class:`AdamOptions` and :class:`RunOptions`.
+OPTIMIZER_DEFAULTS: Mapping[str, Mapping[str, Any]] = MappingProxyType({
+    "adam": MappingProxyType({
+        "iterations": AdamOptions.iterations, "batch_size": AdamOptions.batch_size,
+        "eval_every": RunOptions.eval_every, "checkpoint_every": RunOptions.checkpoint_every}),
+    "gauss-newton": _SECOND_ORDER_DEFAULTS,
+    "newton": _SECOND_ORDER_DEFAULTS,
+})
+assert tuple(OPTIMIZER_DEFAULTS) == OPTIMIZERS
+
+
+def _aliases(optimizer: str) -> Mapping[str, tuple[Field, ...]]:
+    return FLAT_ALIASES if optimizer == "adam" else _SECOND_ORDER_TABLE
+
+
+def split_groups(overrides: dict[str, Any]) -> dict[str, Any]:
+    """Take the whole groups (``adam=AdamOptions(...)``) out of ``overrides`` (in place) and return
+    them; ``refine="gauss-newton"`` is the flat keyword, ``refine=RefineOptions(...)`` the group."""
+    return {k: overrides.pop(k) for k in list(overrides)
+            if k in GROUPS and isinstance(overrides[k], GROUPS[k])}
+
+
+def known(options: dict[str, Any]) -> dict[str, Any]:
+    """``options``, after checking that each is a flat keyword (:data:`FLAT_OPTIONS`)."""
+    unknown = sorted(set(options) - set(FLAT_OPTIONS))
+    if unknown:
+        raise LCSInputError(
+            f"options: unknown option(s) {unknown}; valid options are {sorted(FLAT_OPTIONS)}"
+        )
+    return options
+
+
+def apply_flat(options: FitOptions, keywords: dict[str, Any]) -> FitOptions:
+    """``options`` with the flat keywords ``keywords`` (:data:`FLAT_OPTIONS`) applied, each on
+    exactly the fields it aliases; an invalid value is refused naming its keyword.
+
+    ``optimizer`` acts only when it changes :attr:`FitOptions.optimizer`: to ``"gauss-newton"``
+    or ``"newton"`` it sets ``adam.iterations = 0`` and ``refine.method`` (refused while a
+    refinement follows the Adam phase, or with extra units: nothing would prune them), to
+    ``"adam"`` it resets ``refine`` to :class:`RefineOptions` (no refinement); either way the
+    keywords of :data:`OPTIMIZER_DEFAULTS` that ``keywords`` does not name take the new
+    optimizer's defaults. The other keywords alias the fields of :data:`FLAT_ALIASES`, with a
+    second-order optimizer those of :data:`SECOND_ORDER_ALIASES`.
+    """
+    current = options.optimizer
+    optimizer = keywords.get("optimizer", current)
+    if optimizer not in OPTIMIZERS:
+        raise option_error("optimizer", f"one of {OPTIMIZERS}", optimizer)
+    groups = {name: getattr(options, name) for name in GROUPS}
+    fields: dict[str, dict[str, Any]] = {name: {} for name in GROUPS}
+    if optimizer != current:
+        keywords = {**OPTIMIZER_DEFAULTS[optimizer], **keywords}
+        if optimizer == "adam":
+            groups["refine"] = RefineOptions()
+        else:
+            fields["adam"]["iterations"] = 0
+            fields["refine"]["method"] = optimizer
+    if optimizer != "adam":  # a refinement after the Adam phase: the one named, or the one there
+        refine = keywords.get("refine", options.refine.method if current == "adam" else None)
+        if refine is not None:
+            raise LCSInputError(
+                f"refine: a refinement follows the Adam phase; expected None with "
+                f"optimizer={optimizer!r}, received {refine!r}"
+            )
+    aliases = _aliases(optimizer)
+    keyword_of: dict[Field, str] = {}
+    for keyword, value in keywords.items():
+        if keyword == "optimizer":
+            continue
+        for group, name in aliases[keyword]:
+            fields[group][name] = value
+            keyword_of[(group, name)] = keyword
+    for group, values in fields.items():
+        if values:
+            try:
+                groups[group] = dataclasses.replace(groups[group], **values)
+            except LCSInputError as exc:  # name the keyword the user wrote, not the field
+                name, _, rest = str(exc).partition(":")
+                raise LCSInputError(f"{keyword_of.get((group, name), name)}:{rest}") from None
+    if optimizer != "adam" and groups["adam"].extra_units != 0 and (
+            "optimizer" in keywords or "extra_units" in keywords):
+        raise LCSInputError(
+            "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
+            f"with refine set, received optimizer={optimizer!r}, refine=None"
+        )
+    return dataclasses.replace(options, **groups)
+
+
 def extra_units(option: int | str, n_lam: int) -> int:
     """The extra units the Adam phase trains: ``option``, or for ``"auto"``
     ``min(4, ceil(n_lam / 2))``.
 
-    Measured on the training comparison (studies/configs/train_best.toml, 10 seeds each): four
-    extra units took n_lam = 8 from one stuck seed in ten (2 extra) to none and n_lam = 20 from a
-    mean e_test of ~3e-4 to ~1e-4; at n_lam = 4 they left one seed of ten stuck at 7e-4 after
-    pruning (two of the six non-saturated units shared one boundary), which 2 extra units solve.
+    Spare units keep gradient descent out of the permutation trap (two units on one mode
+    boundary, another unmodelled); larger models need more of them, but too many leave small
+    models with spare units on a shared boundary after pruning, hence about half of ``n_lam``,
+    at most 4 (measurements: the docs' benchmarks page, "Extra units").
     """
     return min(4, math.ceil(n_lam / 2)) if option == "auto" else int(option)

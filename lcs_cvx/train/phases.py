@@ -5,12 +5,12 @@ which returns an :class:`~lcs_cvx.train.state.Outcome`), and how often its steps
 checkpointed. Recording, checkpoints, callbacks and the progress bar live in :func:`run_phases`
 alone.
 
-- :class:`AdamPhase` -- minibatch Adam on ``L(theta) + omega ||C||_F^2`` (eq. equ.loss) with the
+- :class:`AdamPhase` -- minibatch Adam on ``L(theta) + omega ||C||_F^2`` (eq. (4)) with the
   schedules of :class:`~lcs_cvx.train.options.AdamOptions`.
 - :class:`PrunePhase` -- one step: the grown model cut back to ``n_lam`` units
-  (:func:`lcs_cvx.units.prune`), a few Gauss--Newton steps after each removal.
+  (:func:`lcs_cvx.resizing.prune_units`), a few Gauss--Newton steps after each removal.
 - :class:`RefinePhase` -- Levenberg--Marquardt steps (:mod:`lcs_cvx.second_order`, Lemma 4).
-- :class:`PolishPhase` -- Adam on the prediction loss (eq. equ.prednet).
+- :class:`PolishPhase` -- Adam on the prediction loss (eq. (6)).
 """
 
 from __future__ import annotations
@@ -23,21 +23,21 @@ import torch
 
 from .._checks import SolverError
 from ..losses import prediction_fast, regularizer, violation_fast
+from ..parameter_constraints import free_entries, mask_gradients_, project_
+from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
-from ..structure import free_entries, mask_gradients_, project_
 from ..system import LCS
-from ..units import prune
 from .options import FitOptions
 from .state import Outcome, TrainState
 
-__all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "phases", "run_phases"]
+__all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "phases", "run_phases", "divergence"]
 
 
 def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteration: int,
                lr: float) -> float:
     """One Adam step on ``value``; a clear error once the loss or ``F`` is no longer finite
     (``F = G G^T + ...`` overflows first when the parameters blow up). Fixed parameters get no
-    gradient; masked entries get a zero one and are held at 0 (:mod:`lcs_cvx.structure`)."""
+    gradient; masked entries get a zero one and are held at 0 (:mod:`lcs_cvx.parameter_constraints`)."""
     adam.zero_grad()
     value.backward()
     mask_gradients_(model)
@@ -46,12 +46,21 @@ def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteratio
     loss = float(value.detach())
     with torch.no_grad():
         finite_F = bool(torch.isfinite(model.F).all())
-    if not (math.isfinite(loss) and finite_F):
-        raise SolverError(
-            f"training diverged at iteration {iteration}: loss = {loss}, "
-            f"F {'finite' if finite_F else 'not finite'}; lower lr (now {lr:g})"
-        )
+    error = divergence(iteration, loss, finite_F, lr)
+    if error is not None:
+        raise error
     return loss
+
+
+def divergence(iteration: int, loss: float, finite_F: bool, lr: float, label: str = "") -> SolverError | None:
+    """The :class:`lcs_cvx.SolverError` of a step whose loss is not finite or whose ``F`` is not
+    (None when both are); ``label`` prefixes the message (a model of an ensemble)."""
+    if math.isfinite(loss) and finite_F:
+        return None
+    return SolverError(
+        f"{label}training diverged at iteration {iteration}: loss = {loss}, "
+        f"F {'finite' if finite_F else 'not finite'}; lower lr (now {lr:g})"
+    )
 
 
 class Phase:
@@ -125,7 +134,7 @@ class AdamPhase(Phase):
         state.remember(idx, info.active)
         value = info.loss + regularizer(state.work, obj.reg)
         loss = _adam_step(state.adam, state.work, value, state.iteration + 1, lr)
-        return Outcome(loss, eps, lr, info.n_fallback, info.max_residual)
+        return Outcome(loss, eps, lr, info.n_fallback, info.fallback_residual)
 
 
 def reinit_saturated(state: TrainState) -> None:
@@ -158,7 +167,7 @@ def reinit_saturated(state: TrainState) -> None:
 
 class PrunePhase(Phase):
     """One step: the grown model pruned back to the user's ``n_lam`` units (deletion or
-    elimination, scored after a least-squares refit; :func:`lcs_cvx.units.prune`), then loaded
+    elimination, scored after a least-squares refit; :func:`lcs_cvx.resizing.prune_units`), then loaded
     into the user's model. Not recorded itself (its repair steps' fallbacks count in the next
     record); checkpointed after."""
 
@@ -181,10 +190,10 @@ class PrunePhase(Phase):
                                         eps=o.objective.eps, reg=o.objective.reg, damping=mu)
                 mu = res.damping
                 fallbacks[0] += res.n_fallback
-                fallbacks[1] = max(fallbacks[1], res.max_residual)
+                fallbacks[1] = max(fallbacks[1], res.fallback_residual)
 
-        pruned = prune(state.work, state.model.n_lam, x, u, x_next, reg=o.objective.reg,
-                       repair=repair if o.prune.repair else None, lookahead=o.prune.lookahead)
+        pruned = prune_units(state.work, state.model.n_lam, x, u, x_next, reg=o.objective.reg,
+                             repair=repair if o.prune.repair else None, lookahead=o.prune.lookahead)
         state.model.load_state_dict(pruned.state_dict())
         state.work = state.model
         return Outcome(None, o.objective.eps, None, fallbacks[0], fallbacks[1])
@@ -214,11 +223,11 @@ class RefinePhase(Phase):
         res = step(state.model, x, u, x_next, gamma=obj.gamma, eps=obj.eps, reg=obj.reg,
                    damping=state.damping)
         state.damping = res.damping
-        return Outcome(res.loss, obj.eps, None, res.n_fallback, res.max_residual)
+        return Outcome(res.loss, obj.eps, None, res.n_fallback, res.fallback_residual)
 
 
 class PolishPhase(Phase):
-    """Adam on the prediction loss (eq. equ.prednet) of the final model, constant learning rate."""
+    """Adam on the prediction loss (eq. (6)) of the final model, constant learning rate."""
 
     key = "polish"
 
@@ -236,7 +245,7 @@ class PolishPhase(Phase):
         info = prediction_fast(state.model, *state.batch(idx))
         value = info.loss + regularizer(state.model, obj.reg)
         loss = _adam_step(state.polish_adam, state.model, value, state.iteration + 1, p.lr)
-        return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.max_residual)
+        return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.fallback_residual)
 
 
 def phases(options: FitOptions) -> list[Phase]:

@@ -6,16 +6,17 @@ r"""Where a run of :func:`lcs_cvx.fit` starts (``RunOptions.init``), in the coor
   values taken as a draw in the coordinates of learning (a fresh :class:`lcs_cvx.LCS`'s
   ``init_scale * N(0, 1)``: hyperplanes of the data's scale whatever its units).
 - ``"affine"``: as ``"increment"``, then ``(A, B, d)`` from the least-squares affine fit
-  ``x' ~ A x + B u + d`` (eq. equ.lcs with ``C lam`` dropped) of the training data, entry by entry
+  ``x' ~ A x + B u + d`` (eq. (1) with ``C lam`` dropped) of the training data, entry by entry
   where they are learnable (fixed entries and masked zeros are held; each row of ``[A B d]`` is
   its own least-squares problem on its learnable columns).
 
-Fixed parameters keep their values in every case (mapped exactly). Measured with
-``recipe="best"`` on a random (4, 2, 3) system (5,000 samples, noise 1e-2, seeds 0-5; e_test
-at the noise floor is ~8e-8): ``"increment"`` reached the floor on 6 of 6 seeds, ``"affine"`` on
-2 of 6 (the others stuck at ~2e-4: the affine fit explains what the complementarity units
-should, and their boundaries get little gradient), the user's random ``LCS`` mapped as is
-(``"model"``) on 6 of 6 -- but that start depends on the data's units.
+Fixed parameters keep their values in every case (mapped exactly). ``"increment"`` is the
+default: it does not depend on the data's units, and it reached the noise floor as reliably as any
+start where the starts were compared. ``"affine"`` often stalls: the affine fit already
+explains part of what the complementarity units should, so their boundaries get little
+gradient. ``"model"`` (the user's random ``LCS`` mapped as is) learns as well on data at the
+paper's scale, but where it starts depends on the data's units. The documentation's Benchmarks
+page ("Measurements behind the training defaults") has the runs that compared them.
 """
 
 from __future__ import annotations
@@ -23,8 +24,8 @@ from __future__ import annotations
 import torch
 
 from ..data import Dataset
+from ..parameter_constraints import copy_structure_, free_entries, row_lstsq
 from ..scaling import Scaling
-from ..structure import copy_structure_, free_entries, row_lstsq
 from ..system import LCS, PARAMETER_NAMES
 
 __all__ = ["start", "fresh_like", "affine_start_"]

@@ -18,9 +18,9 @@ import torch
 
 from ..data import Dataset
 from ..metrics import relative_error
-from ..structure import allowed_extra_units
+from ..parameter_constraints import allowed_extra_units
+from ..resizing import add_units
 from ..system import LCS, PARAMETER_NAMES
-from ..units import grow
 from .options import FitOptions, extra_units
 
 __all__ = ["TrainState", "Outcome", "PHASES"]
@@ -39,7 +39,7 @@ class Outcome:
     eps: float
     lr: float | None
     n_fallback: int = 0
-    max_residual: float = 0.0
+    fallback_residual: float = 0.0
 
 
 class TrainState:
@@ -56,7 +56,7 @@ class TrainState:
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
         self.n_extra = allowed_extra_units(model, a.extra_units, extra_units(a.extra_units, model.n_lam))
-        self.work = grow(model, self.n_extra, self.generator) if self.n_extra else model
+        self.work = add_units(model, self.n_extra, self.generator) if self.n_extra else model
         self.adam = torch.optim.Adam(self.work.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
         self.polish_adam = torch.optim.Adam(model.parameters(), lr=options.polish.lr,
                                             betas=a.betas, eps=a.adam_eps)
@@ -111,7 +111,7 @@ class TrainState:
             self.acc_loss += out.loss
             self.acc_n += 1
         self.acc_fallback += out.n_fallback
-        self.acc_residual = max(self.acc_residual, out.max_residual)
+        self.acc_residual = max(self.acc_residual, out.fallback_residual)
 
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict[str, Any]:
         """Close the current stretch of steps as one history record (and track the best iterate
@@ -121,7 +121,7 @@ class TrainState:
             "iteration": self.iteration, "phase": phase,
             "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
             "e_test": e_test, "wall_time": elapsed, "restart": self.restart,
-            "n_fallback": self.acc_fallback, "max_residual": self.acc_residual,
+            "n_fallback": self.acc_fallback, "fallback_residual": self.acc_residual,
         }
         self._reset_stretch()
         self.history.append(rec)

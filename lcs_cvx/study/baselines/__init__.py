@@ -26,16 +26,11 @@ import math
 from typing import Any
 
 from ..._checks import LCSInputError
+from .failure import BaselineFailed
 
 __all__ = ["BASELINES", "OPTIONS", "BaselineFailed", "baseline_options", "fit_baseline"]
 
 BASELINES = ("affine", "mlp", "parc")
-
-
-class BaselineFailed(RuntimeError):
-    """The baseline's own fitting algorithm (a third-party package's fit) failed on this
-    problem: a result of the method, not a bug. The message names the method and the original
-    exception (``"PARC failed: ValueError: ..."``), which is chained as ``__cause__``."""
 
 
 class _Check:

@@ -27,7 +27,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from ..._optional import require
-from . import BaselineFailed
+from .failure import BaselineFailed
 
 __all__ = ["PARCModel", "fit", "import_parc"]
 

@@ -1,7 +1,7 @@
 r"""Known structure of an LCS -- fixed parameters and sparsity masks -- and what training does
 with it.
 
-The user states what they know about eq. (equ.lcs),
+The user states what they know about eq. (1),
 
     x' = A x + B u + C lam + d,      0 <= lam  _|_  D x + E u + F lam + c >= 0,
 
@@ -18,8 +18,8 @@ bit-identical and a masked entry exactly 0.0:
 - second order: the flat free coordinates (:func:`free_vector`) to which
   :mod:`lcs_cvx.second_order` restricts its linear systems;
 - least squares: :func:`row_lstsq`, each output row fitted on its free columns only
-  (:func:`lcs_cvx.units.refit_output`, the affine initialisation);
-- models derived from a model (:mod:`lcs_cvx.units`, restarts): :func:`restrict_structure_`
+  (:func:`lcs_cvx.resizing.refit_dynamics`, the affine initialisation);
+- models derived from a model (:mod:`lcs_cvx.resizing`, restarts): :func:`restrict_structure_`
   (units kept or eliminated), :func:`grow_structure_` (units added), :func:`keeps_structure`
   (whether an elimination changed a fixed value or filled a masked entry), :func:`copy_structure_`;
 - extra units: :func:`growth_blocker` and :func:`allowed_extra_units`. A parameter indexed by the
@@ -67,7 +67,7 @@ def free_entries(model: LCS, name: str) -> torch.Tensor:
     p = getattr(model, name)
     if not p.requires_grad:
         return torch.zeros(p.shape, dtype=torch.bool, device=p.device)
-    mask = model._masks.get(name)
+    mask = model.masks.get(name)
     return torch.ones(p.shape, dtype=torch.bool, device=p.device) if mask is None \
         else mask.to(p.device, copy=True)
 
@@ -80,7 +80,7 @@ def free_vector(model: LCS) -> torch.Tensor:
 
 def has_constraints(model: LCS) -> bool:
     """Whether any parameter of ``model`` is fixed or masked."""
-    return bool(model._masks) or not all(getattr(model, k).requires_grad for k in PARAMETER_NAMES)
+    return bool(model.masks) or not all(getattr(model, k).requires_grad for k in PARAMETER_NAMES)
 
 
 def check_learnable(model: LCS) -> None:
@@ -97,7 +97,7 @@ def check_learnable(model: LCS) -> None:
 def project_(model: LCS) -> None:
     """Set the masked entries of ``model``'s parameters to 0 (in place)."""
     with torch.no_grad():
-        for name, mask in model._masks.items():
+        for name, mask in model.masks.items():
             p = getattr(model, name)
             p.masked_fill_(~mask.to(p.device), 0.0)
 
@@ -105,7 +105,7 @@ def project_(model: LCS) -> None:
 def mask_gradients_(model: LCS) -> None:
     """Zero the gradients (``.grad``) of the masked entries (in place): an optimiser's moments
     then stay 0 there and its steps leave them unchanged."""
-    for name, mask in model._masks.items():
+    for name, mask in model.masks.items():
         g = getattr(model, name).grad
         if g is not None:
             g.masked_fill_(~mask.to(g.device), 0.0)
@@ -178,20 +178,19 @@ def copy_structure_(src: LCS, dst: LCS) -> LCS:
             p = getattr(src, name)
             if not p.requires_grad:
                 getattr(dst, name).copy_(p).requires_grad_(False)
-    dst._masks = {k: m.clone() for k, m in src._masks.items()}
-    project_(dst)
+    dst.replace_masks(src.masks)
     return dst
 
 
 def restrict_structure_(src: LCS, dst: LCS, keep: list[int]) -> None:
-    """Give ``dst``, built from the units ``keep`` of ``src`` (:func:`lcs_cvx.units.submodel`,
-    :func:`~lcs_cvx.units.pivot`), ``src``'s fixed flags and its masks restricted to those
+    """Give ``dst``, built from the units ``keep`` of ``src`` (:func:`lcs_cvx.resizing.keep_units`,
+    :func:`~lcs_cvx.resizing.eliminate_unit`), ``src``'s fixed flags and its masks restricted to those
     units. Values are not touched (:func:`keeps_structure` checks them)."""
     idx = torch.tensor(keep, dtype=torch.long)
     for name in PARAMETER_NAMES:
         if not getattr(src, name).requires_grad:
             getattr(dst, name).requires_grad_(False)
-    dst._masks = {k: _restrict(k, m, idx) for k, m in src._masks.items()}
+    dst.replace_masks({k: _restrict(k, m, idx) for k, m in src.masks.items()}, zero=False)
 
 
 def keeps_structure(candidate: LCS, model: LCS, keep: list[int]) -> bool:
@@ -209,7 +208,7 @@ def keeps_structure(candidate: LCS, model: LCS, keep: list[int]) -> bool:
         elif not torch.equal(getattr(candidate, name).detach(),
                              _restrict(name, getattr(model, name).detach(), idx)):
             return False
-    for name, mask in candidate._masks.items():
+    for name, mask in candidate.masks.items():
         p = getattr(candidate, name).detach()
         if bool((p[~mask.to(p.device)] != 0).any()):
             return False
@@ -222,7 +221,7 @@ def growth_blocker(model: LCS) -> str | None:
     for name, axes in UNIT_AXES.items():
         if not getattr(model, name).requires_grad:
             return f"{name} is fixed"
-        mask = model._masks.get(name)
+        mask = model.masks.get(name)
         if mask is not None:
             first = mask.narrow(axes[0], 0, 1)
             if not bool((mask == first).all()):
@@ -231,7 +230,7 @@ def growth_blocker(model: LCS) -> str | None:
 
 
 def grow_structure_(src: LCS, dst: LCS) -> None:
-    """Give ``dst``, ``src`` with units appended (:func:`lcs_cvx.units.grow`), ``src``'s fixed
+    """Give ``dst``, ``src`` with units appended (:func:`lcs_cvx.resizing.add_units`), ``src``'s fixed
     flags and masks, the new units copying the (common) pattern of the old ones; masked entries
     of ``dst`` are set to 0. :class:`LCSInputError` when :func:`growth_blocker` objects."""
     why = growth_blocker(src)
@@ -244,15 +243,14 @@ def grow_structure_(src: LCS, dst: LCS) -> None:
         if not getattr(src, name).requires_grad:
             getattr(dst, name).requires_grad_(False)
     masks = {}
-    for name, mask in src._masks.items():
+    for name, mask in src.masks.items():
         axes = UNIT_AXES.get(name, ())
         if axes:
             size = list(mask.shape)
             size[axes[0]] = dst.n_lam
             mask = mask.narrow(axes[0], 0, 1).expand(size).clone()
         masks[name] = mask.clone()
-    dst._masks = masks
-    project_(dst)
+    dst.replace_masks(masks)
 
 
 def allowed_extra_units(model: LCS, option: int | str, n_extra: int) -> int:

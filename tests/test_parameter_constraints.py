@@ -1,4 +1,4 @@
-"""Known structure (lcs_cvx.structure, LCS.fix / LCS.mask): fixed parameters come back
+"""Known structure (lcs_cvx.parameter_constraints, LCS.fix / LCS.mask): fixed parameters come back
 bit-identical and masked entries exactly 0 after every optimiser, pruning and re-initialisation;
 the restricted second-order step is the reduced problem's; the constrained least squares is
 the per-row least squares on the free columns."""
@@ -16,8 +16,7 @@ import lcs_cvx
 from lcs_cvx import LCS, LCSInputError
 from lcs_cvx.hessian import flatten_parameters, parameter_slices, violation_hessian
 from lcs_cvx.losses import regularizer, violation_loss
-from lcs_cvx.second_order import gauss_newton_matrix, gauss_newton_step, newton_step
-from lcs_cvx.structure import (
+from lcs_cvx.parameter_constraints import (
     allowed_extra_units,
     free_entries,
     free_vector,
@@ -28,8 +27,9 @@ from lcs_cvx.structure import (
     project_,
     row_lstsq,
 )
+from lcs_cvx.resizing import add_units, eliminate_unit, keep_units, prune_units, refit_dynamics
+from lcs_cvx.second_order import gauss_newton_matrix, gauss_newton_step, newton_step
 from lcs_cvx.system import PARAMETER_NAMES
-from lcs_cvx.units import grow, pivot, prune, refit_output, submodel
 
 F64 = torch.float64
 GAMMA, EPS = 0.5, 1e-2
@@ -176,7 +176,7 @@ def test_extra_units_with_structure(system):
     truth, train, _ = system
     same = structured(truth)  # every unit has the same pattern: grown units copy it
     assert growth_blocker(same) is None and allowed_extra_units(same, "auto", 2) == 2
-    big = grow(same, 2, torch.Generator().manual_seed(0))
+    big = add_units(same, 2, torch.Generator().manual_seed(0))
     assert big.masks["C"].tolist() == [[True] * 4, [False] * 4, [True] * 4]
     assert big.masks["D"].tolist() == [[True, False, True]] * 4
     assert bool((big.C[1] == 0).all()) and torch.equal(big.A, same.A) and not big.A.requires_grad
@@ -191,7 +191,7 @@ def test_extra_units_with_structure(system):
         allowed_extra_units(fixed_D, 2, 2)
     with pytest.raises(LCSInputError, match=r"^extra: expected 0 for a model on which the mask of D "
                                             r"differs between units"):
-        grow(uneven, 1, torch.Generator())
+        add_units(uneven, 1, torch.Generator())
     with pytest.raises(LCSInputError, match=r"^extra_units: expected 0 or 'auto'"):
         lcs_cvx.fit(fixed_D, train, recipe="best", extra_units=2, iterations=2, progress=False)
     # "auto" resolves to 0: the best recipe runs without growing
@@ -375,10 +375,10 @@ def test_row_lstsq_is_the_per_row_least_squares():
         row_lstsq(phi, target, free[:, :3], fixed, ridge)
 
 
-def test_refit_output_fits_free_entries_only(system):
+def test_refit_dynamics_fits_free_entries_only(system):
     truth, train, _ = system
     model = structured(truth)
-    refit_output(model, train.x, train.u, train.x_next)
+    refit_dynamics(model, train.x, train.u, train.x_next)
     assert_structure_kept(model, truth)
     lam = model.solve_lcp(train.x, train.u).lam.detach()
     phi = torch.cat([train.x, train.u, lam, torch.ones(len(train), 1, dtype=F64)], 1)
@@ -401,21 +401,21 @@ def test_pruning_respects_fixed_and_masked():
         sys.c[3] = -1e3
     data = lcs_cvx.make_dataset(sys, 300, seed=1)
     sys.requires_grad_(True)
-    assert keeps_structure(pivot(sys, 3), sys, [0, 1, 2])
-    free_pruned = prune(sys, 3, data.x, data.u, data.x_next)
+    assert keeps_structure(eliminate_unit(sys, 3), sys, [0, 1, 2])
+    free_pruned = prune_units(sys, 3, data.x, data.u, data.x_next)
     assert not torch.equal(free_pruned.A, sys.A)  # the elimination, chosen when allowed
 
     fixed = copy.deepcopy(sys).fix(A=sys.A)
-    assert not keeps_structure(pivot(fixed, 3), fixed, [0, 1, 2])
-    assert keeps_structure(submodel(fixed, [0, 1, 2]), fixed, [0, 1, 2])
-    pruned = prune(fixed, 3, data.x, data.u, data.x_next)
+    assert not keeps_structure(eliminate_unit(fixed, 3), fixed, [0, 1, 2])
+    assert keeps_structure(keep_units(fixed, [0, 1, 2]), fixed, [0, 1, 2])
+    pruned = prune_units(fixed, 3, data.x, data.u, data.x_next)
     assert torch.equal(pruned.A, sys.A) and not pruned.A.requires_grad
 
     pattern = torch.ones(4, 4, dtype=torch.bool)
     pattern[0, 1] = False
     masked = copy.deepcopy(sys).mask(A=pattern, C=torch.ones(4, 4))
-    assert not keeps_structure(pivot(masked, 3), masked, [0, 1, 2])
-    pruned = prune(masked, 3, data.x, data.u, data.x_next)
+    assert not keeps_structure(eliminate_unit(masked, 3), masked, [0, 1, 2])
+    pruned = prune_units(masked, 3, data.x, data.u, data.x_next)
     assert pruned.A[0, 1].item() == 0.0 and pruned.masks["A"].tolist() == pattern.tolist()
     assert pruned.masks["C"].shape == (4, 3)
 

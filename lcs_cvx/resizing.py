@@ -3,25 +3,25 @@ r"""Adding and removing complementarity units (the coordinates of ``lam``) of an
 Learning an LCS is prone to a permutation trap: two units settle on the same mode boundary while
 another boundary of the data is left unmodelled, and no local method leaves that basin
 (DESIGN.md). Over-parameterising -- training with ``n_lam + k`` units -- and then removing the
-``k`` least useful ones avoids it: :func:`grow` embeds a model in a larger one and :func:`prune`
+``k`` least useful ones avoids it: :func:`add_units` embeds a model in a larger one and :func:`prune_units`
 removes units greedily.
 
-A unit can leave in two ways, each exact in one limit (eq. equ.lcp, ``w = D x + E u + F lam + c``):
+A unit can leave in two ways, each exact in one limit (eq. (2), ``w = D x + E u + F lam + c``):
 
-- :func:`submodel` *deletes* it (``lam_j = 0``): the principal submatrix of ``F`` is kept and
+- :func:`keep_units` *deletes* it (``lam_j = 0``): the principal submatrix of ``F`` is kept and
   ``C[:, j]``, ``D[j]``, ``E[j]``, ``c[j]`` dropped. Exact for a unit that is never active.
-- :func:`pivot` *eliminates* it on ``w_j = 0``: ``lam_j = -(D_j x + E_j u + c_j + F_{j,r}
+- :func:`eliminate_unit` *eliminates* it on ``w_j = 0``: ``lam_j = -(D_j x + E_j u + c_j + F_{j,r}
   lam_r) / F_jj`` is substituted into the other units and the dynamics, so ``F`` becomes its
   Schur complement and the unit's affine effect moves into ``A, B, d`` and the other units'
   ``D, E, c``. Exact for a unit that is always active -- the units Adam leaves saturated.
 
-:func:`prune` tries both for every unit, refits ``(A, B, C, d)`` by least squares on each
-candidate (:func:`refit_output`, exact for the prediction loss at fixed ``lam``) and keeps the
+:func:`prune_units` tries both for every unit, refits ``(A, B, C, d)`` by least squares on each
+candidate (:func:`refit_dynamics`, exact for the prediction loss at fixed ``lam``) and keeps the
 best; ``repair`` (a few Gauss--Newton steps in :func:`lcs_cvx.fit`) then adjusts the survivor.
 
-Known structure (:mod:`lcs_cvx.structure`) carries over: the new models keep the fixed flags and
-masks (restricted to the kept units, or copied to the grown ones), :func:`refit_output` fits only
-the free entries, and :func:`prune` drops an elimination that would change a fixed parameter or
+Known structure (:mod:`lcs_cvx.parameter_constraints`) carries over: the new models keep the fixed flags and
+masks (restricted to the kept units, or copied to the grown ones), :func:`refit_dynamics` fits only
+the free entries, and :func:`prune_units` drops an elimination that would change a fixed parameter or
 fill a masked entry.
 """
 
@@ -34,7 +34,7 @@ import torch
 
 from ._checks import LCSInputError
 from .lcp import solve_lcp_fast
-from .structure import (
+from .parameter_constraints import (
     free_entries,
     grow_structure_,
     keeps_structure,
@@ -43,7 +43,7 @@ from .structure import (
 )
 from .system import LCS, split_F
 
-__all__ = ["submodel", "pivot", "grow", "prune", "refit_output"]
+__all__ = ["keep_units", "eliminate_unit", "add_units", "prune_units", "refit_dynamics"]
 
 
 def _check_keep(model: LCS, keep: Sequence[int]) -> list[int]:
@@ -71,7 +71,7 @@ def _build(model: LCS, keep: list[int], F: torch.Tensor, **matrices: torch.Tenso
     return new
 
 
-def submodel(model: LCS, keep: Sequence[int]) -> LCS:
+def keep_units(model: LCS, keep: Sequence[int]) -> LCS:
     """A new LCS with only the units ``keep`` (in that order) of ``model`` (the others deleted:
     ``lam_j = 0``); fixed flags and masks carried over (restricted to ``keep``)."""
     keep = _check_keep(model, keep)
@@ -81,7 +81,7 @@ def submodel(model: LCS, keep: Sequence[int]) -> LCS:
                       C=model.C[:, idx], D=model.D[idx], E=model.E[idx], c=model.c[idx])
 
 
-def pivot(model: LCS, j: int) -> LCS:
+def eliminate_unit(model: LCS, j: int) -> LCS:
     r"""A new LCS without unit ``j``, eliminated on ``w_j = 0`` (the unit always active).
 
     With ``r`` the other units and ``f = F_{r,j} / F_jj``::
@@ -94,7 +94,7 @@ def pivot(model: LCS, j: int) -> LCS:
     ``y^T F' y = x^T F x >= s |x|^2 >= s |y|^2`` (Assumption 1 carries over).
 
     The result carries ``model``'s fixed flags and masks (restricted to the other units);
-    :func:`lcs_cvx.structure.keeps_structure` says whether it also kept their values.
+    :func:`lcs_cvx.parameter_constraints.keeps_structure` says whether it also kept their values.
     """
     if isinstance(j, bool) or not isinstance(j, int) or not 0 <= j < model.n_lam or model.n_lam < 2:
         raise LCSInputError(
@@ -117,16 +117,16 @@ def pivot(model: LCS, j: int) -> LCS:
         )
 
 
-def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
+def refit_dynamics(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
                  reg: float = 0.0, warm_start: torch.Tensor | None = None) -> float:
     r"""Refit ``(A, B, C, d)`` in place by least squares with ``lam = LCP(F, D x + E u + c)`` fixed.
 
-    The prediction loss (eq. equ.prednet) plus ``reg ||C||_F^2`` is quadratic in ``(A, B, C, d)``
+    The prediction loss (eq. (6)) plus ``reg ||C||_F^2`` is quadratic in ``(A, B, C, d)``
     at fixed ``lam``; this is its exact minimiser (normal equations with a ``1e-12`` relative
     ridge so that units inactive on every sample stay well posed). Returns the loss after the
     refit. ``warm_start``: a first guess of the LCP's free sets (:func:`lcs_cvx.lcp.solve_lcp_fast`).
 
-    Only the free entries are fitted (:func:`lcs_cvx.structure.row_lstsq`): fixed parameters
+    Only the free entries are fitted (:func:`lcs_cvx.parameter_constraints.row_lstsq`): fixed parameters
     and masked entries keep their values, each row of ``[A B C d]`` is the least-squares fit of
     its free columns.
     """
@@ -150,14 +150,14 @@ def refit_output(model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Ten
         return float(fit_err)
 
 
-def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1) -> LCS:
+def add_units(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1) -> LCS:
     """``model`` with ``extra`` new units appended, their parameters ``scale * N(0, 1)``.
 
     The original units' ``F`` block is kept exactly; the new rows and columns of ``F`` come from
     new rows of ``G`` and ``H`` (so ``F`` stays in the model's set). Fixed flags and masks carry
     over, the new units copying the units' common mask pattern; a fixed unit-indexed parameter
     or a pattern that differs between units is an error when ``extra > 0``
-    (:func:`lcs_cvx.structure.grow_structure_`).
+    (:func:`lcs_cvx.parameter_constraints.grow_structure_`).
     """
     n, k = model.n_lam, int(extra)
     if k < 0:
@@ -192,7 +192,7 @@ def grow(model: LCS, extra: int, generator: torch.Generator, scale: float = 0.1)
     return new
 
 
-def prune(
+def prune_units(
     model: LCS,
     n_lam: int,
     x: torch.Tensor,
@@ -204,43 +204,42 @@ def prune(
 ) -> LCS:
     """Remove units one at a time until ``n_lam`` remain; returns a new model.
 
-    Each removal tries, for every unit, deleting it (:func:`submodel`) and eliminating it
-    (:func:`pivot`), refits ``(A, B, C, d)`` on each candidate (:func:`refit_output`) and keeps
+    Each removal tries, for every unit, deleting it (:func:`keep_units`) and eliminating it
+    (:func:`eliminate_unit`), refits ``(A, B, C, d)`` on each candidate (:func:`refit_dynamics`) and keeps
     the one with the lowest prediction loss (plus ``reg ||C||^2``) on ``(x, u, x_next)`` (an
     elimination that would change a fixed parameter or fill a masked entry is not a candidate);
     ``repair(model)``, if given, then improves the kept one in place (e.g. a Gauss--Newton step)
     before the next removal.
 
     With ``lookahead = k > 1`` and a ``repair``, the ``k`` candidates of lowest loss are each
-    repaired, refitted again (:func:`refit_output`) and kept if their loss is the lowest: two
+    repaired, refitted again (:func:`refit_dynamics`) and kept if their loss is the lowest: two
     units that settled on one boundary cost much when one of them is deleted, until a repair
     step lets the other take its part, while eliminating a unit that is active on most samples
     costs less at first and stays lossy. ``lookahead = 1`` repairs the best candidate only.
 
-    Measured on the training comparison's systems (``studies/configs/train_best.toml``: (10, 4,
-    n_lam) trained with 4 extra units): most removals are eliminations of saturated units, which
-    are exact; with deletion alone and two Gauss--Newton steps on every candidate, pruning cost
-    ~75 s per n_lam = 20 model and picked a wrong unit on some seeds (e_test 1e-4 to 1e-3 where
-    both reductions reach ~1e-8 at n_lam <= 8).
+    Both reductions are tried because most removals in practice are of units Adam left
+    saturated, which elimination removes exactly and deletion does not; scoring every candidate
+    after a cheap least-squares refit, rather than after Gauss--Newton steps, keeps a removal
+    affordable at large ``n_lam`` (the docs' benchmarks page has the measurements).
     """
     if isinstance(n_lam, bool) or not isinstance(n_lam, int) or not 1 <= n_lam <= model.n_lam:
         raise LCSInputError(f"n_lam: expected an integer in [1, {model.n_lam}], received {n_lam!r}")
     if isinstance(lookahead, bool) or not isinstance(lookahead, int) or lookahead < 1:
         raise LCSInputError(f"lookahead: expected an integer >= 1, received {lookahead!r}")
-    current = submodel(model, range(model.n_lam))
+    current = keep_units(model, range(model.n_lam))
     while current.n_lam > n_lam:
         scored: list[tuple[float, int, LCS]] = []  # (loss, order of trial, candidate)
         with torch.no_grad():  # the candidates' active sets are mostly the current model's
             free = solve_lcp_fast(current.F, current.lcp_offset(x, u), residual=False).free
         for j in range(current.n_lam):
             rest = [i for i in range(current.n_lam) if i != j]
-            eliminated = pivot(current, j)
+            eliminated = eliminate_unit(current, j)
             if keeps_structure(eliminated, current, rest):
-                cands: tuple[LCS, ...] = (submodel(current, rest), eliminated)
+                cands: tuple[LCS, ...] = (keep_units(current, rest), eliminated)
             else:  # it would change a fixed parameter or fill a masked entry
-                cands = (submodel(current, rest),)
+                cands = (keep_units(current, rest),)
             for cand in cands:
-                value = refit_output(cand, x, u, x_next, reg=reg, warm_start=free[:, rest])
+                value = refit_dynamics(cand, x, u, x_next, reg=reg, warm_start=free[:, rest])
                 scored.append((value, len(scored), cand))
         scored.sort(key=operator.itemgetter(0, 1))  # the first of equal losses, as tried
         if repair is None:
@@ -252,6 +251,6 @@ def prune(
         if len(shortlist) == 1:
             current = shortlist[0]
             continue
-        after = [refit_output(c, x, u, x_next, reg=reg) for c in shortlist]
+        after = [refit_dynamics(c, x, u, x_next, reg=reg) for c in shortlist]
         current = shortlist[min(range(len(shortlist)), key=after.__getitem__)]
     return current

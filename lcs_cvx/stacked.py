@@ -1,10 +1,10 @@
 r"""An ensemble of LCS trained as one: ``K`` models of the same sizes, their parameters stacked
 along a leading model axis, and the two fast losses of all ``K`` models in one kernel call.
 
-:class:`Ensemble` holds ``theta_k = {A, B, C, d, D, E, G, H, c}_k`` as tensors ``(K, ...)``
+:class:`StackedLCS` holds ``theta_k = {A, B, C, d, D, E, G, H, c}_k`` as tensors ``(K, ...)``
 (``A`` ``(K, n_x, n_x)``, ``c`` ``(K, n_lam)``, ...) and the stiffnesses ``s_k`` ``(K,)``.
-:func:`violation_losses` and :func:`prediction_losses` evaluate model ``k``'s loss (eq.
-equ.contactnet, eq. equ.prednet) on its own minibatch ``(x[k], u[k], x_next[k])`` with its own
+:func:`violation_losses` and :func:`prediction_losses` evaluate model ``k``'s loss (eqs.
+(9) and (6)) on its own minibatch ``(x[k], u[k], x_next[k])`` with its own
 matrices: the samples of all models go through one call of the pivoting kernels
 (:mod:`lcs_cvx._kernels.stacks`), and the values come back as ``(K,)``, one per model. The
 gradient of their sum in the stacked parameters is, in slice ``k``, the gradient of model
@@ -34,15 +34,15 @@ from ._kernels import losses as kernel
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH, array_ops
 from .lcp import finish as finish_lcp
-from .losses import _EnvelopeLoss, _ImplicitLoss
+from .losses import EnvelopeLoss, ImplicitLoss
 from .problems import check_gamma, violation_problem
 from .system import LCS, PARAMETER_NAMES
 from .violation import finish as finish_violation
 
-__all__ = ["Ensemble", "EnsembleInfo", "violation_losses", "prediction_losses"]
+__all__ = ["StackedLCS", "StackedInfo", "violation_losses", "prediction_losses"]
 
 
-class Ensemble(nn.Module):
+class StackedLCS(nn.Module):
     """``K`` LCS of the same sizes with their parameters stacked: ``A`` ``(K, n_x, n_x)``, ...,
     ``c`` ``(K, n_lam)``, ``stiffness`` ``(K,)`` (copies of the models' values).
 
@@ -52,7 +52,8 @@ class Ensemble(nn.Module):
 
     Example:
         >>> import lcs_cvx
-        >>> ens = lcs_cvx.Ensemble([lcs_cvx.LCS(4, 2, 3, seed=k) for k in range(5)])
+        >>> from lcs_cvx.stacked import StackedLCS
+        >>> ens = StackedLCS([lcs_cvx.LCS(4, 2, 3, seed=k) for k in range(5)])
         >>> len(ens), tuple(ens.F.shape)
         (5, (5, 3, 3))
     """
@@ -106,9 +107,9 @@ class Ensemble(nn.Module):
                 getattr(model, name).copy_(getattr(self, name)[k])
         return model
 
-    def select(self, keep: Sequence[int]) -> Ensemble:
+    def select(self, keep: Sequence[int]) -> StackedLCS:
         """A new ensemble of the models ``keep`` (their current parameters, copied)."""
-        new = Ensemble.__new__(Ensemble)
+        new = StackedLCS.__new__(StackedLCS)
         nn.Module.__init__(new)
         new.n_x, new.n_u, new.n_lam = self.n_x, self.n_u, self.n_lam
         index = torch.as_tensor(list(keep), dtype=torch.long, device=self.A.device)
@@ -121,22 +122,22 @@ class Ensemble(nn.Module):
 
 
 @dataclass(frozen=True)
-class EnsembleInfo:
-    """One evaluation of a loss for every model of an :class:`Ensemble`.
+class StackedInfo:
+    """One evaluation of a loss for every model of an :class:`StackedLCS`.
 
     Attributes:
         loss: ``(K,)`` the models' losses (batch means), differentiable in the stacked parameters.
         active: the fast solver's final active sets, bool ``(K, B, 2 n_lam)`` (violation) or
             ``(K, B, n_lam)`` (prediction): the ``warm_start`` of the samples' next visit.
         n_fallback: per model, the samples handed to a reference solver.
-        max_residual: per model, the largest relative KKT residual of those reference answers
+        fallback_residual: per model, the largest relative KKT residual of those reference answers
             (0.0 if none).
     """
 
     loss: torch.Tensor
     active: torch.Tensor
     n_fallback: list[int]
-    max_residual: list[float]
+    fallback_residual: list[float]
 
 
 def _initial(cold: torch.Tensor, warm_start: torch.Tensor | None,
@@ -159,10 +160,10 @@ def _model_rows(unconverged: torch.Tensor | None, K: int, B: int) -> dict[int, t
     return {k: unconverged[model == k] - k * B for k in torch.unique(model).tolist()}
 
 
-def violation_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
+def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
                      gamma: float, eps: float, warm_start: torch.Tensor | None = None,
-                     warm: torch.Tensor | None = None, arrays: str = "auto") -> EnsembleInfo:
-    """The violation loss ``L_eps`` (eq. equ.contactnet) of every model on its own minibatch.
+                     warm: torch.Tensor | None = None, arrays: str = "auto") -> StackedInfo:
+    """The violation loss ``L_eps`` (eq. (9)) of every model on its own minibatch.
 
     Package-internal, on validated tensors of the ensemble's dtype and device (the trainer checks
     its data once): ``x`` ``(K, B, n_x)``, ``u`` ``(K, B, n_u)``, ``x_next`` ``(K, B, n_x)``, row
@@ -203,14 +204,14 @@ def violation_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: to
             n_fb[k], worst[k] = sol.n_fallback, sol.fallback_residual
         lam = xp.wrap(pivoted.lam).reshape(K, B, n)
         phi = kernel_violation.phi(xp, lam, b.F, b.q, gamma)
-        loss = _EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
-    return EnsembleInfo(loss, pivoted.active.reshape(K, B, 2 * n), n_fb, worst)
+        loss = EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
+    return StackedInfo(loss, pivoted.active.reshape(K, B, 2 * n), n_fb, worst)
 
 
-def prediction_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
+def prediction_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
                       warm_start: torch.Tensor | None = None, warm: torch.Tensor | None = None,
-                      arrays: str = "auto") -> EnsembleInfo:
-    """The prediction loss ``L_pred`` (eq. equ.prednet) of every model on its own minibatch (see
+                      arrays: str = "auto") -> StackedInfo:
+    """The prediction loss ``L_pred`` (eq. (6)) of every model on its own minibatch (see
     :func:`violation_losses`); ``warm_start`` ``(K, B, n_lam)``: the free sets."""
     K, B = x.shape[:2]
     n = ens.n_lam
@@ -230,5 +231,5 @@ def prediction_losses(ens: Ensemble, x: torch.Tensor, u: torch.Tensor, x_next: t
                 sol = finish_lcp(F[k], q[part], own, max_iter=_losses.MAX_ITER, residual=False)  # in place
                 n_fb[k], worst[k] = sol.n_fallback, sol.fallback_residual
         lam = xp.wrap(pivoted.lam).reshape(K, B, n)
-        loss = _ImplicitLoss.apply(b, lam, xp.wrap(pivoted.free).reshape(K, B, n), *params)
-    return EnsembleInfo(loss, pivoted.free.reshape(K, B, n), n_fb, worst)
+        loss = ImplicitLoss.apply(b, lam, xp.wrap(pivoted.free).reshape(K, B, n), *params)
+    return StackedInfo(loss, pivoted.free.reshape(K, B, n), n_fb, worst)

@@ -1,0 +1,70 @@
+""":class:`FitResult`, what :func:`lcs_cvx.fit` and :func:`lcs_cvx.fit_ensemble` return, and
+the rule that picks the kept run among restarts (:func:`lowest`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..scaling import Scaling
+from ..system import LCS
+from .options import FitOptions
+
+__all__ = ["FitResult", "lowest"]
+
+
+def lowest(scores: list[float]) -> int:
+    """Index of the lowest score, the first of equal ones: the restart :func:`fit` keeps."""
+    return min(range(len(scores)), key=scores.__getitem__)
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """What :func:`fit` returns.
+
+    Attributes:
+        model: the trained model (the same object as the ``model`` argument, updated in place).
+        history: one dict per record: ``iteration``, ``phase`` (``"adam"``, ``"gauss-newton"``,
+            ``"newton"`` or ``"polish"``), ``loss`` (mean regularised training loss since the last
+            record), ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s),
+            ``restart``, ``n_fallback`` (samples the fast solvers handed to the reference solver
+            since the last record) and ``fallback_residual`` (the worst relative KKT residual of those
+            reference answers; 0.0 when there were none -- pivoting's own answers are exact).
+        settings: the resolved :class:`FitOptions`.
+        restart_scores: held-out relative error of each restart that ran (empty with one run;
+            fewer than ``restarts`` when ``restart_tolerance`` stopped them early).
+        wall_time: seconds, summed over resumed pieces.
+        scaling: the normalised coordinates the model was learned in
+            (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
+            history is in those coordinates; ``e_test`` and the restart scores are in the user's.
+    """
+
+    model: LCS
+    history: list[dict[str, Any]]
+    settings: FitOptions
+    restart_scores: list[float] = field(default_factory=list)
+    wall_time: float = 0.0
+    scaling: Scaling | None = None
+
+    @property
+    def kept_restart(self) -> int:
+        """The run :attr:`model` comes from: the index of the lowest of :attr:`restart_scores`
+        (the first of equal ones; 0 with one run). The history holds every run's records, so
+        ``history[-1]`` is the last run's record, not necessarily the returned model's: that
+        run's records are :attr:`kept_history`."""
+        return lowest(self.restart_scores) if self.restart_scores else 0
+
+    @property
+    def kept_history(self) -> list[dict[str, Any]]:
+        """The records of the :attr:`kept_restart` run (the whole history with one run)."""
+        return [h for h in self.history if h.get("restart", 0) == self.kept_restart]
+
+    @property
+    def n_fallback(self) -> int:
+        """Samples handed to the reference solver over the whole training."""
+        return sum(h.get("n_fallback", 0) for h in self.history)
+
+    @property
+    def fallback_residual(self) -> float:
+        """The worst relative KKT residual of the reference solver's answers (0.0: none)."""
+        return max((h.get("fallback_residual", 0.0) for h in self.history), default=0.0)
