@@ -27,11 +27,13 @@ from ._checks import LCSInputError, as_batch, as_matrix, report_unconverged
 from ._kernels import lcp as kernel
 from ._kernels.arrays import TORCH
 from ._kernels.lcp import PIVOT_TOL
-from .problems import convex_lcp_problem
+from .problems import convex_lcp_problem, sym_min_eig
 
 __all__ = [
     "LCPSolution",
     "solve_lcp",
+    "solve_lcp_unchecked",
+    "check_assumption_1",
     "solve_lcp_fast",
     "solve_lcp_brute",
     "active_set_solve",
@@ -118,7 +120,7 @@ def solve_lcp_fast(
         q: ``(B, n)``.
         max_iter: pivoting sweeps before the remaining samples fall back. Murty's rule ends
             on every P-matrix, but it can take hundreds of sweeps on nearly skew-symmetric
-            ``F`` (Fig. 1(c)'s ``G = 0``, ``s = 1e-5``: 224 for the slowest of 50,000 samples).
+            ``F`` (Fig. 1(c)'s ``G = 0``, ``s = 1e-5``), hence a generous default.
         tol: relative feasibility tolerance of a candidate free set.
         fallback: re-solve unconverged samples (and warn) -- by enumeration of the ``2^n``
             free sets for ``n <= BRUTE_MAX`` (exact), else with the Clarabel reference; if
@@ -199,12 +201,29 @@ def solve_lcp_brute(F: torch.Tensor, q: torch.Tensor) -> LCPSolution:
         return LCPSolution(lam, lam @ F.mT + q, best_free, 0, 0, lcp_residual(F, q, lam), 0.0)
 
 
+def check_assumption_1(F: torch.Tensor) -> None:
+    """:class:`LCSInputError` unless ``F + F^T`` is positive definite (Assumption 1: then the LCP
+    has exactly one solution for every ``q``, and pivoting ends on it). ``F`` is ``(n, n)`` or a
+    batch ``(B, n, n)``; one batched ``eigvalsh`` of ``F + F^T``. Without it, pivoting on an ``F``
+    that is not a P-matrix can cycle to its sweep limit and a fallback would return the best
+    candidate of an LCP that may have no solution at all."""
+    low = sym_min_eig(F.detach())
+    worst = int(low.argmin()) if low.dim() else None
+    value = float(low.min())
+    if not value > 0.0:  # also catches NaN
+        which = "" if worst is None else f" (matrix {worst} of the batch)"
+        raise LCSInputError(
+            f"F: expected F + F^T positive definite (Assumption 1), received smallest eigenvalue "
+            f"sigma_min(F + F^T) = {value:.6g}{which}"
+        )
+
+
 def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
     """Solve the LCP ``0 <= lam _|_ F lam + q >= 0`` for a batch ``q`` ``(B, n)`` (or ``(n,)``).
 
-    ``F`` is ``(n, n)`` with ``F + F^T`` positive definite (Assumption 1). ``method`` is
-    ``"fast"`` (batched pivoting, default), ``"cvxpy"`` (declared problem (P), Clarabel) or
-    ``"brute"`` (enumeration).
+    ``F`` is ``(n, n)`` with ``F + F^T`` positive definite (Assumption 1, checked:
+    :class:`lcs_cvx.LCSInputError` otherwise). ``method`` is ``"fast"`` (batched pivoting,
+    default), ``"cvxpy"`` (declared problem (P), Clarabel) or ``"brute"`` (enumeration).
     """
     if not isinstance(F, torch.Tensor):
         F = torch.as_tensor(np.asarray(F, dtype=np.float64))
@@ -218,6 +237,14 @@ def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
         device=F.device,
     )
     q = as_batch("q", q, F.shape[0], dtype=F.dtype, device=F.device)
+    check_assumption_1(F)
+    return solve_lcp_unchecked(F, q, method)
+
+
+def solve_lcp_unchecked(F: torch.Tensor, q: torch.Tensor, method: str = "fast") -> LCPSolution:
+    """:func:`solve_lcp` without its input checks, for an ``F`` ``(n, n)`` that satisfies
+    Assumption 1 by construction (an :class:`lcs_cvx.LCS`'s ``G G^T + H - H^T + s I``) and a
+    checked ``q`` ``(B, n)`` of its dtype and device. Package-internal: :meth:`LCS.solve_lcp`."""
     if method == "fast":
         return solve_lcp_fast(F, q)
     if method == "brute":

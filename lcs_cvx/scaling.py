@@ -58,7 +58,7 @@ def _moments(a: torch.Tensor, center: bool, spread: float) -> tuple[torch.Tensor
     """Mean (0 without centring) and scale of each column: its standard deviation (RMS without
     centring) over ``spread``; a column whose deviation is at round-off level of its magnitude
     (a constant column) gets 1."""
-    m = a.mean(0) if center else torch.zeros(a.shape[1], dtype=a.dtype)
+    m = a.mean(0) if center else torch.zeros(a.shape[1], dtype=a.dtype, device=a.device)
     s = (a - m).pow(2).mean(0).sqrt()
     floor = 1e-12 * a.abs().amax(0) if a.shape[0] else torch.zeros_like(s)
     return m, torch.where(s > floor, s / spread, torch.ones_like(s))

@@ -24,7 +24,7 @@ from torch import nn
 from ._checks import LCSInputError, as_batch, as_matrix, as_pattern, check_positive
 from ._kernels import losses as kernel
 from ._kernels.arrays import TORCH
-from .lcp import LCPSolution, active_set_solve, solve_lcp
+from .lcp import LCPSolution, active_set_solve, solve_lcp_unchecked
 from .problems import sym_min_eig
 
 __all__ = [
@@ -374,9 +374,12 @@ class LCS(nn.Module):
         of the implicit function theorem (Lemma 1); a degenerate index (``lam_i = w_i = 0``) is
         held at zero (one-sided derivative).
         """
-        F = self.F
-        q = self.lcp_offset(x, u)
-        sol = solve_lcp(F, q, method=method)
+        # finite values checked as lcs_cvx.solve_lcp does; Assumption 1 holds by construction
+        # (F = G G^T + H - H^T + s I), so its eigenvalue check is skipped
+        kw = {"dtype": self.dtype, "device": self.device}
+        F = as_matrix("F", self.F, (self.n_lam, self.n_lam), **kw)
+        q = as_batch("q", self.lcp_offset(x, u), self.n_lam, **kw)
+        sol = solve_lcp_unchecked(F, q, method=method)
         if torch.is_grad_enabled() and (F.requires_grad or q.requires_grad):
             lam = active_set_solve(F, q, sol.free)
             return dataclasses.replace(sol, lam=lam, w=lam @ F.mT + q)

@@ -21,6 +21,7 @@ from zoo import ATOL, assert_lcp_conditions, check_against_reference, degenerate
 import lcs_cvx
 from lcs_cvx.lcp import (
     active_set_solve,
+    check_assumption_1,
     lcp_residual,
     solve_lcp,
     solve_lcp_brute,
@@ -243,3 +244,67 @@ def test_active_set_solve_closed_form_jacobian():
     expected = torch.zeros(n, n, dtype=F64)
     expected[idx[:, None], idx[None, :]] = -torch.linalg.inv(F[idx][:, idx])
     assert torch.allclose(J, expected, atol=1e-12)
+
+
+# -- Assumption 1 at the boundary -------------------------------------------------------------
+
+
+NOT_ASSUMPTION_1 = [
+    (np.array([[1.0, 0.0], [0.0, -0.5]]), "-1"),
+    (np.array([[0.0, 1.0], [-1.0, 0.0]]), "0"),  # skew: F + F^T = 0
+    (np.array([[1.0, 3.0], [0.0, 1.0]]), "-1"),  # a P-matrix (positive minors), F + F^T indefinite
+    (np.array([[1.0, 0.0], [0.0, 0.0]]), "0"),
+]
+
+
+@pytest.mark.parametrize("method", ["fast", "brute", "cvxpy"])
+@pytest.mark.parametrize("F, smin", NOT_ASSUMPTION_1)
+def test_solve_lcp_refuses_F_without_assumption_1(F, smin, method):
+    """A user's ``F`` whose symmetric part is not positive definite is refused before any solve
+    (pivoting could cycle to its sweep limit and a fallback return the best candidate of an LCP
+    without a solution), naming ``F``, Assumption 1 and the smallest eigenvalue received."""
+    q = np.array([[-1.0, -1.0], [1.0, -2.0]])
+    with pytest.raises(lcs_cvx.LCSInputError, match=(
+            r"^F: expected F \+ F\^T positive definite \(Assumption 1\), received smallest "
+            rf"eigenvalue sigma_min\(F \+ F\^T\) = {smin}$")):
+        solve_lcp(F, q, method=method)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"^F: expected F \+ F\^T positive definite"):
+        solve_lcp(torch.as_tensor(F, dtype=torch.float32), q, method=method)  # any dtype
+
+
+def test_solve_lcp_without_a_solution_is_refused_not_answered():
+    """``F = [[-1, 0], [0, 1]]``, ``q = (-1, 1)``: ``w_1 = -lam_1 - 1 < 0`` for every ``lam_1 >= 0``,
+    so the LCP has no solution; the check stops it instead of a fallback's best candidate."""
+    F = torch.tensor([[-1.0, 0.0], [0.0, 1.0]], dtype=F64)
+    q = torch.tensor([[-1.0, 1.0]], dtype=F64)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"received smallest eigenvalue sigma_min\(F \+ F\^T\) = -2$"):
+        solve_lcp(F, q)
+
+
+def test_assumption_1_check_is_batched_and_names_the_matrix():
+    good = random_p_matrix(3, smin=1e-6, seed=1)
+    check_assumption_1(good)  # small but positive: accepted
+    check_assumption_1(torch.stack([good, good.mT]))
+    bad = good - 1e-3 * torch.eye(3, dtype=F64)  # sigma_min(F + F^T) = 1e-6 - 2e-3
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"= -0\.001999 \(matrix 1 of the batch\)$"):
+        check_assumption_1(torch.stack([good, bad, good]))
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"^F: expected F \+ F\^T positive definite"):
+        check_assumption_1(torch.full((2, 2), float("nan"), dtype=F64))
+
+
+def test_model_solve_lcp_skips_the_eigenvalue_check(monkeypatch):
+    """An :class:`lcs_cvx.LCS` builds ``F = G G^T + H - H^T + s I`` (Assumption 1 by construction):
+    its ``solve_lcp`` (and so ``step`` and the losses) computes no eigenvalues; the public
+    ``solve_lcp`` on the same ``F`` does."""
+    model = lcs_cvx.random_lcs(3, 1, 3, seed=2)
+    x, u = torch.randn(5, 3, dtype=F64), torch.randn(5, 1, dtype=F64)
+    expected = model.solve_lcp(x, u).lam
+
+    def forbidden(F):
+        raise AssertionError("eigenvalues computed")
+
+    monkeypatch.setattr(lcs_cvx.lcp, "sym_min_eig", forbidden)
+    assert torch.equal(model.solve_lcp(x, u).lam, expected)
+    model.step(x, u)
+    with pytest.raises(AssertionError, match="eigenvalues computed"):
+        solve_lcp(model.F.detach(), model.lcp_offset(x, u).detach())

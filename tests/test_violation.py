@@ -4,7 +4,8 @@ Its answer is certified exact against a high-precision refinement of the paper's
 independent of the library's DPP form, in the paper's and in a stiff setting; the two array
 back-ends (NumPy on CPU, torch as on CUDA) give the same answer, active sets and sweeps; the
 Clarabel reference on the same declaration agrees to its accuracy; unconverged samples fall back
-to that reference, said (a warning, or an error) and measured (``fallback_residual``).
+to enumeration of (V)'s pieces (exact) or, above ``BRUTE_MAX``, to that reference, said (a
+warning, or an error) and measured (``fallback_residual``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from helpers import (
 
 import lcs_cvx
 from lcs_cvx.problems import violation_problem
-from lcs_cvx.violation import solve_violation_fast, violation_kkt_residual
+from lcs_cvx.violation import solve_violation_brute, solve_violation_fast, violation_kkt_residual
 
 F64 = torch.float64
 KERNELS = ("numpy", "torch")
@@ -119,7 +120,7 @@ def test_fallback_and_warm_start_on_each_backend(kernel):
     with pytest.warns(lcs_cvx.FallbackWarning, match="violation QP pivoting did not converge"):
         fb = solve_violation_fast(values, arrays=kernel, max_iter=0)
     assert fb.n_fallback >= 1
-    assert rel_dev(fb.lam, cold.lam) <= 1e-7  # the Clarabel reference's accuracy
+    assert rel_dev(fb.lam, cold.lam) <= 1e-12  # n = 4: enumeration of the pieces, exact
     assert torch.equal(fb.free, fb.lam > 0)
     # the reference's worst KKT residual is reported, with or without the full residual
     assert 0.0 < fb.fallback_residual <= float(fb.residual.max())
@@ -160,6 +161,7 @@ def test_inaccurate_reference_answers_are_reported(monkeypatch):
     """A fallback answer that is not a minimiser (here the reference is replaced by one that
     answers lam = 0) is used, but said: a second FallbackWarning names its KKT residual."""
     values = violation_values(4, "paper", batch=30)
+    monkeypatch.setattr(lcs_cvx.violation, "BRUTE_MAX", 0)  # n = 4 falls back to Clarabel
     decl = violation_problem(4)
     monkeypatch.setattr(type(decl), "solve", lambda self, v: torch.zeros(tuple(v["b"].shape), dtype=F64))
     with pytest.warns(lcs_cvx.FallbackWarning) as record:
@@ -169,3 +171,76 @@ def test_inaccurate_reference_answers_are_reported(monkeypatch):
     assert any("answers are inaccurate (worst relative KKT residual" in m for m in messages)
     assert sol.n_fallback >= 1 and float(sol.residual.max()) > 1e-6
     assert sol.fallback_residual == pytest.approx(float(sol.residual.max()), rel=1e-12)
+
+
+# -- the exact fallback: enumeration of (V)'s pieces -----------------------------------------
+
+
+@pytest.mark.parametrize("setting", list(SETTINGS))
+@pytest.mark.parametrize("n_lam", [1, 2, 4, 6])
+def test_enumeration_of_the_pieces_is_the_fast_kernels_answer(n_lam, setting):
+    """``solve_violation_brute``: one quadratic per piece (free set, ``K lam - h > 0`` set), the
+    candidate of smallest KKT residual kept -- the minimiser, as the pivoting's, to round-off.
+    Measured: <= 1e-14 relative to 1 + |lam|_inf; KKT <= 7e-16."""
+    values = violation_values(n_lam, setting)
+    fast = solve_violation_fast(values)
+    brute = solve_violation_brute(values)
+    assert fast.n_fallback == 0 and brute.iterations == 0
+    assert _dev(brute.lam, fast.lam, fast.lam) <= 1e-12
+    assert torch.equal(brute.active, fast.active)
+    assert float(brute.residual.max()) <= 1e-13
+    assert float(violation_kkt_residual(values, brute.lam).max()) <= 1e-13
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_fallback_is_exact_up_to_brute_max(kernel, monkeypatch):
+    """With no sweeps allowed, every sample whose first guess is wrong falls back: for
+    ``n <= BRUTE_MAX`` to the enumeration (said in the warning), whose answers are the pivoting's
+    to round-off; above it (``BRUTE_MAX`` lowered) to Clarabel, accurate only to ~1e-9."""
+    values = violation_values(6, "paper", batch=60)
+    exact = solve_violation_fast(values, arrays=kernel)
+    with pytest.warns(lcs_cvx.FallbackWarning, match=r"solved them with enumeration of the 4\^6 pieces"):
+        fb = solve_violation_fast(values, arrays=kernel, max_iter=0)
+    assert fb.n_fallback >= 1 and fb.iterations == 0
+    assert _dev(fb.lam, exact.lam, exact.lam) <= 1e-10
+    assert fb.fallback_residual <= 1e-10 and float(fb.residual.max()) <= 1e-10
+    assert torch.equal(fb.active, exact.active)
+    monkeypatch.setattr(lcs_cvx.violation, "BRUTE_MAX", 5)
+    with pytest.warns(lcs_cvx.FallbackWarning, match="solved them with the Clarabel reference"):
+        ref = solve_violation_fast(values, arrays=kernel, max_iter=0)
+    assert ref.n_fallback == fb.n_fallback
+    assert ref.fallback_residual > fb.fallback_residual  # an interior point, not round-off exact
+
+
+def test_exact_fallback_where_clarabel_is_far_off():
+    """Nearly skew-symmetric ``F`` (``G = 0``, ``s = gamma = 1e-6``) at ``n = 6``: capped
+    pivoting hands samples to the enumeration, whose answers are KKT-exact (measured 5e-16)
+    where Clarabel's are not (measured KKT residual ~1e2)."""
+    n, gamma, eps = 6, 1e-6, 1e-4
+    truth = lcs_cvx.random_lcs(n, 4, n, stiffness=1e-6, seed=10)
+    data = lcs_cvx.make_dataset(truth, 60, noise=1e-2, seed=17)
+    gen = torch.Generator().manual_seed(10)
+    with torch.no_grad():
+        for p in truth.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=gen, dtype=F64))
+        truth.G.zero_()
+        q = truth.lcp_offset(data.x, data.u)
+        r = data.x @ truth.A.mT + data.u @ truth.B.mT + truth.d - data.x_next
+        values = violation_problem(n).parameter_values(truth.C, truth.F, q, r, gamma, eps)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", lcs_cvx.FallbackWarning)
+        full = solve_violation_fast(values)
+    assert full.iterations > 20 and float(full.residual.max()) <= 1e-13
+    with pytest.warns(lcs_cvx.FallbackWarning, match="enumeration") as record:
+        capped = solve_violation_fast(values, max_iter=20)
+    assert capped.n_fallback > 0
+    assert not any("inaccurate" in str(w.message) for w in record)
+    assert capped.fallback_residual <= 1e-13 and float(capped.residual.max()) <= 1e-13
+    clarabel = violation_problem(n).solve(values)
+    assert float(violation_kkt_residual(values, clarabel).max()) > 1e-3  # the reference's
+
+
+def test_enumeration_refuses_large_n():
+    values = violation_values(10, "paper", batch=2)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"^n_lam: enumeration of \(V\)'s 4\^n pieces, expected n <= 8, received 10$"):
+        solve_violation_brute(values)

@@ -16,7 +16,7 @@ from .arrays import ArrayOps, array_ops
 from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
 from .stacks import matrices
 
-__all__ = ["PIVOT_TOL", "Pivoted", "pivot", "solve"]
+__all__ = ["PIVOT_TOL", "Pivoted", "pivot_lcp", "solve"]
 
 #: Relative tolerance for feasibility of a pivoting candidate (scaled by ``1 + |q|_inf``).
 PIVOT_TOL = 1e-11
@@ -41,7 +41,7 @@ class Pivoted(NamedTuple):
     iterations: int
 
 
-def pivot(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
+def pivot_lcp(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
           warm_start: torch.Tensor | None, device: torch.device) -> PivotResult:
     """Block pivoting on the LCP in the kernel's arrays: ``F`` ``(n, n)`` (or a stack
     ``(K, n, n)``, :mod:`.stacks`), ``q`` ``(B, n)``; the initial free set is ``q < 0`` (the guess
@@ -75,7 +75,7 @@ def solve(F: torch.Tensor, q: torch.Tensor, *, tol: float = PIVOT_TOL, max_iter:
     xp = array_ops(q, arrays)
     with xp.threads():
         Fa, qa = xp.wrap(F), xp.wrap(q)
-        res = pivot(xp, Fa, qa, tol, max_iter, warm_start, q.device)
+        res = pivot_lcp(xp, Fa, qa, tol, max_iter, warm_start, q.device)
         lam = xp.clamp_min(res.solution, 0.0)
         free = res.free & (res.solution > 0)
         w = matrices(xp, Fa, qa.shape[0]).select(None).rmul(lam, Fa.swapaxes(-1, -2)) + qa

@@ -31,7 +31,7 @@ from .arrays import ArrayOps, array_ops
 from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
 from .stacks import matrices
 
-__all__ = ["PIVOT_TOL", "Pivoted", "normal_equations", "phi", "pivot", "solve", "solve_arrays"]
+__all__ = ["PIVOT_TOL", "Pivoted", "normal_equations", "phi", "pivot_violation", "solve", "solve_arrays"]
 
 #: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
 #: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/gamma large), and
@@ -84,7 +84,7 @@ class Pivoted(NamedTuple):
     iterations: int
 
 
-def pivot(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
+def pivot_violation(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
           warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, PivotResult]:
     """Block pivoting on (V) in the kernel's arrays (:func:`normal_equations`; ``LtL`` and ``K``
     ``(n, n)``, or stacks ``(K, n, n)`` of models owning ``B / K`` rows each, :mod:`.stacks`):
@@ -138,7 +138,7 @@ def solve_arrays(xp: ArrayOps, normal: dict[str, Any], *, device: torch.device, 
                  max_iter: int = 1000, warm_start: torch.Tensor | None = None) -> Pivoted:
     """Pivot (V) given its normal equations in ``xp``'s arrays (:func:`normal_equations`); the
     caller holds :meth:`ArrayOps.threads`. ``warm_start``: ``(B, 2 n)`` bool ``[free, pos]``."""
-    lam, active, res = pivot(xp, normal["LtL"], normal["Ltb"], normal["K"], normal["h"], tol,
+    lam, active, res = pivot_violation(xp, normal["LtL"], normal["Ltb"], normal["K"], normal["h"], tol,
                              max_iter, warm_start, device)
     return Pivoted(xp.unwrap(lam), xp.unwrap(active), unconverged(xp, res.converged), res.iterations)
 

@@ -184,8 +184,8 @@ def fit(
         >>> data = lcs_cvx.make_dataset(truth, 500, seed=1)
         >>> model = lcs_cvx.LCS(2, 1, 2, seed=2)
         >>> result = lcs_cvx.fit(model, data, optimizer="gauss-newton", iterations=5, progress=False)
-        >>> len(result.history), result.n_fallback
-        (5, 0)
+        >>> len(result.history), len(result.restart_scores), result.n_fallback
+        (15, 3, 0)
     """
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")

@@ -137,6 +137,15 @@ class AdamPhase(Phase):
         return Outcome(loss, eps, lr, info.n_fallback, info.fallback_residual)
 
 
+def draw(shape: tuple[int, ...], generator: torch.Generator, like: torch.Tensor,
+         scale: float = 0.1) -> torch.Tensor:
+    """``scale * N(0, 1)`` of ``shape`` on ``like``'s device and dtype, drawn on ``generator``
+    (a CPU generator: the run's, :class:`~lcs_cvx.train.state.TrainState`) in float64 and then
+    moved, so that a run draws the same numbers on every device and dtype."""
+    return (scale * torch.randn(shape, generator=generator, dtype=torch.float64)).to(
+        device=like.device, dtype=like.dtype)
+
+
 def reinit_saturated(state: TrainState) -> None:
     """Re-draw the hyperplane ``(D_i, E_i, c_i)`` and ``C[:, i]`` of the units active on >= 98 %
     of a sample of the data (no gradient reaches their boundary) and zero their Adam moments.
@@ -151,7 +160,7 @@ def reinit_saturated(state: TrainState) -> None:
         for name, rows in (("D", True), ("E", True), ("c", True), ("C", False)):
             p = getattr(m, name)
             shape = (sat.numel(),) + tuple(p.shape[1:]) if rows else (p.shape[0], sat.numel())
-            new = 0.1 * torch.randn(shape, generator=state.generator, dtype=torch.float64).to(p.dtype)
+            new = draw(shape, state.generator, p)
             free = free_entries(m, name)
             if rows:
                 p[sat] = torch.where(free[sat], new, p[sat])

@@ -5,7 +5,8 @@ The flat keywords (``iterations=``, ``lr=``, ``optimizer=``, ...; :data:`FLAT_OP
 aliases of fields of :class:`FitOptions`, defined in :mod:`lcs_cvx.train.options`
 (:data:`~lcs_cvx.train.options.FLAT_ALIASES`) and applied by :meth:`FitOptions.replace`.
 ``optimizer="gauss-newton"`` or ``"newton"`` means no Adam phase and the refinement as the
-optimiser, with its own defaults (50 steps on batches of 5,000, a record after every step).
+optimiser, with its own defaults (100 steps on batches of 5,000, a record after every step, three
+runs: :data:`~lcs_cvx.train.options.OPTIMIZER_DEFAULTS`).
 """
 
 from __future__ import annotations

@@ -1,0 +1,99 @@
+"""Training on the model's device and dtype: every random draw of :mod:`lcs_cvx.train` (the
+re-initialisation of saturated units, the extra units of :func:`lcs_cvx.resizing.grow_units`, the
+restarts' fresh models) is taken on the run's CPU generator in float64 -- the same numbers on every
+device, CPU runs bit-identical to before -- and then moved to the parameter's device and dtype.
+
+The CUDA test runs where a GPU is present (skipped otherwise); the others run everywhere.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+import lcs_cvx
+import lcs_cvx.train.phases as phases
+from lcs_cvx.system import PARAMETER_NAMES
+from lcs_cvx.train.phases import draw
+
+F64 = torch.float64
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+#: ``recipe="best"`` cut down to a few seconds: every phase runs (Adam with re-initialisation,
+#: extra units and pruning, the Gauss--Newton refinement, two restarts)
+SHORT_BEST = {"recipe": "best", "iterations": 40, "reinit_every": 10, "prune_batch": 200,
+              "refine_iterations": 2, "refine_batch": 200, "progress": False}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_draw_is_on_the_parameters_device_and_dtype(dtype):
+    like = torch.zeros(3, 2, dtype=dtype)
+    out = draw((4, 2), torch.Generator().manual_seed(5), like)
+    assert out.shape == (4, 2) and out.dtype == dtype and out.device == like.device
+    # the numbers of before (0.1 N(0, 1) drawn in float64 on the CPU generator): bit-identical
+    expected = (0.1 * torch.randn((4, 2), generator=torch.Generator().manual_seed(5), dtype=F64)).to(dtype)
+    assert torch.equal(out, expected)
+    # another device: moved there (the meta device stands in for a GPU on any machine)
+    meta = draw((4, 2), torch.Generator().manual_seed(5), torch.empty(1, dtype=dtype, device="meta"))
+    assert meta.device.type == "meta" and meta.dtype == dtype and meta.shape == (4, 2)
+    assert torch.equal(draw((3,), torch.Generator().manual_seed(1), like, scale=2.0),
+                       (2.0 * torch.randn(3, generator=torch.Generator().manual_seed(1), dtype=F64)).to(dtype))
+
+
+def _saturated_start(device: str | torch.device, dtype: torch.dtype) -> lcs_cvx.LCS:
+    model = lcs_cvx.LCS(2, 1, 2, seed=3, dtype=dtype).to(device)
+    with torch.no_grad():
+        model.c[0] = -1e3  # unit 0 active on every sample: saturated, so it is re-drawn
+    return model
+
+
+def _spy_reinit(monkeypatch) -> list[bool]:
+    """Record, for each call of ``reinit_saturated``, whether it changed the model."""
+    changed: list[bool] = []
+    real = phases.reinit_saturated
+
+    def spy(state):
+        before = [getattr(state.work, k).detach().clone() for k in "CDEc"]
+        real(state)
+        after = [getattr(state.work, k).detach() for k in "CDEc"]
+        assert all(a.device == b.device and a.dtype == b.dtype for a, b in zip(before, after, strict=True))
+        changed.append(any(not torch.equal(a, b) for a, b in zip(before, after, strict=True)))
+
+    monkeypatch.setattr(phases, "reinit_saturated", spy)
+    return changed
+
+
+def test_best_recipe_in_float32_redraws_in_the_models_dtype(monkeypatch):
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 600, seed=1)
+    changed = _spy_reinit(monkeypatch)
+    model = _saturated_start("cpu", torch.float32)
+    with warnings.catch_warnings():  # float32 pivoting may miss PIVOT_TOL on a few samples
+        warnings.simplefilter("ignore", lcs_cvx.FallbackWarning)
+        lcs_cvx.fit(model, train, **SHORT_BEST, restarts=1, init="model")
+    assert True in changed  # a unit was re-drawn
+    assert all(getattr(model, k).dtype == torch.float32 for k in PARAMETER_NAMES)
+    assert all(bool(torch.isfinite(getattr(model, k)).all()) for k in PARAMETER_NAMES)
+
+
+@needs_cuda
+def test_best_recipe_runs_on_cuda(monkeypatch):
+    """``fit(recipe="best")`` of a model on the GPU, data on the CPU (moved by ``fit``): every
+    phase runs, a saturated unit is re-drawn, and the model stays on its device."""
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 600, seed=1)
+    test = lcs_cvx.make_dataset(truth, 200, seed=2)
+    changed = _spy_reinit(monkeypatch)
+    model = _saturated_start("cuda", F64)
+    result = lcs_cvx.fit(model, train, test=test, **SHORT_BEST)
+    assert True in changed
+    assert model.device.type == "cuda"
+    assert all(getattr(model, k).device.type == "cuda" for k in PARAMETER_NAMES)
+    assert {h["phase"] for h in result.history} >= {"adam", "gauss-newton"}
+    assert all(bool(torch.isfinite(getattr(model, k)).all()) for k in PARAMETER_NAMES)
+    # a second run from the default start (extra units grown on the GPU as well)
+    again = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4).to("cuda"), train, **SHORT_BEST)
+    assert again.model.device.type == "cuda"
