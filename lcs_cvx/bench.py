@@ -30,7 +30,7 @@ from .system import LCS
 
 __all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time"]
 
-#: (n_x, n_u, n_lam) of the issue's comparison.
+#: (n_x, n_u, n_lam) of the comparison with the authors' code (the paper's sizes).
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
     (10, 4, 4),
     (10, 4, 10),

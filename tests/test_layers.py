@@ -108,7 +108,7 @@ def test_cvxpylayers_violation_path_agrees_with_fast(n_lam, setting):
 @pytest.mark.xfail(
     strict=True,
     reason="Clarabel through diffcp's cone form reaches ~1e-7 on lam in the paper setting and "
-    "up to ~5e-4 (absolute) in the stiff one, not the issue's 1e-8; see LAYER_BOUND",
+    "up to ~5e-4 (absolute) in the stiff one, not 1e-8; see LAYER_BOUND",
 )
 def test_cvxpylayers_path_meets_the_1e8_requirement():
     worst = max(layer_case(n, s)["layer_lam_abs"] for n, s in CASES)

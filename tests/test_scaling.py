@@ -77,7 +77,7 @@ def test_a_constant_column_gets_scale_one():
 
 
 def test_fit_in_other_units_is_the_same_problem(system):
-    """The issue's experiment in small: rescaled state and input, same seeds, e_test in each
+    """The units experiment in small: rescaled state and input, same seeds, e_test in each
     run's own units at the same level (the metric weights the states differently)."""
     truth, train, test = system
     errors = []

@@ -325,10 +325,7 @@ class FitOptions:
         if a.eps_start is not None and a.eps_start < self.objective.eps:
             raise option_error("eps_start", f"None or a number >= eps = {self.objective.eps!r}", a.eps_start)
         if a.extra_units != 0 and self.refine.method is None:
-            raise LCSInputError(
-                "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
-                f"with refine set, received optimizer={self.optimizer!r}, refine={self.refine.method!r}"
-            )
+            raise _extra_units_error(self.optimizer, self.refine.method)
         if self.objective.loss == "prediction" and self.refine.method is not None:
             raise LCSInputError(
                 "optimizer: the second-order methods are for the violation loss (Lemma 4); "
@@ -526,11 +523,16 @@ def apply_flat(options: FitOptions, keywords: dict[str, Any]) -> FitOptions:
                 raise LCSInputError(f"{keyword_of.get((group, name), name)}:{rest}") from None
     if optimizer != "adam" and groups["adam"].extra_units != 0 and (
             "optimizer" in keywords or "extra_units" in keywords):
-        raise LCSInputError(
-            "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
-            f"with refine set, received optimizer={optimizer!r}, refine=None"
-        )
+        raise _extra_units_error(optimizer, None)
     return dataclasses.replace(options, **groups)
+
+
+def _extra_units_error(optimizer: str, refine: str | None) -> LCSInputError:
+    """Extra units need an Adam phase to train them and a refinement after their pruning."""
+    return LCSInputError(
+        "extra_units: the pruned model needs a refinement phase; expected optimizer='adam' "
+        f"with refine set, received optimizer={optimizer!r}, refine={refine!r}"
+    )
 
 
 def extra_units(option: int | str, n_lam: int) -> int:
