@@ -1,5 +1,5 @@
 """Training on the model's device and dtype: every random draw of :mod:`lcs_cvx.train` (the
-re-initialisation of saturated units, the extra units of :func:`lcs_cvx.resizing.grow_units`, the
+re-initialisation of saturated units, the extra units of :func:`lcs_cvx.resizing.add_units`, the
 restarts' fresh models) is taken on the run's CPU generator in float64 -- the same numbers on every
 device, CPU runs bit-identical to before -- and then moved to the parameter's device and dtype.
 
