@@ -219,7 +219,11 @@ def check_assumption_1(F: torch.Tensor) -> None:
 
 
 def solve_lcp(F: Any, q: Any, method: str = "fast") -> LCPSolution:
-    """Solve the LCP ``0 <= lam _|_ F lam + q >= 0`` for a batch ``q`` ``(B, n)`` (or ``(n,)``).
+    r"""Solve the LCP (eq. (2)) for a batch ``q`` ``(B, n)`` (or ``(n,)``):
+
+    $$
+    0 \le \lambda \perp F \lambda + q \ge 0.
+    $$
 
     ``F`` is ``(n, n)`` with ``F + F^T`` positive definite (Assumption 1, checked:
     :class:`lcs_cvx.LCSInputError` otherwise). ``method`` is ``"fast"`` (batched pivoting,

@@ -244,9 +244,10 @@ def violation_loss(
 ) -> torch.Tensor:
     r"""Violation-based loss ``L_eps`` (eq. (9)), averaged over the batch.
 
-    .. math::
-        l_\epsilon = \min_{\lambda, \phi \ge 0} \tfrac12\|A x + B u + C\lambda + d - x'\|^2
-        + \tfrac1\epsilon\big(\lambda^\top\phi + \tfrac{1}{2\gamma}\|D x + E u + F\lambda + c - \phi\|^2\big)
+    $$
+    l_\epsilon = \min_{\lambda, \phi \ge 0} \tfrac12\|A x + B u + C\lambda + d - x'\|^2
+    + \tfrac1\epsilon\big(\lambda^\top\phi + \tfrac{1}{2\gamma}\|D x + E u + F\lambda + c - \phi\|^2\big)
+    $$
 
     Args:
         model: an :class:`lcs_cvx.LCS`.
@@ -309,7 +310,11 @@ def prediction_loss(
 ) -> torch.Tensor:
     r"""Prediction-based loss ``L_pred`` (eq. (6)), averaged over the batch.
 
-    ``mean_t 1/2 ||A x_t + B u_t + C lam_t + d - x'_t||^2`` with ``lam_t = LCP(F, D x_t + E u_t + c)``.
+    $$
+    L_\text{pred} = \operatorname{mean}_t \tfrac12 \|A x_t + B u_t + C \lambda_t + d - x'_t\|^2,
+    \qquad \lambda_t = \operatorname{LCP}(F,\; D x_t + E u_t + c).
+    $$
+
     The gradient differentiates through the LCP by the implicit function theorem on the active
     set (Lemma 1); on the ``"cvxpylayers"`` paths through diffcp on the declared problem (P).
 

@@ -100,7 +100,14 @@ def split_F(F: torch.Tensor, stiffness: float) -> tuple[torch.Tensor, torch.Tens
 
 
 class LCS(nn.Module):
-    """A linear complementarity system with learnable ``theta = {A, B, C, d, D, E, G, H, c}``.
+    r"""A linear complementarity system (eq. (1)) with learnable
+    ``theta = {A, B, C, d, D, E, G, H, c}``:
+
+    $$
+    x' = A x + B u + C \lambda + d, \qquad
+    0 \le \lambda \perp D x + E u + F \lambda + c \ge 0, \qquad
+    F = G G^\top + H - H^\top + s I.
+    $$
 
     Args:
         n_x, n_u, n_lam: state, input and complementarity dimensions (``n_u`` may be 0).
