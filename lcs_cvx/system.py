@@ -242,34 +242,17 @@ class LCS(nn.Module):
             >>> m.A[1, 0].item(), m.masks["A"].tolist()
             (0.0, [[True, True], [False, True]])
         """
-        new = self._patterns(patterns)
-        with torch.no_grad():
-            for k, m in new.items():
-                if m is None:
-                    self._masks.pop(k, None)
-                    continue
-                self._masks[k] = m
-                getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
-        return self
+        return self.replace_masks({**self._masks, **patterns})
 
     def replace_masks(self, masks: dict[str, Any], *, zero: bool = True) -> LCS:
-        """Replace every mask by ``masks`` (validated as in :meth:`mask`; parameters not named
-        lose their mask); returns ``self``. With ``zero=False`` the masked entries keep their
-        values: for models derived from another one (a unit eliminated), whose masked entries
-        are checked afterwards rather than set.
+        """Replace every mask by ``masks`` (patterns as in :meth:`mask`, validated; a parameter
+        not named, or named with None, has no mask); returns ``self``. With ``zero=False`` the
+        masked entries keep their values: for models derived from another one (a unit
+        eliminated), whose masked entries are checked afterwards rather than set.
         """
-        new = self._patterns(masks)
-        self._masks = {k: m for k, m in new.items() if m is not None}
-        if zero:
-            with torch.no_grad():
-                for k, m in self._masks.items():
-                    getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
-        return self
-
-    def _patterns(self, patterns: dict[str, Any]) -> dict[str, torch.Tensor | None]:
         shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
-        new: dict[str, torch.Tensor | None] = {}
-        for k, v in patterns.items():
+        new: dict[str, torch.Tensor] = {}
+        for k, v in masks.items():
             if k not in MASKABLE:
                 why = (" (G and H parameterise F = G G^T + H - H^T + s I as a whole: fix them, "
                        "or F, instead)") if k in ("G", "H", "F") else ""
@@ -277,8 +260,14 @@ class LCS(nn.Module):
                     f"{k}: expected a maskable parameter name among {MASKABLE}, received "
                     f"{k!r}{why}"
                 )
-            new[k] = None if v is None else as_pattern(k, v, shapes[k])
-        return new
+            if v is not None:
+                new[k] = as_pattern(k, v, shapes[k])
+        self._masks = new
+        if zero:
+            with torch.no_grad():
+                for k, m in new.items():
+                    getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
+        return self
 
     @property
     def masks(self) -> dict[str, torch.Tensor]:

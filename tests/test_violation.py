@@ -131,13 +131,11 @@ def test_fallback_and_warm_start_on_each_backend(kernel):
         solve_violation_fast(values, arrays=kernel, max_iter=0, fallback=False)
 
 
-def test_violation_pivoting_outlasts_clarabel_on_nearly_skew_F():
-    """Nearly skew-symmetric ``F`` (``G = 0``, ``s = gamma = 1e-6``, 1 / (eps gamma) = 1e10):
-    pivoting needs hundreds of sweeps (Murty's rule) and ends exact, where a 100-sweep limit
-    hands 88 of 200 samples to Clarabel, whose answers have a KKT residual of ~1."""
-    gamma, eps = 1e-6, 1e-4
-    truth = lcs_cvx.random_lcs(10, 4, 10, stiffness=1e-6, seed=10)
-    data = lcs_cvx.make_dataset(truth, 200, noise=1e-2, seed=17)
+def _nearly_skew_values(n: int, batch: int) -> dict[str, torch.Tensor]:
+    """(V)'s parameter values for a perturbed ``random_lcs(n, 4, n, stiffness=1e-6)`` with
+    ``G = 0`` (``F`` nearly skew-symmetric), ``gamma = 1e-6``, ``eps = 1e-4``."""
+    truth = lcs_cvx.random_lcs(n, 4, n, stiffness=1e-6, seed=10)
+    data = lcs_cvx.make_dataset(truth, batch, noise=1e-2, seed=17)
     gen = torch.Generator().manual_seed(10)
     with torch.no_grad():
         for p in truth.parameters():
@@ -145,7 +143,14 @@ def test_violation_pivoting_outlasts_clarabel_on_nearly_skew_F():
         truth.G.zero_()
         q = truth.lcp_offset(data.x, data.u)
         r = data.x @ truth.A.mT + data.u @ truth.B.mT + truth.d - data.x_next
-        values = violation_problem(10).parameter_values(truth.C, truth.F, q, r, gamma, eps)
+        return violation_problem(n).parameter_values(truth.C, truth.F, q, r, 1e-6, 1e-4)
+
+
+def test_violation_pivoting_outlasts_clarabel_on_nearly_skew_F():
+    """Nearly skew-symmetric ``F`` (``G = 0``, ``s = gamma = 1e-6``, 1 / (eps gamma) = 1e10):
+    pivoting needs hundreds of sweeps (Murty's rule) and ends exact, where a 100-sweep limit
+    hands 88 of 200 samples to Clarabel, whose answers have a KKT residual of ~1."""
+    values = _nearly_skew_values(10, 200)
     with warnings.catch_warnings():
         warnings.simplefilter("error", lcs_cvx.FallbackWarning)
         sol = solve_violation_fast(values)
@@ -216,17 +221,8 @@ def test_exact_fallback_where_clarabel_is_far_off():
     """Nearly skew-symmetric ``F`` (``G = 0``, ``s = gamma = 1e-6``) at ``n = 6``: capped
     pivoting hands samples to the enumeration, whose answers are KKT-exact (measured 5e-16)
     where Clarabel's are not (measured KKT residual ~1e2)."""
-    n, gamma, eps = 6, 1e-6, 1e-4
-    truth = lcs_cvx.random_lcs(n, 4, n, stiffness=1e-6, seed=10)
-    data = lcs_cvx.make_dataset(truth, 60, noise=1e-2, seed=17)
-    gen = torch.Generator().manual_seed(10)
-    with torch.no_grad():
-        for p in truth.parameters():
-            p.add_(0.05 * torch.randn(p.shape, generator=gen, dtype=F64))
-        truth.G.zero_()
-        q = truth.lcp_offset(data.x, data.u)
-        r = data.x @ truth.A.mT + data.u @ truth.B.mT + truth.d - data.x_next
-        values = violation_problem(n).parameter_values(truth.C, truth.F, q, r, gamma, eps)
+    n = 6
+    values = _nearly_skew_values(n, 60)
     with warnings.catch_warnings():
         warnings.simplefilter("error", lcs_cvx.FallbackWarning)
         full = solve_violation_fast(values)

@@ -55,7 +55,7 @@ import tomllib
 from typing import Any
 
 from .._checks import LCSInputError
-from ..train.options import LOSSES
+from ..train.phase_options import LOSSES
 from ..train.recipes import FLAT_OPTIONS, RECIPES, resolve_options
 from .baselines import BASELINES, baseline_options
 

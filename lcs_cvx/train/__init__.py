@@ -1,7 +1,8 @@
 """Training an LCS: :func:`fit` and its options.
 
-- :mod:`~lcs_cvx.train.options` -- :class:`FitOptions`, grouped by phase, and the flat keywords
-  of :func:`fit` as an alias table onto its fields.
+- :mod:`~lcs_cvx.train.phase_options` -- the options of each phase, frozen dataclasses.
+- :mod:`~lcs_cvx.train.options` -- :class:`FitOptions`, one of each, and the flat keywords of
+  :func:`fit` as an alias table onto its fields.
 - :mod:`~lcs_cvx.train.recipes` -- the recipes, read-only :class:`FitOptions` values.
 - :mod:`~lcs_cvx.train.inputs` -- the data and options of a call, checked once.
 - :mod:`~lcs_cvx.train.result` -- :class:`FitResult`.
@@ -14,14 +15,14 @@
 from .driver import CHECKPOINT_FORMAT as CHECKPOINT_FORMAT
 from .driver import fit as fit
 from .ensemble import fit_ensemble as fit_ensemble
-from .options import AdamOptions as AdamOptions
 from .options import FitOptions as FitOptions
-from .options import ObjectiveOptions as ObjectiveOptions
-from .options import PolishOptions as PolishOptions
-from .options import PruneOptions as PruneOptions
-from .options import RefineOptions as RefineOptions
-from .options import RunOptions as RunOptions
-from .options import extra_units as extra_units
+from .phase_options import AdamOptions as AdamOptions
+from .phase_options import ObjectiveOptions as ObjectiveOptions
+from .phase_options import PolishOptions as PolishOptions
+from .phase_options import PruneOptions as PruneOptions
+from .phase_options import RefineOptions as RefineOptions
+from .phase_options import RunOptions as RunOptions
+from .phase_options import extra_units as extra_units
 from .recipes import FLAT_OPTIONS as FLAT_OPTIONS
 from .recipes import RECIPES as RECIPES
 from .recipes import resolve_options as resolve_options

@@ -6,7 +6,7 @@ checkpointed. Recording, checkpoints, callbacks and the progress bar live in :fu
 alone.
 
 - :class:`AdamPhase` -- minibatch Adam on ``L(theta) + omega ||C||_F^2`` (eq. (4)) with the
-  schedules of :class:`~lcs_cvx.train.options.AdamOptions`.
+  schedules of :class:`~lcs_cvx.train.phase_options.AdamOptions`.
 - :class:`PrunePhase` -- one step: the grown model cut back to ``n_lam`` units
   (:func:`lcs_cvx.resizing.prune_units`), a few Gauss--Newton steps after each removal.
 - :class:`RefinePhase` -- Levenberg--Marquardt steps (:mod:`lcs_cvx.second_order`, Lemma 4).

@@ -14,7 +14,8 @@ from __future__ import annotations
 from types import MappingProxyType
 from typing import Any
 
-from .options import FLAT_OPTIONS, RECIPE_NAMES, FitOptions, apply_flat, known, option_error
+from .options import FLAT_OPTIONS, RECIPE_NAMES, FitOptions, apply_flat, known
+from .phase_options import option_error
 
 __all__ = ["FLAT_OPTIONS", "RECIPES", "RECIPE_VERSIONS", "resolve_options"]
 

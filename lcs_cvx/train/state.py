@@ -21,7 +21,8 @@ from ..metrics import relative_error
 from ..parameter_constraints import allowed_extra_units
 from ..resizing import add_units
 from ..system import LCS, PARAMETER_NAMES
-from .options import FitOptions, extra_units
+from .options import FitOptions
+from .phase_options import extra_units
 
 __all__ = ["TrainState", "Outcome", "PHASES"]
 
