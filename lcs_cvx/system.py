@@ -456,3 +456,15 @@ class LCS(nn.Module):
             "c": m["c"],
         }
 
+
+    @classmethod
+    def from_c3(cls, matrices: dict[str, Any], dtype: torch.dtype = torch.float64) -> LCS:
+        """The inverse of :meth:`to_c3`: a system from matrices in C3's naming (keys ``"A", "B",
+        "D", "d", "E", "F", "H", "c"``; C3's ``D, E, H`` are our ``C, D, E``)."""
+        need = ("A", "B", "D", "d", "E", "F", "H", "c")
+        missing = [k for k in need if k not in matrices]
+        if missing:
+            raise LCSInputError(f"matrices: expected C3's keys {need}, missing {missing}")
+        m = matrices
+        return cls.from_matrices(A=m["A"], B=m["B"], C=m["D"], d=m["d"], D=m["E"], E=m["H"], F=m["F"],
+                                 c=m["c"], dtype=dtype)

@@ -1,0 +1,68 @@
+"""The array work of C3 (:mod:`lcs_cvx.control`): its ADMM loop, the fast QP step and the
+closed-form ``"c3+"`` projection, on the arrays of an :class:`~.arrays.ArrayOps` back-end.
+
+Shapes: ``x0 (B, n_x)``, ``delta``, ``w``, ``z (B, N, n_z)``; the QP step's affine map
+``y = p_fixed Yf + t Yt + y0`` with ``p_fixed = (x0, lam0, x^d)`` and ``t`` the flattened
+targets, ``y = (z_0, ..., z_{N-1}, x_N)``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["admm", "affine_qp", "project_c3plus"]
+
+
+def affine_qp(Yf: Any, Yt: Any, y0: Any, p_fixed: Any, target: Any) -> tuple[Any, Any]:
+    """The equality-constrained QP step as its affine solution map: ``z (B, N, n_z)``,
+    ``x_N (B, n_x)``."""
+    B, N, nz = target.shape
+    y = p_fixed @ Yf + target.reshape(B, N * nz) @ Yt + y0
+    return y[:, : N * nz].reshape(B, N, nz), y[:, N * nz:]
+
+
+def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqrt_w_eta: Any) -> Any:
+    """Per coordinate, zero ``lam_i`` where ``sqrt(w_eta) eta_i > sqrt(w_lam) lam_i``, else
+    ``eta_i``; clip both at 0. ``c (B, N, n_z)``; weights ``(N, n_lam)``."""
+    cl, ce = c[..., lam], c[..., eta]
+    keep_eta = ce * sqrt_w_eta > cl * sqrt_w_lam
+    out = xp.copy(c)
+    out[..., lam] = xp.clamp_min(xp.where(keep_eta, 0.0, cl), 0.0)
+    out[..., eta] = xp.clamp_min(xp.where(keep_eta, ce, 0.0), 0.0)
+    return out
+
+
+def admm(xp: Any, qp_step: Callable[..., tuple[Any, Any, int]], project: Callable[[Any], Any], delta: Any,
+         iterations: int, rho_scale: float, last_target_is_delta: bool) -> dict[str, Any]:
+    """C3's iterations: ``z = QP(i, delta - w)``, ``delta' = project(z + w)``,
+    ``w' = (w + z - delta') / rho_scale``; then ``z = QP(K, delta - w)`` (``delta`` if
+    ``last_target_is_delta``). ``qp_step(level, target) -> (z, x_N, failures)``.
+
+    Returns ``z``, ``x_N``, ``delta``, ``primal`` and ``dual`` (each a list of ``(B,)`` per
+    iteration: ``max |z - delta'|`` and ``max |delta' - delta|``), ``failures`` and the seconds in
+    ``"qp"`` and ``"projection"``.
+    """
+    w = delta * 0.0
+    primal, dual, failures = [], [], 0
+    t_qp = t_proj = 0.0
+    for i in range(iterations):
+        t0 = time.perf_counter()
+        z, _, bad = qp_step(i, delta - w)
+        t1 = time.perf_counter()
+        new = project(z + w)
+        t_proj += time.perf_counter() - t1
+        t_qp += t1 - t0
+        failures += bad
+        w = (w + z - new) / rho_scale
+        primal.append(z - new)
+        dual.append(new - delta)
+        delta = new
+    t0 = time.perf_counter()
+    z, xN, bad = qp_step(iterations, delta if last_target_is_delta else delta - w)
+    t_qp += time.perf_counter() - t0
+    B = delta.shape[0]
+    flat = [xp.amax_abs(d.reshape(B, -1))[:, 0] for d in (primal + dual)]
+    return {"z": z, "x_N": xN, "delta": delta, "primal": flat[:iterations], "dual": flat[iterations:],
+            "failures": failures + bad, "qp": t_qp, "projection": t_proj}

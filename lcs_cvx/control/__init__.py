@@ -1,0 +1,15 @@
+"""Control with an LCS: C3, consensus complementarity control (model-predictive control by ADMM
+between a QP over the horizon and a projection onto the complementarity set of eq. (1))."""
+
+from .c3 import C3 as C3
+from .c3 import Plan as Plan
+from .closed_loop import ClosedLoop as ClosedLoop
+from .closed_loop import closed_loop as closed_loop
+from .costs import dare as dare
+from .examples import CartpoleProblem as CartpoleProblem
+from .examples import c3_cartpole as c3_cartpole
+from .projection import project_enumerate as project_enumerate
+from .qp import qp_problem as qp_problem
+
+__all__ = ["C3", "Plan", "ClosedLoop", "closed_loop", "dare", "CartpoleProblem", "c3_cartpole",
+           "project_enumerate", "qp_problem"]

@@ -1,0 +1,225 @@
+"""C3, consensus complementarity control (Aydinoglu, Wei, Posa): model-predictive control of an
+LCS, eq. (1), by ADMM between a QP over the horizon and a per-step projection onto the
+complementarity set.
+
+With ``delta^0`` (zero, or the previous plan shifted by one step) and ``w^0 = 0``, each of the
+``K = admm_iterations`` iterations ``i`` does
+
+.. math::
+
+    z^{i+1} &= \\arg\\min_z\\ \\text{cost}(z) + \\textstyle\\sum_k (z_k - \\delta^i_k + w^i_k)^\\top
+        \\rho^i G_k (z_k - \\delta^i_k + w^i_k) \\quad\\text{s.t. the dynamics}
+        \\quad (\\text{QP step, } :mod:`lcs_cvx.control.qp`) \\\\
+    \\delta^{i+1}_k &= \\Pi_{U_k}(z^{i+1}_k + w^i_k) \\quad (\\text{projection, } :mod:`lcs_cvx.control.projection`) \\\\
+    w^{i+1} &= (w^i + z^{i+1} - \\delta^{i+1}) / \\rho_s, \\qquad \\rho^{i+1} = \\rho_s \\rho^i
+
+(the scaled dual of C3's code: ``G`` grows by ``rho_s = rho_scale`` and ``w`` shrinks by it), then
+a last QP step at ``rho^K`` returns the plan (its target is ``delta - w``; ``delta`` for
+``"c3+"``, as in C3+). When ``u`` does not enter the complementarity (``E = 0``), ``lam_0`` is fixed
+to the LCP solution at ``x0``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._checks import FallbackWarning, LCSInputError, as_batch, check_positive
+from .._kernels.arrays import array_ops
+from .._kernels.c3 import admm
+from ..lcp import solve_lcp_unchecked
+from ..system import LCS
+from .costs import PROJECTIONS, Horizon, Layout, dare, default_consensus_weights, weight_matrix
+from .projection import Projection
+from .qp import Bounds, QPStep
+
+__all__ = ["C3", "Plan"]
+
+
+@dataclasses.dataclass
+class Plan:
+    """A C3 plan from ``x0``. With one initial state ``(n_x,)`` the shapes are as listed; with a
+    batch ``(B, n_x)`` every array gains a leading ``B``.
+
+    Attributes:
+        x: ``(N + 1, n_x)`` planned states (``x[0] = x0``).
+        u: ``(N, n_u)`` planned inputs (``u[0]`` is the control to apply).
+        lam: ``(N, n_lam)`` planned contact forces.
+        delta: ``(N, n_z)`` the last projection (the warm start of the next solve).
+        primal_residual: ``(K,)`` ``max_k |z_k - delta_k|`` after each ADMM iteration.
+        dual_residual: ``(K,)`` ``max_k |delta_k - delta_k^{prev}|`` of each iteration.
+        complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
+        times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed ``lam_0``), ``"total"``.
+        qp_failures: QP steps that failed (``"cvxpy"`` path) and fell back to C3's plan
+            ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning` says so).
+    """
+
+    x: torch.Tensor
+    u: torch.Tensor
+    lam: torch.Tensor
+    delta: torch.Tensor
+    primal_residual: torch.Tensor
+    dual_residual: torch.Tensor
+    complementarity: torch.Tensor
+    times: dict[str, float]
+    qp_failures: int = 0
+
+
+class C3:
+    """C3 for an LCS ``model`` over ``horizon`` steps.
+
+    Args:
+        model: an :class:`lcs_cvx.LCS` (as learned, physical units; :meth:`lcs_cvx.LCS.from_matrices`
+            or :meth:`lcs_cvx.LCS.from_c3` for a written one), or a list of ``horizon`` of them.
+        horizon: ``N``.
+        Q ``(n_x, n_x)`` or its diagonal; R ``(n_u, n_u)`` or its diagonal: stage weights.
+        QN: terminal weight, a matrix, its diagonal, or ``"dare"`` (the Riccati solution of
+            ``(A, B, Q, R)`` of the first step).
+        G, U: consensus weights over ``z = (x, lam, u)`` (``(x, lam, u, eta)`` for ``"c3+"``),
+            matrices or diagonals; None: C3's published cart-pole weights for the projection.
+        projection: ``"c3+"`` (closed form), ``"qp"`` (convex relaxation) or ``"miqp"`` (exact).
+        admm_iterations: ``K``; rho_scale: the growth of ``G`` per iteration.
+        x_des: the target, ``(n_x,)`` or ``(N + 1, n_x)``; default the origin.
+        x_bounds, u_bounds, lam_bounds: box bounds ``(lo, hi)``; they need ``qp_path="cvxpy"``.
+        qp_path: ``"fast"`` (default without bounds) or ``"cvxpy"``; qp_solver: ``"CLARABEL"`` or
+            ``"OSQP"`` for the ``"cvxpy"`` path.
+        projection_solver: the CVXPY solver of ``"qp"`` (Clarabel) or ``"miqp"`` (SCIP).
+        warm_start: ``ctrl(x0)`` starts from the previous plan's ``delta`` shifted by one step.
+    """
+
+    def __init__(self, model: Any, horizon: int, *, Q: Any, R: Any, QN: Any = "dare", G: Any = None,
+                 U: Any = None, projection: str = "c3+", admm_iterations: int = 10, rho_scale: float = 2.0,
+                 x_des: Any = None, x_bounds: Any = None, u_bounds: Any = None, lam_bounds: Any = None,
+                 qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
+                 warm_start: bool = True, big_m: float = 1000.0):
+        if projection not in PROJECTIONS:
+            raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
+        self.horizon = Horizon.of(model, horizon)
+        self.model = model if isinstance(model, LCS) else model[0]
+        hz = self.horizon
+        N = hz.N
+        self.layout = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=projection == "c3+")
+        self.projection_name = projection
+        self.admm_iterations = check_positive("admm_iterations", admm_iterations, integer=True)
+        self.rho_scale = check_positive("rho_scale", rho_scale)
+        self.Q = weight_matrix("Q", Q, hz.n_x, N)
+        self.R = weight_matrix("R", R, hz.n_u, N)
+        if isinstance(QN, str):
+            if QN != "dare":
+                raise LCSInputError(f"QN: expected a matrix, its diagonal or 'dare', received {QN!r}")
+            self.QN = dare(hz.A[0], hz.B[0], self.Q[0], self.R[0])
+        else:
+            self.QN = weight_matrix("QN", QN, hz.n_x, 1)[0]
+        G0, U0 = default_consensus_weights(self.layout, projection)
+        self.G = weight_matrix("G", G0 if G is None else G, self.layout.n_z, N)
+        self.U = weight_matrix("U", U0 if U is None else U, self.layout.n_z, N)
+        bounds = Bounds.of(self.layout, x=x_bounds, u=u_bounds, lam=lam_bounds)
+        self.bounds = bounds
+        path = qp_path or ("cvxpy" if bounds.any() else "fast")
+        self.fix_lam0 = not hz.input_in_complementarity() and hz.n_lam > 0
+        self.x_des = self._target(x_des)
+        rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
+        self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
+                         bounds=bounds, path=path, solver=qp_solver)
+        self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m)
+        self.warm_start = warm_start
+        self.last_plan: Plan | None = None
+
+    def _target(self, x_des: Any) -> torch.Tensor:
+        N, nx = self.horizon.N, self.horizon.n_x
+        if x_des is None:
+            return torch.zeros(1, N + 1, nx, dtype=torch.float64)
+        t = torch.as_tensor(np.asarray(x_des, dtype=np.float64))
+        if t.shape == (nx,):
+            t = t.expand(N + 1, nx)
+        if t.shape != (N + 1, nx) or not torch.isfinite(t).all():
+            raise LCSInputError(f"x_des: expected finite ({nx},) or ({N + 1}, {nx}), received shape {tuple(t.shape)}")
+        return t.unsqueeze(0).clone()
+
+    def _shift(self, plan: Plan, batch: int) -> torch.Tensor | None:
+        """The previous plan's ``delta`` shifted by one step (its last step repeated)."""
+        delta = plan.delta if plan.delta.dim() == 3 else plan.delta.unsqueeze(0)
+        if delta.shape[0] != batch:
+            return None
+        return torch.cat([delta[:, 1:], delta[:, -1:]], dim=1)
+
+    @torch.no_grad()
+    def solve(self, x0: Any, *, x_des: Any = None, warm_start: Plan | None = None) -> Plan:
+        """The plan from ``x0`` ``(n_x,)`` or a batch ``(B, n_x)``; ``warm_start`` a previous
+        :class:`Plan` of the same batch size (its ``delta`` shifted by one step starts the ADMM).
+        With ``qp_path="fast"`` and ``projection="c3+"`` the whole solve runs on ``x0``'s device."""
+        t_start = time.perf_counter()
+        hz, lay = self.horizon, self.layout
+        single = np.ndim(x0) == 1
+        fast = self.qp.path == "fast" and self.projection_name == "c3+"
+        X0 = as_batch("x0", x0, hz.n_x)
+        if not fast:
+            X0 = X0.cpu()
+        B, N = X0.shape[0], hz.N
+        xp = array_ops(X0)
+        xd = (self.x_des if x_des is None else self._target(x_des)).to(X0).expand(B, N + 1, hz.n_x)
+        t_lcp = 0.0
+        lam0 = None
+        if self.fix_lam0:
+            t = time.perf_counter()
+            F0, D0, c0 = (torch.as_tensor(getattr(hz, k)[0]).to(X0) for k in ("F", "D", "c"))
+            lam0 = solve_lcp_unchecked(F0, X0 @ D0.mT + c0).lam
+            t_lcp = time.perf_counter() - t
+        delta = self._shift(warm_start, B) if warm_start is not None else None
+        if delta is None:
+            delta = X0.new_zeros(B, N, lay.n_z)
+        arrays = [None if a is None else xp.wrap(xp.contiguous(a) if not xp.np else a.contiguous())
+                  for a in (X0, lam0, xd, delta.to(X0))]
+        x0_a, lam0_a, xd_a, delta_a = arrays
+
+        def qp_step(level: int, target: Any) -> tuple[Any, Any, int]:
+            return self.qp.step(xp, level, x0_a, lam0_a, xd_a, target)
+
+        with xp.threads():
+            out = admm(xp, qp_step, lambda c: self.project(xp, c), delta_a, self.admm_iterations,
+                       self.rho_scale, last_target_is_delta=lay.with_eta)
+        if out["failures"]:
+            warnings.warn(
+                f"C3: {out['failures']} QP step(s) failed in {self.qp.solver}; their plans fell back to "
+                "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
+        z, xN = (torch.as_tensor(xp.unwrap(out[k])) for k in ("z", "x_N"))
+        x = torch.cat([z[..., lay.x], xN.unsqueeze(1)], dim=1)
+        lam, u = z[..., lay.lam], z[..., lay.u]
+        comp = self._violation(x[:, :N], u, lam)
+        times = {"qp": out["qp"], "projection": out["projection"], "lcp": t_lcp,
+                 "total": time.perf_counter() - t_start}
+        plan = Plan(x=x, u=u, lam=lam, delta=torch.as_tensor(xp.unwrap(out["delta"])),
+                    primal_residual=torch.stack([torch.as_tensor(xp.unwrap(r)) for r in out["primal"]], 1),
+                    dual_residual=torch.stack([torch.as_tensor(xp.unwrap(r)) for r in out["dual"]], 1),
+                    complementarity=comp, times=times, qp_failures=out["failures"])
+        if single:
+            plan = dataclasses.replace(plan, **{f: getattr(plan, f)[0] for f in
+                                                ("x", "u", "lam", "delta", "primal_residual", "dual_residual", "complementarity")})
+        return plan
+
+    def _violation(self, x: torch.Tensor, u: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+        """``max_k max_i |min(lam, D x + E u + F lam + c)|`` per plan, ``(B,)``."""
+        hz = self.horizon
+        if hz.n_lam == 0:
+            return x.new_zeros(x.shape[0])
+        D, E, F, c = (torch.as_tensor(getattr(hz, k)).to(x) for k in ("D", "E", "F", "c"))
+        eta = (torch.einsum("kij,bkj->bki", D, x) + torch.einsum("kij,bkj->bki", E, u)
+               + torch.einsum("kij,bkj->bki", F, lam) + c)
+        return torch.minimum(lam, eta).abs().amax(dim=(1, 2))
+
+    def __call__(self, x0: Any) -> torch.Tensor:
+        """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),
+        warm-started from the previous call's plan when ``warm_start``."""
+        prev = self.last_plan if self.warm_start else None
+        plan = self.solve(x0, warm_start=prev)
+        self.last_plan = plan
+        return plan.u[..., 0, :]
+
+    def reset(self) -> None:
+        """Forget the previous plan (the next ``ctrl(x0)`` starts cold)."""
+        self.last_plan = None

@@ -1,0 +1,173 @@
+"""The projection step of C3: per step of the horizon, the point ``c_k = z_k + w_k`` projected
+onto the complementarity set of the LCS in the ``U_k``-metric,
+
+.. math::
+
+    \\delta_k = \\arg\\min_\\delta\\ (\\delta - c_k)^\\top U_k (\\delta - c_k)
+    \\quad\\text{s.t.}\\quad 0 \\le \\lambda \\perp D_k x + E_k u + F_k \\lambda + c_k \\ge 0 .
+
+The steps are independent, so every method projects all of them (and all initial states) at once:
+
+- ``"c3+"`` (closed form, no solver): ``z`` carries ``eta = D x + E u + F lam + c`` as its own
+  coordinates; per coordinate the one of ``lam_i``, ``eta_i`` that costs less to zero in the
+  ``U``-metric is zeroed and the other clipped at 0 (``U`` diagonal on ``lam`` and ``eta``).
+- ``"qp"``: C3's convex relaxation, the ``lam`` block of ``U`` replaced by ``alpha F`` and
+  ``(1 - alpha) lam^T F lam`` added, subject to ``lam >= 0`` and ``D x + E u + F lam + c >= 0``
+  (declared once in CVXPY, all steps in one problem).
+- ``"miqp"``: exact, with big-M binaries ``b``: ``0 <= lam <= M (1 - b)``,
+  ``0 <= D x + E u + F lam + c <= M b`` (declared once in CVXPY, solved by a mixed-integer solver:
+  SCIP from the ``control`` extra, or a commercial one CVXPY reaches).
+- :func:`project_enumerate`: exact, by the ``2^n_lam`` sign patterns, each a convex QP (the test
+  oracle of ``"miqp"``; small ``n_lam`` only).
+
+Shapes: ``c (B, N, n_z)`` in, ``delta (B, N, n_z)`` out.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import cvxpy as cp
+import numpy as np
+import torch
+
+from .._checks import LCSInputError, SolverError
+from .._optional import require
+from .._kernels.c3 import project_c3plus
+from .costs import Horizon, Layout, psd_factor
+
+__all__ = ["Projection", "project_enumerate", "MIQP_SOLVERS"]
+
+# mixed-integer solvers CVXPY can hand a mixed-integer QP to (HiGHS and GLPK_MI take MILPs only)
+MIQP_SOLVERS = ("SCIP", "GUROBI", "MOSEK", "XPRESS", "COPT", "CPLEX")
+
+
+def _declare(horizon: Horizon, layout: Layout, U: np.ndarray, kind: str, *, alpha: float, scaling: float,
+             big_m: float) -> tuple[cp.Problem, cp.Parameter, cp.Variable]:
+    """The ``"qp"`` or ``"miqp"`` projection of all ``N`` steps as one problem, declared once.
+    Parameter ``target (N, n)`` holds ``L_k c_k`` (``L_k^T L_k`` the metric); variable
+    ``delta (N, n)``, ``n = n_x + n_lam + n_u``."""
+    N, nx, nl, nu = horizon.N, layout.n_x, layout.n_lam, layout.n_u
+    n = nx + nl + nu
+    delta = cp.Variable((N, n), name="delta")
+    target = cp.Parameter((N, n), name="target")
+    metric = U[:, :n, :n].copy()
+    Fs = 0.5 * (horizon.F + np.swapaxes(horizon.F, 1, 2))
+    if kind == "qp":
+        metric[:, nx:nx + nl, nx:nx + nl] = alpha * Fs
+    L = psd_factor(metric)
+    LF = psd_factor((1 - alpha) * Fs) if kind == "qp" else None
+    cost, cons = 0, []
+    b = cp.Variable((N, nl), boolean=True, name="b") if kind == "miqp" else None
+    for k in range(N):
+        x, lam, u = delta[k, :nx], delta[k, nx:nx + nl], delta[k, nx + nl:]
+        eta = horizon.D[k] @ x + horizon.E[k] @ u + horizon.F[k] @ lam + horizon.c[k]
+        cost += cp.sum_squares(L[k] @ delta[k] - target[k])
+        if kind == "qp":
+            cost += cp.sum_squares(LF[k] @ lam)
+            cons += [lam >= 0, eta / scaling >= 0]
+        else:
+            cons += [lam >= 0, lam <= big_m * (1 - b[k]), eta >= 0, eta <= big_m * b[k]]
+    return cp.Problem(cp.Minimize(cost), cons), target, delta
+
+
+class Projection:
+    """The projection step ``projection`` (``"c3+"``, ``"qp"`` or ``"miqp"``) with metric ``U``
+    ``(N, n_z, n_z)``.
+
+    ``solver``: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"`` (default SCIP).
+    ``alpha``, ``scaling``: C3's ``qp_projection_alpha`` (0.01) and ``qp_projection_scaling``
+    (1000); ``big_m``: C3's ``M`` (1000).
+    """
+
+    def __init__(self, horizon: Horizon, layout: Layout, U: np.ndarray, projection: str, *,
+                 solver: str | None = None, alpha: float = 0.01, scaling: float = 1000.0, big_m: float = 1000.0):
+        self.horizon, self.layout, self.kind = horizon, layout, projection
+        nx, nl, nu = layout.n_x, layout.n_lam, layout.n_u
+        if projection == "c3+":
+            d_lam = np.diagonal(U[:, layout.lam, layout.lam], axis1=1, axis2=2)
+            d_eta = np.diagonal(U[:, layout.eta, layout.eta], axis1=1, axis2=2)
+            if (d_lam < 0).any() or (d_eta < 0).any():
+                raise LCSInputError("U: the 'c3+' projection needs nonnegative weights on lam and eta")
+            self._sqrt_w = {"numpy": (np.sqrt(d_lam), np.sqrt(d_eta))}
+            return
+        if projection == "miqp":
+            solver = solver or "SCIP"
+            if solver not in MIQP_SOLVERS:
+                raise LCSInputError(f"projection_solver: expected a mixed-integer QP solver, one of {MIQP_SOLVERS}, received {solver!r}")
+            if solver not in cp.installed_solvers():
+                if solver == "SCIP":
+                    require("pyscipopt", "control", "the 'miqp' projection (SCIP)")
+                raise ModuleNotFoundError(
+                    f"the 'miqp' projection asked for {solver}, which CVXPY does not find installed; "
+                    "pip install 'lcs_cvx[control]' brings SCIP"
+                )
+        else:
+            solver = solver or "CLARABEL"
+        self.solver = solver
+        self.problem, self.target, self.delta = _declare(horizon, layout, U, projection, alpha=alpha,
+                                                        scaling=scaling, big_m=big_m)
+        metric = U[:, : nx + nl + nu, : nx + nl + nu].copy()
+        if projection == "qp":
+            metric[:, nx:nx + nl, nx:nx + nl] = alpha * 0.5 * (horizon.F + np.swapaxes(horizon.F, 1, 2))
+        self._L = psd_factor(metric)
+
+    def __call__(self, xp: Any, c: Any) -> Any:
+        """``delta (B, N, n_z)``, the projection of every step of ``c (B, N, n_z)`` (arrays of
+        ``xp``; ``"qp"`` and ``"miqp"`` on NumPy arrays)."""
+        if self.kind == "c3+":
+            return project_c3plus(xp, c, self.layout.lam, self.layout.eta, *self._weights(xp, c))
+        n = self.layout.n_x + self.layout.n_lam + self.layout.n_u
+        out = c.copy()
+        for b in range(c.shape[0]):
+            self.target.value = np.einsum("kij,kj->ki", self._L, c[b, :, :n])
+            try:
+                self.problem.solve(solver=self.solver)
+            except cp.error.SolverError as exc:
+                raise SolverError(f"the '{self.kind}' projection failed in {self.solver}: {exc}") from exc
+            if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+                raise SolverError(f"the '{self.kind}' projection: {self.solver} returned status {self.problem.status}")
+            out[b, :, :n] = self.delta.value
+        return out
+
+    def _weights(self, xp: Any, like: Any) -> tuple[Any, Any]:
+        if xp.np:
+            return self._sqrt_w["numpy"]
+        key = f"torch:{like.device}:{like.dtype}"
+        if key not in self._sqrt_w:
+            self._sqrt_w[key] = tuple(torch.as_tensor(a).to(device=like.device, dtype=like.dtype)
+                                      for a in self._sqrt_w["numpy"])
+        return self._sqrt_w[key]
+
+
+def project_enumerate(c: Any, U: Any, D: Any, E: Any, F: Any, lcp_c: Any, n_x: int, n_u: int) -> np.ndarray:
+    """The exact projection of one point ``c (n_x + n_lam + n_u,)`` onto
+    ``{0 <= lam _|_ D x + E u + F lam + lcp_c >= 0}`` in the ``U``-metric, by enumerating the
+    ``2^n_lam`` patterns (on ``S``: ``eta_S = 0, lam_S >= 0``; off ``S``: ``lam = 0, eta >= 0``),
+    each a convex QP solved by Clarabel. The oracle of ``"miqp"``; ``n_lam <= 10``."""
+    c, U = np.asarray(c, dtype=np.float64), np.asarray(U, dtype=np.float64)
+    D, E, F, lcp_c = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (D, E, F, lcp_c))
+    nl = F.shape[0]
+    if nl > 10:
+        raise LCSInputError(f"project_enumerate: 2^n_lam patterns; expected n_lam <= 10, received {nl}")
+    n = n_x + nl + n_u
+    L = psd_factor(U[:n, :n])
+    best, best_cost = None, np.inf
+    for pattern in itertools.product((False, True), repeat=nl):
+        on = np.array(pattern, dtype=bool)
+        d = cp.Variable(n)
+        x, lam, u = d[:n_x], d[n_x:n_x + nl], d[n_x + nl:]
+        eta = D @ x + E @ u + F @ lam + lcp_c
+        cons = []
+        if on.any():
+            cons += [lam[on] >= 0, eta[on] == 0]
+        if (~on).any():
+            cons += [lam[~on] == 0, eta[~on] >= 0]
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(L @ (d - c))), cons)
+        prob.solve(solver="CLARABEL")
+        if prob.status == cp.OPTIMAL and prob.value < best_cost:
+            best, best_cost = d.value.copy(), prob.value
+    if best is None:
+        raise SolverError("project_enumerate: no sign pattern is feasible")
+    return best

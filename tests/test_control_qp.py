@@ -1,0 +1,177 @@
+"""The QP step of C3 (lcs_cvx.control.qp): the fast affine path against the declared CVXPY
+problem (Clarabel and OSQP), with and without a fixed lam_0 and eta, and the finite-horizon LQR
+as its closed form when contact plays no part."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx._kernels.arrays import array_ops
+from lcs_cvx.control import C3, dare
+from lcs_cvx.control.costs import Horizon, Layout, weight_matrix
+from lcs_cvx.control.qp import Bounds, QPStep
+
+
+def random_model(n_x=4, n_u=2, n_lam=3, seed=0, E_zero=False):
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((n_lam, n_lam))
+    return lcs_cvx.LCS.from_matrices(
+        A=np.eye(n_x) + 0.1 * rng.standard_normal((n_x, n_x)), B=rng.standard_normal((n_x, n_u)),
+        C=rng.standard_normal((n_x, n_lam)), d=0.1 * rng.standard_normal(n_x),
+        D=rng.standard_normal((n_lam, n_x)), E=np.zeros((n_lam, n_u)) if E_zero else rng.standard_normal((n_lam, n_u)),
+        F=M @ M.T + np.eye(n_lam), c=rng.standard_normal(n_lam))
+
+
+def qp_pair(model, N, with_eta, fix_lam0, seed=0):
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta)
+    rng = np.random.default_rng(seed)
+    Q = weight_matrix("Q", rng.uniform(0.5, 2, hz.n_x), hz.n_x, N)
+    R = weight_matrix("R", rng.uniform(0.5, 2, hz.n_u), hz.n_u, N)
+    QN = dare(hz.A[0], hz.B[0], Q[0], R[0])
+    Gm = rng.standard_normal((lay.n_z, lay.n_z))
+    G = weight_matrix("G", Gm @ Gm.T / lay.n_z + 0.1 * np.eye(lay.n_z), lay.n_z, N)
+    rho = 2.0 ** np.arange(3)
+    kw = dict(fix_lam0=fix_lam0, bounds=Bounds())
+    fast = QPStep(hz, lay, Q, R, QN, G, rho, path="fast", solver="CLARABEL", **kw)
+    return hz, lay, fast, {s: QPStep(hz, lay, Q, R, QN, G, rho, path="cvxpy", solver=s, **kw) for s in ("CLARABEL", "OSQP")}
+
+
+@pytest.mark.parametrize("with_eta,fix_lam0", [(False, False), (True, False), (False, True), (True, True)])
+def test_fast_path_equals_the_declared_problem(with_eta, fix_lam0):
+    model = random_model(E_zero=fix_lam0)
+    hz, lay, fast, slow = qp_pair(model, 4, with_eta, fix_lam0)
+    rng = np.random.default_rng(1)
+    B = 3
+    x0 = rng.standard_normal((B, hz.n_x))
+    lam0 = np.abs(rng.standard_normal((B, hz.n_lam))) if fix_lam0 else None
+    xd = rng.standard_normal((B, hz.N + 1, hz.n_x))
+    target = rng.standard_normal((B, hz.N, lay.n_z))
+    xp = array_ops(torch.zeros(1))
+    for level in (0, 2):
+        z, xN, bad = fast.step(xp, level, x0, lam0, xd, target)
+        assert bad == 0
+        for solver, qp in slow.items():
+            z2, xN2, bad2 = qp.step(xp, level, x0, lam0, xd, target)
+            assert bad2 == 0
+            scale = max(1.0, np.abs(z).max())
+            assert np.abs(z - z2).max() <= 1e-8 * scale, solver
+            assert np.abs(xN - xN2).max() <= 1e-8 * scale, solver
+        # the solution satisfies the dynamics (and eta's definition, and the fixed lam_0) exactly
+        x = np.concatenate([z[..., lay.x], xN[:, None]], axis=1)
+        nxt = (np.einsum("kij,bkj->bki", hz.A, x[:, :-1]) + np.einsum("kij,bkj->bki", hz.B, z[..., lay.u])
+               + np.einsum("kij,bkj->bki", hz.C, z[..., lay.lam]) + hz.d)
+        assert np.abs(nxt - x[:, 1:]).max() < 1e-10
+        assert np.abs(x[:, 0] - x0).max() < 1e-12
+        if with_eta:
+            eta = (np.einsum("kij,bkj->bki", hz.D, x[:, :-1]) + np.einsum("kij,bkj->bki", hz.E, z[..., lay.u])
+                   + np.einsum("kij,bkj->bki", hz.F, z[..., lay.lam]) + hz.c)
+            assert np.abs(eta - z[..., lay.eta]).max() < 1e-10
+        if fix_lam0:
+            assert np.abs(z[:, 0, lay.lam] - lam0).max() < 1e-12
+
+
+def test_fast_path_runs_on_torch_arrays_like_numpy():
+    model = random_model()
+    hz, lay, fast, _ = qp_pair(model, 3, True, False)
+    rng = np.random.default_rng(2)
+    args = [rng.standard_normal((2, hz.n_x)), None, rng.standard_normal((2, 4, hz.n_x)), rng.standard_normal((2, 3, lay.n_z))]
+    z_np, _, _ = fast.step(array_ops(torch.zeros(1)), 1, *args)
+    t = [None if a is None else torch.tensor(a) for a in args]
+    z_t, _, _ = fast.step(array_ops(torch.zeros(1), "torch"), 1, *t)
+    assert torch.allclose(z_t, torch.tensor(z_np), rtol=0, atol=1e-12)
+
+
+def lqr_plan(A, B, Q, R, QN, x0, N):
+    """Finite-horizon LQR by the backward Riccati recursion, then the forward rollout."""
+    P, gains = QN, []
+    for _ in range(N):
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        P = Q + A.T @ P @ (A - B @ K)
+        gains.append(K)
+    gains = gains[::-1]
+    xs, us = [x0], []
+    for k in range(N):
+        us.append(-gains[k] @ xs[-1])
+        xs.append(A @ xs[-1] + B @ us[-1])
+    return np.array(xs), np.array(us)
+
+
+@pytest.mark.parametrize("projection,path", [("c3+", "fast"), ("c3+", "cvxpy"), ("qp", "fast"), ("miqp", "fast")])
+def test_without_contact_c3_is_the_finite_horizon_lqr(projection, path):
+    """lam does not enter the dynamics (C = 0) nor its own constraint through x or u (D = E = 0),
+    c > 0 so lam = 0 is feasible and optimal; with G and U weighting only lam (and eta), the plan
+    is the LQR plan whatever the ADMM does."""
+    if projection == "miqp":
+        pytest.importorskip("pyscipopt")
+    rng = np.random.default_rng(3)
+    n_x, n_u, n_lam, N = 4, 2, 2, 6
+    A = np.eye(n_x) + 0.1 * rng.standard_normal((n_x, n_x))
+    B = rng.standard_normal((n_x, n_u))
+    model = lcs_cvx.LCS.from_matrices(A=A, B=B, C=np.zeros((n_x, n_lam)), d=np.zeros(n_x),
+                                      D=np.zeros((n_lam, n_x)), E=np.zeros((n_lam, n_u)),
+                                      F=np.eye(n_lam), c=np.ones(n_lam))
+    Q, R = np.diag([3.0, 1.0, 2.0, 0.5]), np.diag([0.7, 1.3])
+    n_z = n_x + n_lam + n_u + (n_lam if projection == "c3+" else 0)
+    G = np.zeros(n_z)
+    G[n_x:n_x + n_lam] = 1.0
+    U = G.copy()
+    if projection == "c3+":
+        G[-n_lam:] = 1.0
+        U[-n_lam:] = 100.0
+    ctrl = C3(model, N, Q=Q, R=R, QN="dare", G=G, U=U, projection=projection, qp_path=path)
+    x0 = rng.standard_normal(n_x)
+    plan = ctrl.solve(x0)
+    xs, us = lqr_plan(A, B, Q, R, dare(A, B, Q, R), x0, N)
+    assert np.abs(plan.u.numpy() - us).max() < 1e-8
+    assert np.abs(plan.x.numpy() - xs).max() < 1e-8
+
+
+def test_dare_solves_the_riccati_equation():
+    rng = np.random.default_rng(4)
+    A, B = rng.standard_normal((3, 3)), rng.standard_normal((3, 1))
+    Q, R = np.eye(3), np.eye(1)
+    P = dare(A, B, Q, R)
+    rhs = A.T @ P @ A - A.T @ P @ B @ np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A) + Q
+    assert np.abs(P - rhs).max() < 1e-9 * np.abs(P).max()
+
+
+def test_box_bounds_hold_on_the_cvxpy_path_and_the_fast_path_refuses_them():
+    model = random_model(n_lam=2)
+    with pytest.raises(lcs_cvx.LCSInputError, match="qp_path"):
+        C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1), qp_path="fast")
+    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1))
+    assert ctrl.qp.path == "cvxpy"
+    free = C3(model, 3, Q=np.ones(4), R=np.ones(2))
+    x0 = np.array([1.0, -2.0, 0.5, 1.0])
+    assert float(free.solve(x0).u.abs().max()) > 0.1  # the bound is active
+    assert float(ctrl.solve(x0).u.abs().max()) <= 0.1 + 1e-7
+
+
+def test_infeasible_bounds_are_named_and_an_infeasible_qp_falls_back_visibly():
+    model = random_model(n_lam=2)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"x_bounds: infeasible bounds, lo\[1\]"):
+        C3(model, 3, Q=np.ones(4), R=np.ones(2), x_bounds=([-1, 2, -1, -1], [1, 1, 1, 1]))
+    # x_1 cannot reach a box 100 away in one step with |u| <= 1: every QP step fails
+    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), x_bounds=(100.0, 101.0), u_bounds=(-1, 1))
+    with pytest.warns(lcs_cvx.FallbackWarning, match="QP step"):
+        plan = ctrl.solve(np.zeros(4))
+    assert plan.qp_failures == ctrl.admm_iterations + 1
+    assert float(plan.u.abs().max()) == 0.0
+
+
+def test_weights_of_the_wrong_shape_are_named():
+    model = random_model()
+    with pytest.raises(lcs_cvx.LCSInputError, match="Q: expected 4 diagonal entries"):
+        C3(model, 3, Q=np.ones(3), R=np.ones(2))
+    with pytest.raises(lcs_cvx.LCSInputError, match="G: expected 12 diagonal"):
+        C3(model, 3, Q=np.ones(4), R=np.ones(2), G=np.ones(9))
+    with pytest.raises(lcs_cvx.LCSInputError, match="R: expected a positive semidefinite"):
+        C3(model, 3, Q=np.ones(4), R=-np.ones(2))
+    with pytest.raises(lcs_cvx.LCSInputError, match="horizon = 3"):
+        C3([model, model], 3, Q=np.ones(4), R=np.ones(2))
+    with pytest.raises(lcs_cvx.LCSInputError, match="G, R: the QP step has no unique solution"):
+        C3(model, 3, Q=np.ones(4), R=np.zeros(2), G=np.zeros(12))
