@@ -47,7 +47,8 @@ class Plan:
     batch ``(B, n_x)`` every array gains a leading ``B``.
 
     Attributes:
-        x: ``(N + 1, n_x)`` planned states (``x[0] = x0``).
+        x: ``(N + 1, n_x)`` planned states (``x[0] = x0``; the planned ``u`` and ``lam`` rolled
+            through the dynamics).
         u: ``(N, n_u)`` planned inputs (``u[0]`` is the control to apply).
         lam: ``(N, n_lam)`` planned contact forces.
         delta: ``(N, n_z)`` the last projection (the warm start of the next solve).
@@ -187,9 +188,9 @@ class C3:
             warnings.warn(
                 f"C3: {out['failures']} QP step(s) failed in {self.qp.solver}; their plans fell back to "
                 "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
-        z, xN = (torch.as_tensor(xp.unwrap(out[k])) for k in ("z", "x_N"))
-        x = torch.cat([z[..., lay.x], xN.unsqueeze(1)], dim=1)
+        z = torch.as_tensor(xp.unwrap(out["z"]))
         lam, u = z[..., lay.lam], z[..., lay.u]
+        x = self._rollout(X0, u, lam)
         comp = self._violation(x[:, :N], u, lam)
         times = {"qp": out["qp"], "projection": out["projection"], "lcp": t_lcp,
                  "total": time.perf_counter() - t_start}
@@ -201,6 +202,16 @@ class C3:
             plan = dataclasses.replace(plan, **{f: getattr(plan, f)[0] for f in
                                                 ("x", "u", "lam", "delta", "primal_residual", "dual_residual", "complementarity")})
         return plan
+
+    def _rollout(self, x0: torch.Tensor, u: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
+        """The planned states from the planned inputs and forces, ``(B, N + 1, n_x)``: the QP's
+        own states to its solve's accuracy (which a large ``rho`` degrades), exact in dynamics."""
+        hz = self.horizon
+        A, B_, C, d = (torch.as_tensor(getattr(hz, k)).to(x0) for k in ("A", "B", "C", "d"))
+        xs = [x0]
+        for k in range(hz.N):
+            xs.append(xs[-1] @ A[k].mT + u[:, k] @ B_[k].mT + lam[:, k] @ C[k].mT + d[k])
+        return torch.stack(xs, 1)
 
     def _violation(self, x: torch.Tensor, u: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
         """``max_k max_i |min(lam, D x + E u + F lam + c)|`` per plan, ``(B,)``."""

@@ -33,21 +33,27 @@ import numpy as np
 import torch
 
 from .._checks import LCSInputError, SolverError
-from .._optional import require
 from .._kernels.c3 import project_c3plus
+from .._optional import require
 from .costs import Horizon, Layout, psd_factor
 
 __all__ = ["Projection", "project_enumerate", "MIQP_SOLVERS"]
 
 # mixed-integer solvers CVXPY can hand a mixed-integer QP to (HiGHS and GLPK_MI take MILPs only)
 MIQP_SOLVERS = ("SCIP", "GUROBI", "MOSEK", "XPRESS", "COPT", "CPLEX")
+#: the convex QP of a fixed sign pattern, solved after the mixed-integer solver to make its
+#: answer exact: SCIP's feasibility tolerance (1e-6) leaves it ~1e-4 from the exact projection,
+#: and tighter tolerances make SCIP's LP solver fail on some problems
+POLISH_OPTIONS: dict[str, Any] = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
 
 
 def _declare(horizon: Horizon, layout: Layout, U: np.ndarray, kind: str, *, alpha: float, scaling: float,
-             big_m: float) -> tuple[cp.Problem, cp.Parameter, cp.Variable]:
-    """The ``"qp"`` or ``"miqp"`` projection of all ``N`` steps as one problem, declared once.
+             big_m: float) -> tuple[cp.Problem, cp.Parameter, cp.Variable, Any]:
+    """The ``"qp"`` or ``"miqp"`` projection of all ``N`` steps as one problem, declared once
+    (``kind="pattern"``: the ``"miqp"`` one with its binaries a parameter, a convex QP).
     Parameter ``target (N, n)`` holds ``L_k c_k`` (``L_k^T L_k`` the metric); variable
-    ``delta (N, n)``, ``n = n_x + n_lam + n_u``."""
+    ``delta (N, n)``, ``n = n_x + n_lam + n_u``; the binaries ``(N, n_lam)`` (variable or
+    parameter; None for ``"qp"``)."""
     N, nx, nl, nu = horizon.N, layout.n_x, layout.n_lam, layout.n_u
     n = nx + nl + nu
     delta = cp.Variable((N, n), name="delta")
@@ -59,7 +65,7 @@ def _declare(horizon: Horizon, layout: Layout, U: np.ndarray, kind: str, *, alph
     L = psd_factor(metric)
     LF = psd_factor((1 - alpha) * Fs) if kind == "qp" else None
     cost, cons = 0, []
-    b = cp.Variable((N, nl), boolean=True, name="b") if kind == "miqp" else None
+    b = {"miqp": cp.Variable((N, nl), boolean=True, name="b"), "pattern": cp.Parameter((N, nl), name="b")}.get(kind)
     for k in range(N):
         x, lam, u = delta[k, :nx], delta[k, nx:nx + nl], delta[k, nx + nl:]
         eta = horizon.D[k] @ x + horizon.E[k] @ u + horizon.F[k] @ lam + horizon.c[k]
@@ -69,7 +75,7 @@ def _declare(horizon: Horizon, layout: Layout, U: np.ndarray, kind: str, *, alph
             cons += [lam >= 0, eta / scaling >= 0]
         else:
             cons += [lam >= 0, lam <= big_m * (1 - b[k]), eta >= 0, eta <= big_m * b[k]]
-    return cp.Problem(cp.Minimize(cost), cons), target, delta
+    return cp.Problem(cp.Minimize(cost), cons), target, delta, b
 
 
 class Projection:
@@ -86,10 +92,13 @@ class Projection:
         self.horizon, self.layout, self.kind = horizon, layout, projection
         nx, nl, nu = layout.n_x, layout.n_lam, layout.n_u
         if projection == "c3+":
+            idx = np.r_[np.arange(layout.n_x, layout.n_x + nl), np.arange(layout.eta.start, layout.eta.stop)]
+            block = U[:, idx][:, :, idx]
+            if np.any(block - np.einsum("kii->ki", block)[:, :, None] * np.eye(2 * nl) != 0):
+                raise LCSInputError("U: the 'c3+' projection is closed-form for a U diagonal on (lam, eta); "
+                                    "received off-diagonal entries there")
             d_lam = np.diagonal(U[:, layout.lam, layout.lam], axis1=1, axis2=2)
             d_eta = np.diagonal(U[:, layout.eta, layout.eta], axis1=1, axis2=2)
-            if (d_lam < 0).any() or (d_eta < 0).any():
-                raise LCSInputError("U: the 'c3+' projection needs nonnegative weights on lam and eta")
             self._sqrt_w = {"numpy": (np.sqrt(d_lam), np.sqrt(d_eta))}
             return
         if projection == "miqp":
@@ -106,8 +115,11 @@ class Projection:
         else:
             solver = solver or "CLARABEL"
         self.solver = solver
-        self.problem, self.target, self.delta = _declare(horizon, layout, U, projection, alpha=alpha,
-                                                        scaling=scaling, big_m=big_m)
+        self.problem, self.target, self.delta, self.binaries = _declare(
+            horizon, layout, U, projection, alpha=alpha, scaling=scaling, big_m=big_m)
+        if projection == "miqp":
+            self.polish, self.polish_target, self.polish_delta, self.polish_pattern = _declare(
+                horizon, layout, U, "pattern", alpha=alpha, scaling=scaling, big_m=big_m)
         metric = U[:, : nx + nl + nu, : nx + nl + nu].copy()
         if projection == "qp":
             metric[:, nx:nx + nl, nx:nx + nl] = alpha * 0.5 * (horizon.F + np.swapaxes(horizon.F, 1, 2))
@@ -128,8 +140,20 @@ class Projection:
                 raise SolverError(f"the '{self.kind}' projection failed in {self.solver}: {exc}") from exc
             if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
                 raise SolverError(f"the '{self.kind}' projection: {self.solver} returned status {self.problem.status}")
+            if self.kind == "miqp":
+                self._polish(b)
             out[b, :, :n] = self.delta.value
         return out
+
+    def _polish(self, b: int) -> None:
+        """Re-solve the projection on the sign pattern the mixed-integer solver chose (a convex
+        QP, Clarabel at tight tolerances); ``self.delta`` then holds the exact projection."""
+        self.polish_pattern.value = np.round(self.binaries.value)
+        self.polish_target.value = self.target.value
+        self.polish.solve(solver="CLARABEL", **POLISH_OPTIONS)
+        if self.polish.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+            raise SolverError(f"the 'miqp' projection: the QP of {self.solver}'s sign pattern returned {self.polish.status}")
+        self.delta.value = self.polish_delta.value
 
     def _weights(self, xp: Any, like: Any) -> tuple[Any, Any]:
         if xp.np:

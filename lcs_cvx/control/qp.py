@@ -27,6 +27,7 @@ Shapes: ``x0 (B, n_x)``, ``t (B, N, n_z)``, ``x^d (B, N + 1, n_x)``; a step retu
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import cvxpy as cp
@@ -102,7 +103,6 @@ def _stage_matrices(horizon: Horizon, layout: Layout, Q, R, QN, G, rho: float, f
 
     H = np.zeros((n_y, n_y))
     Fp = np.zeros((n_y, n_p))
-    rows: list[tuple[dict[str, Any], np.ndarray]] = []
     for k in range(N + 1):
         Qk = Q[k] if k < N else QN
         H[np.ix_(xk(k), xk(k))] += 2 * Qk
@@ -246,12 +246,14 @@ class QPStep:
         n_y, m = H.shape[0], Aeq.shape[0]
         K = np.block([[H, Aeq.T], [Aeq, np.zeros((m, m))]])
         rhs = np.concatenate([np.concatenate([-Fp, Bp]), np.concatenate([np.zeros(n_y), b0])[:, None]], axis=1)
+        exc_ = None
         try:
-            sol = scipy.linalg.solve(K, rhs, assume_a="sym")
-        except (np.linalg.LinAlgError, scipy.linalg.LinAlgWarning) as exc:
+            with warnings.catch_warnings():
+                # ill-conditioned at a large rho (G scaled by rho_scale**K): the residual below decides
+                warnings.simplefilter("ignore", scipy.linalg.LinAlgWarning)
+                sol = scipy.linalg.solve(K, rhs, assume_a="sym")
+        except np.linalg.LinAlgError as exc:
             sol, exc_ = None, exc
-        else:
-            exc_ = None
         if sol is None or not np.all(np.isfinite(sol)) or np.abs(K @ sol - rhs).max() > 1e-8 * max(1.0, np.abs(rhs).max()) * max(1.0, np.abs(K).max()):
             raise LCSInputError(
                 "G, R: the QP step has no unique solution: its Hessian is singular on the dynamics "

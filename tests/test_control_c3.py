@@ -1,0 +1,148 @@
+"""C3 (lcs_cvx.control.c3): C3's own cart-pole end-to-end check for every projection, the
+fast and the declared paths planning alike, a batch planning as its members one by one, the
+ADMM's fixed point complementarity-feasible, and the conversions to and from C3's naming."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx.control import C3, c3_cartpole, closed_loop
+
+
+@pytest.fixture(scope="module")
+def cartpole():
+    return c3_cartpole()
+
+
+def controller(P, projection, **kw):
+    G, U = P.weights[projection]
+    return C3(P.model, P.horizon, Q=P.Q, R=P.R, QN="dare", G=G, U=U, projection=projection, **kw)
+
+
+@pytest.mark.parametrize("projection", ["c3+", "qp"])
+def test_c3_cartpole_end_to_end(cartpole, projection):
+    """C3's end-to-end test: from x0 = (0.1, -0.5, 0.5, -0.4), closing the loop on the exact LCS
+    brings every coordinate within 0.1 of zero and keeps it there for 30 steps. (The "miqp"
+    projection does too, at step 187 of 216; at about a second per solve it runs in the control
+    study; here its projections are checked against enumeration.)"""
+    ctrl = controller(cartpole, projection)
+    res = closed_loop(ctrl, cartpole.model, cartpole.x0, 400, stop_when_settled=True)
+    assert 0 < int(res.settled[0]) < 400
+    assert float(res.x[0, -1].abs().max()) <= 0.1
+    # the walls were hit on the way (the problem is not the LQR's)
+    lam = cartpole.model.solve_lcp(res.x[0, :-1], res.u[0]).lam.detach()
+    assert float(lam.max()) > 0
+
+
+@pytest.mark.parametrize("projection", ["c3+", "qp"])
+def test_fast_and_declared_paths_plan_alike(cartpole, projection):
+    fast = controller(cartpole, projection, qp_path="fast")
+    slow = controller(cartpole, projection, qp_path="cvxpy")
+    for x0 in (cartpole.x0, np.array([0.3, 0.2, -0.4, 0.6])):
+        a, b = fast.solve(x0), slow.solve(x0)
+        for name in ("x", "u", "lam"):
+            assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-7), name
+
+
+def test_a_batch_plans_as_its_members_one_by_one(cartpole):
+    ctrl = controller(cartpole, "c3+")
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-0.4, 0.4, (6, 4)))
+    batch = ctrl.solve(X0)
+    assert batch.x.shape == (6, 6, 4) and batch.u.shape == (6, 5, 1) and batch.lam.shape == (6, 5, 2)
+    assert batch.primal_residual.shape == (6, 10) and batch.complementarity.shape == (6,)
+    for b in range(6):
+        one = ctrl.solve(X0[b])
+        assert one.x.shape == (6, 4)
+        assert torch.allclose(one.u, batch.u[b], rtol=0, atol=1e-12)
+        assert torch.allclose(one.x, batch.x[b], rtol=0, atol=1e-12)
+
+
+def test_the_admm_fixed_point_is_complementarity_feasible(cartpole):
+    """delta is in the complementarity set at every iteration, so where z = delta (a fixed point)
+    the plan is complementarity-feasible: its violation is bounded by the primal residual, which
+    the growing rho drives down. The plan follows the dynamics with its forces, and its first
+    force is the LCP's at x0 (E = 0: lam_0 fixed)."""
+    ctrl = controller(cartpole, "c3+", admm_iterations=30)
+    x0 = np.array([0.3, -0.2, 0.8, -0.5])  # heading into the right wall
+    plan = ctrl.solve(x0)
+    lay = ctrl.layout
+    lam, eta = plan.delta[:, lay.lam], plan.delta[:, lay.eta]
+    assert float(lam.min()) >= 0 and float(eta.min()) >= 0 and float((lam * eta).abs().max()) == 0
+    assert float(plan.primal_residual[-1]) < 0.01 * float(plan.primal_residual[0])
+    assert float(plan.complementarity) <= float(plan.primal_residual[-1]) + 1e-9
+    lam0 = cartpole.model.solve_lcp(x0, np.zeros(1)).lam[0].detach()
+    assert torch.allclose(plan.lam[0], lam0, atol=1e-10)
+    m = cartpole.model.to_matrices()
+    x, u, lam = plan.x.numpy(), plan.u.numpy(), plan.lam.numpy()
+    np.testing.assert_allclose(x[1:], x[:-1] @ m["A"].T + u @ m["B"].T + lam @ m["C"].T + m["d"], atol=1e-10)
+
+
+def test_miqp_projections_are_complementarity_feasible(cartpole):
+    """The exact projection's delta satisfies the LCS's complementarity at every step."""
+    pytest.importorskip("pyscipopt")
+    ctrl = controller(cartpole, "miqp", admm_iterations=3)
+    plan = ctrl.solve(np.array([0.3, -0.2, 0.8, -0.5]))
+    m, lay = cartpole.model.to_matrices(), ctrl.layout
+    d = plan.delta.numpy()
+    eta = d[:, lay.x] @ m["D"].T + d[:, lay.u] @ m["E"].T + d[:, lay.lam] @ m["F"].T + m["c"]
+    assert np.abs(np.minimum(d[:, lay.lam], eta)).max() < 1e-8
+
+
+def test_warm_start_shifts_the_previous_plan(cartpole):
+    ctrl = controller(cartpole, "c3+")
+    u0 = ctrl(cartpole.x0)
+    first = ctrl.last_plan
+    assert torch.equal(u0, first.u[0])
+    shifted = ctrl._shift(first, 1)
+    assert torch.equal(shifted[0, :-1], first.delta[1:]) and torch.equal(shifted[0, -1], first.delta[-1])
+    x1 = cartpole.model.step(cartpole.x0, u0.detach().numpy())[0].detach()
+    warm = ctrl.solve(x1, warm_start=first)
+    cold = ctrl.solve(x1)
+    assert not torch.equal(warm.u, cold.u)  # the start matters to a finite ADMM
+    ctrl.reset()
+    assert ctrl.last_plan is None
+
+
+def test_input_in_the_complementarity_leaves_lam0_free():
+    rng = np.random.default_rng(2)
+    model = lcs_cvx.LCS.from_matrices(A=np.eye(3) + 0.05 * rng.standard_normal((3, 3)), B=rng.standard_normal((3, 1)),
+                                      C=0.1 * rng.standard_normal((3, 2)), d=np.zeros(3), D=rng.standard_normal((2, 3)),
+                                      E=rng.standard_normal((2, 1)), F=np.eye(2), c=np.ones(2))
+    ctrl = C3(model, 4, Q=np.ones(3), R=np.ones(1), projection="c3+", admm_iterations=30)
+    assert not ctrl.fix_lam0
+    plan = ctrl.solve(np.array([0.5, -0.5, 0.2]))
+    assert float(plan.complementarity) < 1e-5
+
+
+def test_a_time_varying_horizon(cartpole):
+    """A list of N models: the same model N times plans as the one model."""
+    P = cartpole
+    G, U = P.weights["c3+"]
+    one = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U)
+    many = C3([P.model] * P.horizon, P.horizon, Q=P.Q, R=P.R, G=G, U=U)
+    assert torch.allclose(one.solve(P.x0).u, many.solve(P.x0).u, rtol=0, atol=1e-12)
+
+
+def test_from_c3_inverts_to_c3(cartpole):
+    m = cartpole.model
+    back = lcs_cvx.LCS.from_c3(m.to_c3())
+    for key, value in m.to_matrices().items():
+        np.testing.assert_allclose(back.to_matrices()[key], value, atol=1e-12)
+    bad = m.to_c3()
+    bad["F"] = -np.eye(2)
+    with pytest.raises(lcs_cvx.LCSInputError, match="F: expected F \\+ F\\^T positive definite"):
+        lcs_cvx.LCS.from_c3(bad)
+    with pytest.raises(lcs_cvx.LCSInputError, match="missing \\['H'\\]"):
+        lcs_cvx.LCS.from_c3({k: v for k, v in m.to_c3().items() if k != "H"})
+
+
+def test_x_des_moves_the_target(cartpole):
+    P = cartpole
+    ctrl = controller(P, "c3+", x_des=np.array([0.1, 0, 0, 0]))
+    res = closed_loop(ctrl, P.model, np.zeros(4), 300, x_des=np.array([0.1, 0, 0, 0]), tol=0.02, hold=20)
+    assert int(res.settled[0]) > 0
+    with pytest.raises(lcs_cvx.LCSInputError, match="x_des: expected finite"):
+        controller(P, "c3+", x_des=np.zeros(3))

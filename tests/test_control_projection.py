@@ -1,0 +1,145 @@
+"""The projection step of C3 (lcs_cvx.control.projection): "c3+" against brute-force
+enumeration of its 2^n_lam choices, "miqp" against the enumeration of the sign patterns
+(project_enumerate), "qp" feasible for the LCS's constraints, and the named errors."""
+
+from __future__ import annotations
+
+import itertools
+
+import cvxpy as cp
+import numpy as np
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx._kernels.arrays import array_ops
+from lcs_cvx.control import project_enumerate
+from lcs_cvx.control.costs import Horizon, Layout, weight_matrix
+from lcs_cvx.control.projection import Projection
+
+XP = array_ops(torch.zeros(1))
+
+
+def random_model(n_x=3, n_u=1, n_lam=2, seed=0):
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((n_lam, n_lam))
+    return lcs_cvx.LCS.from_matrices(
+        A=np.eye(n_x) + 0.1 * rng.standard_normal((n_x, n_x)), B=rng.standard_normal((n_x, n_u)), C=rng.standard_normal((n_x, n_lam)),
+        d=np.zeros(n_x), D=rng.standard_normal((n_lam, n_x)), E=rng.standard_normal((n_lam, n_u)),
+        F=M @ M.T + np.eye(n_lam), c=rng.standard_normal(n_lam))
+
+
+def c3plus_by_enumeration(c, lay, w_lam, w_eta):
+    """Every choice of which of lam_i, eta_i is zero; the other clipped at 0; the cheapest."""
+    best, best_cost = None, np.inf
+    for keep_eta in itertools.product((False, True), repeat=lay.n_lam):
+        k = np.array(keep_eta)
+        d = c.copy()
+        d[lay.lam] = np.where(k, 0.0, np.maximum(c[lay.lam], 0))
+        d[lay.eta] = np.where(k, np.maximum(c[lay.eta], 0), 0.0)
+        cost = (w_lam * (d[lay.lam] - c[lay.lam]) ** 2).sum() + (w_eta * (d[lay.eta] - c[lay.eta]) ** 2).sum()
+        if cost < best_cost - 1e-14:
+            best, best_cost = d, cost
+    return best, best_cost
+
+
+def test_c3plus_is_the_exact_projection_of_its_set():
+    model = random_model(n_lam=4)
+    N = 3
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=True)
+    rng = np.random.default_rng(1)
+    U = np.zeros(lay.n_z)
+    U[lay.lam] = rng.uniform(0.5, 2, hz.n_lam)
+    U[lay.eta] = rng.uniform(0.5, 2, hz.n_lam)
+    proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "c3+")
+    c = rng.standard_normal((20, N, lay.n_z))
+    delta = proj(XP, c)
+    for b in range(20):
+        for k in range(N):
+            want, want_cost = c3plus_by_enumeration(c[b, k], lay, U[lay.lam], U[lay.eta])
+            d = delta[b, k]
+            cost = (U[lay.lam] * (d[lay.lam] - c[b, k, lay.lam]) ** 2).sum() + (U[lay.eta] * (d[lay.eta] - c[b, k, lay.eta]) ** 2).sum()
+            assert cost == pytest.approx(want_cost, rel=1e-12, abs=1e-14)
+            assert np.abs(d - want).max() < 1e-12
+            assert np.all(d[lay.lam] >= 0) and np.all(d[lay.eta] >= 0)
+            assert np.all(d[lay.lam] * d[lay.eta] == 0)
+            np.testing.assert_array_equal(d[lay.x], c[b, k, lay.x])  # x and u pass through
+    torch_delta = proj(array_ops(torch.zeros(1), "torch"), torch.tensor(c))
+    assert torch.equal(torch_delta, torch.tensor(delta))
+
+
+@pytest.mark.parametrize("n_lam", [2, 3])
+def test_miqp_equals_the_enumeration_of_sign_patterns(n_lam):
+    pytest.importorskip("pyscipopt")
+    model = random_model(n_lam=n_lam, seed=n_lam)
+    N = 2
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    rng = np.random.default_rng(5)
+    U = np.concatenate([rng.uniform(1, 3, hz.n_x), rng.uniform(0.5, 2, hz.n_lam), rng.uniform(0.5, 1, hz.n_u)])
+    proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "miqp")
+    c = rng.standard_normal((2, N, lay.n_z))
+    delta = proj(XP, c)
+    m = model.to_matrices()
+    for b in range(2):
+        for k in range(N):
+            want = project_enumerate(c[b, k], np.diag(U), m["D"], m["E"], m["F"], m["c"], hz.n_x, hz.n_u)
+            def cost(d, point=c[b, k]):
+                return float(np.sum(U * (d - point) ** 2))
+            assert cost(delta[b, k]) == pytest.approx(cost(want), rel=1e-6, abs=1e-8)
+            assert np.abs(delta[b, k] - want).max() < 1e-7
+            lam = delta[b, k, lay.lam]
+            eta = m["D"] @ delta[b, k, lay.x] + m["E"] @ delta[b, k, lay.u] + m["F"] @ lam + m["c"]
+            assert np.abs(np.minimum(lam, eta)).max() < 1e-6
+
+
+def test_qp_projection_satisfies_the_constraints_of_its_relaxation():
+    model = random_model(n_lam=3, seed=7)
+    N = 2
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    U = np.concatenate([np.full(hz.n_x, 1000.0), np.ones(hz.n_lam), np.zeros(hz.n_u)])
+    proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "qp")
+    c = np.random.default_rng(8).standard_normal((3, N, lay.n_z))
+    delta = proj(XP, c)
+    m = model.to_matrices()
+    lam = delta[..., lay.lam]
+    eta = (np.einsum("ij,bkj->bki", m["D"], delta[..., lay.x]) + np.einsum("ij,bkj->bki", m["E"], delta[..., lay.u])
+           + np.einsum("ij,bkj->bki", m["F"], lam) + m["c"])
+    assert lam.min() >= -1e-7 and eta.min() >= -1e-6
+    # with x held by its weight, the relaxation stays close to the point on x
+    assert np.abs(delta[..., lay.x] - c[..., lay.x]).max() < 0.1
+
+
+def test_project_enumerate_agrees_with_a_direct_mixed_integer_solve():
+    pytest.importorskip("pyscipopt")
+    model = random_model(n_lam=2, seed=11)
+    m = model.to_matrices()
+    c = np.array([0.3, -0.2, 0.5, 0.4, -0.1, 0.2])
+    U = np.diag([1.0, 2.0, 1.0, 3.0, 1.0, 0.5])
+    got = project_enumerate(c, U, m["D"], m["E"], m["F"], m["c"], 3, 1)
+    d, b = cp.Variable(6), cp.Variable(2, boolean=True)
+    lam = d[3:5]
+    eta = m["D"] @ d[:3] + m["E"] @ d[5:] + m["F"] @ lam + m["c"]
+    cp.Problem(cp.Minimize(cp.quad_form(d - c, U)),
+               [lam >= 0, lam <= 100 * (1 - b), eta >= 0, eta <= 100 * b]).solve(solver="SCIP")
+    # SCIP's default feasibility tolerance (1e-6) leaves its answer ~1e-4 from the exact one
+    assert np.abs(got - d.value).max() < 1e-3
+    assert float(np.sum(np.diag(U) * (got - c) ** 2)) <= float(np.sum(np.diag(U) * (d.value - c) ** 2)) + 1e-7
+
+
+def test_bad_projection_inputs_are_named(monkeypatch):
+    model = random_model()
+    with pytest.raises(lcs_cvx.LCSInputError, match="projection: expected one of"):
+        lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="admm")
+    with pytest.raises(lcs_cvx.LCSInputError, match="projection_solver: expected a mixed-integer QP solver"):
+        lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="miqp", projection_solver="OSQP")
+    # a mixed-integer solver that is not installed: the error names the extra
+    monkeypatch.setattr(cp, "installed_solvers", lambda: ["CLARABEL", "OSQP"])
+    with pytest.raises(ModuleNotFoundError, match=r"lcs_cvx\[control\]"):
+        lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="miqp", projection_solver="GUROBI")
+    U = np.eye(3 + 2 + 1 + 2)
+    U[3, 6] = U[6, 3] = 0.5  # couples lam_0 and eta_0
+    with pytest.raises(lcs_cvx.LCSInputError, match="U: the 'c3\\+' projection is closed-form for a U diagonal"):
+        lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), U=U)
