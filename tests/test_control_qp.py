@@ -52,10 +52,10 @@ def test_fast_path_equals_the_declared_problem(with_eta, fix_lam0):
     target = rng.standard_normal((B, hz.N, lay.n_z))
     xp = array_ops(torch.zeros(1))
     for level in (0, 2):
-        z, xN, bad = fast.step(xp, level, x0, lam0, xd, target)
+        z, xN, bad = fast.bind(xp, x0, lam0, xd)(level, target)
         assert bad == 0
         for solver, qp in slow.items():
-            z2, xN2, bad2 = qp.step(xp, level, x0, lam0, xd, target)
+            z2, xN2, bad2 = qp.bind(xp, x0, lam0, xd)(level, target)
             assert bad2 == 0
             scale = max(1.0, np.abs(z).max())
             assert np.abs(z - z2).max() <= 1e-8 * scale, solver
@@ -78,10 +78,11 @@ def test_fast_path_runs_on_torch_arrays_like_numpy():
     model = random_model()
     hz, lay, fast, _ = qp_pair(model, 3, True, False)
     rng = np.random.default_rng(2)
-    args = [rng.standard_normal((2, hz.n_x)), None, rng.standard_normal((2, 4, hz.n_x)), rng.standard_normal((2, 3, lay.n_z))]
-    z_np, _, _ = fast.step(array_ops(torch.zeros(1)), 1, *args)
+    args = [rng.standard_normal((2, hz.n_x)), None, rng.standard_normal((2, 4, hz.n_x))]
+    target = rng.standard_normal((2, 3, lay.n_z))
+    z_np, _, _ = fast.bind(array_ops(torch.zeros(1)), *args)(1, target)
     t = [None if a is None else torch.tensor(a) for a in args]
-    z_t, _, _ = fast.step(array_ops(torch.zeros(1), "torch"), 1, *t)
+    z_t, _, _ = fast.bind(array_ops(torch.zeros(1), "torch"), *t)(1, torch.tensor(target))
     assert torch.allclose(z_t, torch.tensor(z_np), rtol=0, atol=1e-12)
 
 

@@ -12,15 +12,35 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["admm", "affine_qp", "project_c3plus"]
+__all__ = ["admm", "affine_qp", "project_c3plus", "rollout", "violation"]
 
 
-def affine_qp(Yf: Any, Yt: Any, y0: Any, p_fixed: Any, target: Any) -> tuple[Any, Any]:
-    """The equality-constrained QP step as its affine solution map: ``z (B, N, n_z)``,
+def affine_qp(base: Any, Yt: Any, target: Any) -> tuple[Any, Any]:
+    """The equality-constrained QP step as its affine solution map, ``y = base + t Yt`` (``base =
+    p_fixed Yf + y0``, the part of one solve's data that stays fixed): ``z (B, N, n_z)``,
     ``x_N (B, n_x)``."""
     B, N, nz = target.shape
-    y = p_fixed @ Yf + target.reshape(B, N * nz) @ Yt + y0
+    y = base + target.reshape(B, N * nz) @ Yt
     return y[:, : N * nz].reshape(B, N, nz), y[:, N * nz:]
+
+
+def rollout(x0: Any, u: Any, lam: Any, A: Any, B: Any, C: Any, d: Any) -> list[Any]:
+    """``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k + d_k`` from ``x0 (B, n_x)``: the ``N + 1``
+    states ``(B, n_x)``; ``u (B, N, n_u)``, ``lam (B, N, n_lam)``, matrices stacked over ``k``."""
+    xs = [x0]
+    for k in range(A.shape[0]):
+        xs.append(xs[-1] @ A[k].T + u[:, k] @ B[k].T + lam[:, k] @ C[k].T + d[k])
+    return xs
+
+
+def violation(xp: Any, xs: list[Any], u: Any, lam: Any, D: Any, E: Any, F: Any, c: Any) -> Any:
+    """``max_k max_i |min(lam, D_k x_k + E_k u_k + F_k lam_k + c_k)_i|`` per plan, ``(B, 1)``."""
+    worst = None
+    for k in range(D.shape[0]):
+        eta = xs[k] @ D[k].T + u[:, k] @ E[k].T + lam[:, k] @ F[k].T + c[k]
+        v = xp.amax_abs(xp.minimum(lam[:, k], eta))
+        worst = v if worst is None else xp.where(v > worst, v, worst)
+    return worst
 
 
 def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqrt_w_eta: Any) -> Any:
@@ -40,9 +60,9 @@ def admm(xp: Any, qp_step: Callable[..., tuple[Any, Any, int]], project: Callabl
     ``w' = (w + z - delta') / rho_scale``; then ``z = QP(K, delta - w)`` (``delta`` if
     ``last_target_is_delta``). ``qp_step(level, target) -> (z, x_N, failures)``.
 
-    Returns ``z``, ``x_N``, ``delta``, ``primal`` and ``dual`` (each a list of ``(B,)`` per
-    iteration: ``max |z - delta'|`` and ``max |delta' - delta|``), ``failures`` and the seconds in
-    ``"qp"`` and ``"projection"``.
+    Returns ``z``, ``x_N``, ``delta``, ``primal`` and ``dual`` (``(B, K)``: ``max |z - delta'|``
+    and ``max |delta' - delta|`` of each iteration), ``failures`` and the seconds in ``"qp"`` and
+    ``"projection"``.
     """
     w = delta * 0.0
     primal, dual, failures = [], [], 0
@@ -63,6 +83,7 @@ def admm(xp: Any, qp_step: Callable[..., tuple[Any, Any, int]], project: Callabl
     z, xN, bad = qp_step(iterations, delta if last_target_is_delta else delta - w)
     t_qp += time.perf_counter() - t0
     B = delta.shape[0]
-    flat = [xp.amax_abs(d.reshape(B, -1))[:, 0] for d in (primal + dual)]
-    return {"z": z, "x_N": xN, "delta": delta, "primal": flat[:iterations], "dual": flat[iterations:],
+    primal = xp.concat([xp.amax_abs(d.reshape(B, -1)) for d in primal])
+    dual = xp.concat([xp.amax_abs(d.reshape(B, -1)) for d in dual])
+    return {"z": z, "x_N": xN, "delta": delta, "primal": primal, "dual": dual,
             "failures": failures + bad, "qp": t_qp, "projection": t_proj}

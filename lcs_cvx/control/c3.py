@@ -31,7 +31,7 @@ import torch
 
 from .._checks import FallbackWarning, LCSInputError, as_batch, check_positive
 from .._kernels.arrays import array_ops
-from .._kernels.c3 import admm
+from .._kernels.c3 import admm, rollout, violation
 from ..lcp import solve_lcp_unchecked
 from ..system import LCS
 from .costs import PROJECTIONS, Horizon, Layout, dare, default_consensus_weights, weight_matrix
@@ -130,6 +130,7 @@ class C3:
         self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m)
         self.warm_start = warm_start
         self.last_plan: Plan | None = None
+        self._on: dict[str, dict[str, Any]] = {}
 
     def _target(self, x_des: Any) -> torch.Tensor:
         N, nx = self.horizon.N, self.horizon.n_x
@@ -168,60 +169,57 @@ class C3:
         lam0 = None
         if self.fix_lam0:
             t = time.perf_counter()
-            F0, D0, c0 = (torch.as_tensor(getattr(hz, k)[0]).to(X0) for k in ("F", "D", "c"))
-            lam0 = solve_lcp_unchecked(F0, X0 @ D0.mT + c0).lam
+            lam0 = self._lcp_at(X0)
             t_lcp = time.perf_counter() - t
         delta = self._shift(warm_start, B) if warm_start is not None else None
         if delta is None:
             delta = X0.new_zeros(B, N, lay.n_z)
-        arrays = [None if a is None else xp.wrap(xp.contiguous(a) if not xp.np else a.contiguous())
-                  for a in (X0, lam0, xd, delta.to(X0))]
-        x0_a, lam0_a, xd_a, delta_a = arrays
-
-        def qp_step(level: int, target: Any) -> tuple[Any, Any, int]:
-            return self.qp.step(xp, level, x0_a, lam0_a, xd_a, target)
-
+        x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))
+        lam0_a = None if lam0 is None else xp.wrap(lam0.contiguous())
+        mats = self._matrices(xp, X0)
         with xp.threads():
+            qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a)
             out = admm(xp, qp_step, lambda c: self.project(xp, c), delta_a, self.admm_iterations,
                        self.rho_scale, last_target_is_delta=lay.with_eta)
+            z = out["z"]
+            u, lam = z[..., lay.u], z[..., lay.lam]
+            # the plan's states: its inputs and forces through the dynamics (exact in them)
+            xs = rollout(x0_a, u, lam, *(mats[k] for k in "ABCd"))
+            comp = violation(xp, xs, u, lam, *(mats[k] for k in "DEFc"))
         if out["failures"]:
             warnings.warn(
                 f"C3: {out['failures']} QP step(s) failed in {self.qp.solver}; their plans fell back to "
                 "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
-        z = torch.as_tensor(xp.unwrap(out["z"]))
-        lam, u = z[..., lay.lam], z[..., lay.u]
-        x = self._rollout(X0, u, lam)
-        comp = self._violation(x[:, :N], u, lam)
+        as_t = xp.unwrap
+        x = torch.stack([as_t(v) for v in xs], 1)
         times = {"qp": out["qp"], "projection": out["projection"], "lcp": t_lcp,
                  "total": time.perf_counter() - t_start}
-        plan = Plan(x=x, u=u, lam=lam, delta=torch.as_tensor(xp.unwrap(out["delta"])),
-                    primal_residual=torch.stack([torch.as_tensor(xp.unwrap(r)) for r in out["primal"]], 1),
-                    dual_residual=torch.stack([torch.as_tensor(xp.unwrap(r)) for r in out["dual"]], 1),
-                    complementarity=comp, times=times, qp_failures=out["failures"])
+        plan = Plan(x=x, u=as_t(xp.contiguous(u)), lam=as_t(xp.contiguous(lam)), delta=as_t(out["delta"]),
+                    primal_residual=as_t(out["primal"]), dual_residual=as_t(out["dual"]),
+                    complementarity=as_t(comp)[:, 0], times=times, qp_failures=out["failures"])
         if single:
             plan = dataclasses.replace(plan, **{f: getattr(plan, f)[0] for f in
                                                 ("x", "u", "lam", "delta", "primal_residual", "dual_residual", "complementarity")})
         return plan
 
-    def _rollout(self, x0: torch.Tensor, u: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-        """The planned states from the planned inputs and forces, ``(B, N + 1, n_x)``: the QP's
-        own states to its solve's accuracy (which a large ``rho`` degrades), exact in dynamics."""
+    def _lcp_at(self, X0: torch.Tensor) -> torch.Tensor:
+        """``lam_0 = LCP(F_0, D_0 x0 + c_0)`` ``(B, n_lam)`` (``E = 0``): zero where ``q >= 0``,
+        else the pivoting kernel's exact solution."""
         hz = self.horizon
-        A, B_, C, d = (torch.as_tensor(getattr(hz, k)).to(x0) for k in ("A", "B", "C", "d"))
-        xs = [x0]
-        for k in range(hz.N):
-            xs.append(xs[-1] @ A[k].mT + u[:, k] @ B_[k].mT + lam[:, k] @ C[k].mT + d[k])
-        return torch.stack(xs, 1)
+        F0, D0, c0 = (torch.as_tensor(getattr(hz, k)[0]).to(X0) for k in ("F", "D", "c"))
+        q = X0 @ D0.mT + c0
+        if bool((q >= 0).all()):
+            return torch.zeros_like(q)
+        return solve_lcp_unchecked(F0, q).lam
 
-    def _violation(self, x: torch.Tensor, u: torch.Tensor, lam: torch.Tensor) -> torch.Tensor:
-        """``max_k max_i |min(lam, D x + E u + F lam + c)|`` per plan, ``(B,)``."""
-        hz = self.horizon
-        if hz.n_lam == 0:
-            return x.new_zeros(x.shape[0])
-        D, E, F, c = (torch.as_tensor(getattr(hz, k)).to(x) for k in ("D", "E", "F", "c"))
-        eta = (torch.einsum("kij,bkj->bki", D, x) + torch.einsum("kij,bkj->bki", E, u)
-               + torch.einsum("kij,bkj->bki", F, lam) + c)
-        return torch.minimum(lam, eta).abs().amax(dim=(1, 2))
+    def _matrices(self, xp: Any, like: torch.Tensor) -> dict[str, Any]:
+        """The horizon's matrices on ``xp``'s arrays (torch: on ``like``'s device, cached)."""
+        key = "numpy" if xp.np else f"torch:{like.device}:{like.dtype}"
+        if key not in self._on:
+            hz = self.horizon
+            self._on[key] = {k: (getattr(hz, k) if xp.np else torch.as_tensor(getattr(hz, k)).to(like))
+                             for k in "ABCdDEFc"}
+        return self._on[key]
 
     def __call__(self, x0: Any) -> torch.Tensor:
         """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import cvxpy as cp
@@ -262,16 +263,19 @@ class QPStep:
             )
         return sol[:n_y, :-1], sol[:n_y, -1]
 
-    def step(self, xp: Any, level: int, x0: Any, lam0: Any, x_des: Any, target: Any) -> tuple[Any, Any, int]:
-        """The QP step at ``rho_levels[level]`` on the arrays of ``xp``: ``z (B, N, n_z)``,
-        ``x_N (B, n_x)`` and the number of initial states whose QP failed (``"cvxpy"`` path; those
-        get C3's fallback plan, ``x_k = x0`` and ``lam = u = 0``). ``x_des (B, N + 1, n_x)``."""
+    def bind(self, xp: Any, x0: Any, lam0: Any, x_des: Any) -> Callable[[int, Any], tuple[Any, Any, int]]:
+        """The QP step of one solve, ``step(level, target) -> (z (B, N, n_z), x_N (B, n_x),
+        failures)`` at ``rho_levels[level]``, for ``x0 (B, n_x)``, the fixed ``lam0 (B, n_lam)`` (or
+        None) and ``x_des (B, N + 1, n_x)``, on the arrays of ``xp``. ``failures``: the initial
+        states whose QP failed (``"cvxpy"`` path; they get C3's fallback plan, ``x_k = x0`` and
+        ``lam = u = 0``)."""
         if self.path == "cvxpy":
-            return self._solve_cvxpy(level, x0, lam0, target, x_des)
+            return lambda level, target: self._solve_cvxpy(level, x0, lam0, target, x_des)
         Yf, Yt, y0 = self._arrays(xp, x0)
         B = x0.shape[0]
         p_fixed = xp.concat([x0] + ([lam0] if self.fix_lam0 else []) + [x_des.reshape(B, -1)])
-        return (*affine_qp(Yf[level], Yt[level], y0[level], p_fixed, target), 0)
+        base = p_fixed @ Yf + y0[:, None, :]  # (levels, B, n_y): the fixed data of every level at once
+        return lambda level, target: (*affine_qp(base[level], Yt[level], target), 0)
 
     def _arrays(self, xp: Any, like: Any) -> tuple[Any, Any, Any]:
         """The affine maps on ``xp``'s arrays (torch: on ``like``'s device, cached)."""
