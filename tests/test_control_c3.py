@@ -146,3 +146,16 @@ def test_x_des_moves_the_target(cartpole):
     assert int(res.settled[0]) > 0
     with pytest.raises(lcs_cvx.LCSInputError, match="x_des: expected finite"):
         controller(P, "c3+", x_des=np.zeros(3))
+
+
+def test_the_torch_back_end_plans_as_numpy(cartpole):
+    """The fast c3+ solve written once for both array libraries: torch on the CPU (as on a GPU)
+    plans what NumPy plans, to round-off."""
+    P = cartpole
+    X0 = torch.tensor(np.random.default_rng(3).uniform(-0.4, 0.4, (5, 4)))
+    a = controller(P, "c3+").solve(X0)
+    b = controller(P, "c3+", arrays="torch").solve(X0)
+    for name in ("x", "u", "lam", "delta", "primal_residual", "complementarity"):
+        assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-10), name
+    with pytest.raises(lcs_cvx.LCSInputError, match="arrays: expected one of"):
+        controller(P, "c3+", arrays="jax")

@@ -97,3 +97,19 @@ def test_best_recipe_runs_on_cuda(monkeypatch):
     # a second run from the default start (extra units grown on the GPU as well)
     again = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4).to("cuda"), train, **SHORT_BEST)
     assert again.model.device.type == "cuda"
+
+
+@needs_cuda
+def test_c3_plans_on_cuda_as_on_the_cpu():
+    """The fast c3+ path on CUDA tensors: the whole solve on the GPU, the plans of the CPU."""
+    import numpy as np
+
+    from lcs_cvx.control import C3, c3_cartpole
+
+    P = c3_cartpole()
+    G, U = P.weights["c3+"]
+    ctrl = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U, projection="c3+")
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-0.4, 0.4, (64, 4)))
+    cpu, gpu = ctrl.solve(X0), ctrl.solve(X0.to("cuda"))
+    assert gpu.u.device.type == "cuda"
+    assert torch.allclose(gpu.u.cpu(), cpu.u, rtol=0, atol=1e-9)

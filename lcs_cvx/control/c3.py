@@ -8,12 +8,13 @@ With ``delta^0`` (zero, or the previous plan shifted by one step) and ``w^0 = 0`
 .. math::
 
     z^{i+1} &= \\arg\\min_z\\ \\text{cost}(z) + \\textstyle\\sum_k (z_k - \\delta^i_k + w^i_k)^\\top
-        \\rho^i G_k (z_k - \\delta^i_k + w^i_k) \\quad\\text{s.t. the dynamics}
-        \\quad (\\text{QP step, } :mod:`lcs_cvx.control.qp`) \\\\
-    \\delta^{i+1}_k &= \\Pi_{U_k}(z^{i+1}_k + w^i_k) \\quad (\\text{projection, } :mod:`lcs_cvx.control.projection`) \\\\
+        \\rho^i G_k (z_k - \\delta^i_k + w^i_k) \\quad\\text{s.t. the dynamics} \\\\
+    \\delta^{i+1}_k &= \\Pi_{U_k}(z^{i+1}_k + w^i_k) \\\\
     w^{i+1} &= (w^i + z^{i+1} - \\delta^{i+1}) / \\rho_s, \\qquad \\rho^{i+1} = \\rho_s \\rho^i
 
-(the scaled dual of C3's code: ``G`` grows by ``rho_s = rho_scale`` and ``w`` shrinks by it), then
+(the QP step of :mod:`lcs_cvx.control.qp`, the projection of :mod:`lcs_cvx.control.projection`,
+the loop in the kernel :mod:`lcs_cvx._kernels.c3`; the scaled dual of C3's code: ``G`` grows by
+``rho_s = rho_scale`` and ``w`` shrinks by it), then
 a last QP step at ``rho^K`` returns the plan (its target is ``delta - w``; ``delta`` for
 ``"c3+"``, as in C3+). When ``u`` does not enter the complementarity (``E = 0``), ``lam_0`` is fixed
 to the LCP solution at ``x0``.
@@ -91,13 +92,16 @@ class C3:
             ``"OSQP"`` for the ``"cvxpy"`` path.
         projection_solver: the CVXPY solver of ``"qp"`` (Clarabel) or ``"miqp"`` (SCIP).
         warm_start: ``ctrl(x0)`` starts from the previous plan's ``delta`` shifted by one step.
+        big_m: the big-M of the ``"miqp"`` projection (C3's ``M``).
+        arrays: the array back-end of the solve (``"auto"``: NumPy for CPU tensors, torch on
+            other devices; ``"torch"`` runs torch on the CPU too).
     """
 
     def __init__(self, model: Any, horizon: int, *, Q: Any, R: Any, QN: Any = "dare", G: Any = None,
                  U: Any = None, projection: str = "c3+", admm_iterations: int = 10, rho_scale: float = 2.0,
                  x_des: Any = None, x_bounds: Any = None, u_bounds: Any = None, lam_bounds: Any = None,
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
-                 warm_start: bool = True, big_m: float = 1000.0):
+                 warm_start: bool = True, big_m: float = 1000.0, arrays: str = "auto"):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
         self.horizon = Horizon.of(model, horizon)
@@ -129,6 +133,8 @@ class C3:
                          bounds=bounds, path=path, solver=qp_solver)
         self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m)
         self.warm_start = warm_start
+        array_ops(torch.zeros(0), arrays)  # checks the name
+        self.arrays = arrays
         self.last_plan: Plan | None = None
         self._on: dict[str, dict[str, Any]] = {}
 
@@ -163,7 +169,7 @@ class C3:
         if not fast:
             X0 = X0.cpu()
         B, N = X0.shape[0], hz.N
-        xp = array_ops(X0)
+        xp = array_ops(X0, self.arrays if fast else "numpy")
         xd = (self.x_des if x_des is None else self._target(x_des)).to(X0).expand(B, N + 1, hz.n_x)
         t_lcp = 0.0
         lam0 = None
