@@ -35,7 +35,15 @@ from .._kernels.arrays import array_ops
 from .._kernels.c3 import admm, rollout, violation
 from ..lcp import solve_lcp_unchecked
 from ..system import LCS
-from .costs import PROJECTIONS, Horizon, Layout, dare, default_consensus_weights, weight_matrix
+from .costs import (
+    PROJECTIONS,
+    Horizon,
+    Layout,
+    OnDevice,
+    dare,
+    default_consensus_weights,
+    weight_matrix,
+)
 from .projection import Projection
 from .qp import Bounds, QPStep
 
@@ -136,7 +144,7 @@ class C3:
         array_ops(torch.zeros(0), arrays)  # checks the name
         self.arrays = arrays
         self.last_plan: Plan | None = None
-        self._on: dict[str, dict[str, Any]] = {}
+        self._matrices = OnDevice({k: getattr(self.horizon, k) for k in "ABCdDEFc"})
 
     def _target(self, x_des: Any) -> torch.Tensor:
         N, nx = self.horizon.N, self.horizon.n_x
@@ -182,7 +190,7 @@ class C3:
             delta = X0.new_zeros(B, N, lay.n_z)
         x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))
         lam0_a = None if lam0 is None else xp.wrap(lam0.contiguous())
-        mats = self._matrices(xp, X0)
+        mats = self._matrices.on(xp, X0)
         with xp.threads():
             qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a)
             out = admm(xp, qp_step, lambda c: self.project(xp, c), delta_a, self.admm_iterations,
@@ -217,15 +225,6 @@ class C3:
         if bool((q >= 0).all()):
             return torch.zeros_like(q)
         return solve_lcp_unchecked(F0, q).lam
-
-    def _matrices(self, xp: Any, like: torch.Tensor) -> dict[str, Any]:
-        """The horizon's matrices on ``xp``'s arrays (torch: on ``like``'s device, cached)."""
-        key = "numpy" if xp.np else f"torch:{like.device}:{like.dtype}"
-        if key not in self._on:
-            hz = self.horizon
-            self._on[key] = {k: (getattr(hz, k) if xp.np else torch.as_tensor(getattr(hz, k)).to(like))
-                             for k in "ABCdDEFc"}
-        return self._on[key]
 
     def __call__(self, x0: Any) -> torch.Tensor:
         """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),

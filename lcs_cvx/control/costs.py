@@ -24,13 +24,32 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+import torch
 
 from .._checks import LCSInputError
 from ..system import LCS
 
-__all__ = ["Horizon", "Layout", "dare", "weight_matrix", "default_consensus_weights", "psd_factor"]
+__all__ = ["Horizon", "Layout", "OnDevice", "dare", "weight_matrix", "default_consensus_weights", "psd_factor"]
 
 PROJECTIONS = ("c3+", "qp", "miqp")
+
+
+class OnDevice:
+    """NumPy arrays set up once (a name -> array dict), and their copies as torch tensors of the
+    device and dtype a solve runs on, made at first use: ``cache.on(xp, like)``."""
+
+    def __init__(self, arrays: dict[str, np.ndarray]):
+        self._copies: dict[str, dict[str, Any]] = {"numpy": arrays}
+
+    def on(self, xp: Any, like: Any) -> dict[str, Any]:
+        """The arrays for the back-end ``xp`` (an ``ArrayOps``): NumPy's, or tensors like ``like``."""
+        if xp.np:
+            return self._copies["numpy"]
+        key = f"{like.device}:{like.dtype}"
+        if key not in self._copies:
+            self._copies[key] = {k: torch.as_tensor(a).to(device=like.device, dtype=like.dtype)
+                                 for k, a in self._copies["numpy"].items()}
+        return self._copies[key]
 
 
 @dataclasses.dataclass(frozen=True)

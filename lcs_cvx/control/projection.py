@@ -30,12 +30,11 @@ from typing import Any
 
 import cvxpy as cp
 import numpy as np
-import torch
 
 from .._checks import LCSInputError, SolverError
 from .._kernels.c3 import project_c3plus
 from .._optional import require
-from .costs import Horizon, Layout, psd_factor
+from .costs import Horizon, Layout, OnDevice, psd_factor
 
 __all__ = ["Projection", "project_enumerate", "MIQP_SOLVERS"]
 
@@ -99,7 +98,7 @@ class Projection:
                                     "received off-diagonal entries there")
             d_lam = np.diagonal(U[:, layout.lam, layout.lam], axis1=1, axis2=2)
             d_eta = np.diagonal(U[:, layout.eta, layout.eta], axis1=1, axis2=2)
-            self._sqrt_w = {"numpy": (np.sqrt(d_lam), np.sqrt(d_eta))}
+            self._sqrt_w = OnDevice({"lam": np.sqrt(d_lam), "eta": np.sqrt(d_eta)})
             return
         if projection == "miqp":
             solver = solver or "SCIP"
@@ -129,7 +128,7 @@ class Projection:
         """``delta (B, N, n_z)``, the projection of every step of ``c (B, N, n_z)`` (arrays of
         ``xp``; ``"qp"`` and ``"miqp"`` on NumPy arrays)."""
         if self.kind == "c3+":
-            return project_c3plus(xp, c, self.layout.lam, self.layout.eta, *self._weights(xp, c))
+            return project_c3plus(xp, c, self.layout.lam, self.layout.eta, *self._sqrt_w.on(xp, c).values())
         n = self.layout.n_x + self.layout.n_lam + self.layout.n_u
         out = c.copy()
         for b in range(c.shape[0]):
@@ -154,15 +153,6 @@ class Projection:
         if self.polish.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             raise SolverError(f"the 'miqp' projection: the QP of {self.solver}'s sign pattern returned {self.polish.status}")
         self.delta.value = self.polish_delta.value
-
-    def _weights(self, xp: Any, like: Any) -> tuple[Any, Any]:
-        if xp.np:
-            return self._sqrt_w["numpy"]
-        key = f"torch:{like.device}:{like.dtype}"
-        if key not in self._sqrt_w:
-            self._sqrt_w[key] = tuple(torch.as_tensor(a).to(device=like.device, dtype=like.dtype)
-                                      for a in self._sqrt_w["numpy"])
-        return self._sqrt_w[key]
 
 
 def project_enumerate(c: Any, U: Any, D: Any, E: Any, F: Any, lcp_c: Any, n_x: int, n_u: int) -> np.ndarray:

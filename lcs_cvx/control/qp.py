@@ -34,11 +34,10 @@ from typing import Any
 import cvxpy as cp
 import numpy as np
 import scipy.linalg
-import torch
 
 from .._checks import LCSInputError
 from .._kernels.c3 import affine_qp
-from .costs import Horizon, Layout, psd_factor
+from .costs import Horizon, Layout, OnDevice, psd_factor
 
 __all__ = ["Bounds", "QPStep", "qp_problem", "QP_SOLVERS"]
 
@@ -233,10 +232,9 @@ class QPStep:
             p_t = layout.n_x + (layout.n_lam if fix_lam0 else 0)
             Y = np.stack([m[0].T for m in maps])  # (levels, n_p, n_y)
             # rows of Y: x0 (and lam0), then the targets t, then x^d
-            self._maps = {
-                "numpy": (np.ascontiguousarray(np.concatenate([Y[:, :p_t], Y[:, p_t + n_t:]], axis=1)),
-                          np.ascontiguousarray(Y[:, p_t:p_t + n_t]), np.stack([m[1] for m in maps]))
-            }
+            self._maps = OnDevice({
+                "Yf": np.ascontiguousarray(np.concatenate([Y[:, :p_t], Y[:, p_t + n_t:]], axis=1)),
+                "Yt": np.ascontiguousarray(Y[:, p_t:p_t + n_t]), "y0": np.stack([m[1] for m in maps])})
         else:
             self.problem, self.params, self.variables = qp_problem(
                 horizon, layout, Q, R, QN, G, fix_lam0=fix_lam0, bounds=bounds
@@ -271,21 +269,11 @@ class QPStep:
         ``lam = u = 0``)."""
         if self.path == "cvxpy":
             return lambda level, target: self._solve_cvxpy(level, x0, lam0, target, x_des)
-        Yf, Yt, y0 = self._arrays(xp, x0)
+        Yf, Yt, y0 = self._maps.on(xp, x0).values()
         B = x0.shape[0]
         p_fixed = xp.concat([x0] + ([lam0] if self.fix_lam0 else []) + [x_des.reshape(B, -1)])
         base = p_fixed @ Yf + y0[:, None, :]  # (levels, B, n_y): the fixed data of every level at once
         return lambda level, target: (*affine_qp(base[level], Yt[level], target), 0)
-
-    def _arrays(self, xp: Any, like: Any) -> tuple[Any, Any, Any]:
-        """The affine maps on ``xp``'s arrays (torch: on ``like``'s device, cached)."""
-        if xp.np:
-            return self._maps["numpy"]
-        key = f"torch:{like.device}:{like.dtype}"
-        if key not in self._maps:
-            self._maps[key] = tuple(torch.as_tensor(a).to(device=like.device, dtype=like.dtype)
-                                    for a in self._maps["numpy"])
-        return self._maps[key]
 
     def _solve_cvxpy(self, level: int, x0: np.ndarray, lam0: np.ndarray | None, target: np.ndarray,
                      x_des: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
