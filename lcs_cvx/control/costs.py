@@ -13,7 +13,8 @@ minimises
 subject to the dynamics of eq. (1), ``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k + d_k``. The
 consensus weights ``G_k`` (QP step) and ``U_k`` (projection step) act on ``z_k``.
 ``Q_N = "dare"`` is the solution of the discrete algebraic Riccati equation of ``(A_0, B_0, Q, R)``.
-Everything here is NumPy float64: the horizon problem is set up once, when a controller is built.
+Everything here is NumPy float64: the horizon problem is set up once, when a controller is built
+(:class:`OnDevice` keeps torch copies for solves on another device).
 """
 
 from __future__ import annotations
