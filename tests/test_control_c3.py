@@ -117,6 +117,22 @@ def test_input_in_the_complementarity_leaves_lam0_free():
     assert float(plan.complementarity) < 1e-5
 
 
+def test_fix_lam0_for_a_learned_model_whose_E_is_merely_small(cartpole):
+    """A learned model's E is small, not zero: C3 leaves lam_0 free unless told; told, it fixes
+    lam_0 to the LCP solution at x0 (u = 0), as for the exact E = 0."""
+    m = cartpole.model.to_c3()
+    m["H"] = np.full((2, 1), 1e-9)
+    nearly = lcs_cvx.LCS.from_c3(m)
+    G, U = cartpole.weights["c3+"]
+    kw = dict(Q=cartpole.Q, R=cartpole.R, G=G, U=U)
+    assert not C3(nearly, 5, **kw).fix_lam0
+    fixed = C3(nearly, 5, fix_lam0=True, **kw)
+    exact = C3(cartpole.model, 5, **kw)
+    x0 = np.array([0.3, -0.2, 0.8, -0.5])
+    assert fixed.fix_lam0 and exact.fix_lam0
+    assert torch.allclose(fixed.solve(x0).u, exact.solve(x0).u, atol=1e-6)
+
+
 def test_a_time_varying_horizon(cartpole):
     """A list of N models: the same model N times plans as the one model."""
     P = cartpole

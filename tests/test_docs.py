@@ -255,6 +255,7 @@ def _exists(module: str) -> bool:
 
 def test_reference_covers_the_public_api():
     import lcs_cvx
+    import lcs_cvx.control
     import lcs_cvx.study
 
     def public(module) -> set[str]:
@@ -264,7 +265,7 @@ def test_reference_covers_the_public_api():
             if not name.startswith("_") and not inspect.ismodule(value)
         }
 
-    wanted = public(lcs_cvx) | public(lcs_cvx.study)
+    wanted = public(lcs_cvx) | public(lcs_cvx.study) | public(lcs_cvx.control)
     wanted |= {m for m in DOCUMENTED_MODULES if _exists(m)}
     missing = sorted(wanted - reference_targets())
     assert not missing, f"names without a '::: name' line in docs/reference/: {missing}"

@@ -3,13 +3,16 @@ between a QP over the horizon and a projection onto the complementarity set of e
 
 from .c3 import C3 as C3
 from .c3 import Plan as Plan
-from .closed_loop import ClosedLoop as ClosedLoop
-from .closed_loop import closed_loop as closed_loop
+from .costs import Horizon as Horizon
+from .costs import Layout as Layout
 from .costs import dare as dare
 from .examples import CartpoleProblem as CartpoleProblem
 from .examples import c3_cartpole as c3_cartpole
 from .projection import project_enumerate as project_enumerate
+from .qp import Bounds as Bounds
 from .qp import qp_problem as qp_problem
+from .simulation import ClosedLoop as ClosedLoop
+from .simulation import closed_loop as closed_loop
 
 __all__ = ["C3", "Plan", "ClosedLoop", "closed_loop", "dare", "CartpoleProblem", "c3_cartpole",
-           "project_enumerate", "qp_problem"]
+           "project_enumerate", "qp_problem", "Horizon", "Layout", "Bounds"]

@@ -59,12 +59,14 @@ class Plan:
         x: ``(N + 1, n_x)`` planned states (``x[0] = x0``; the planned ``u`` and ``lam`` rolled
             through the dynamics).
         u: ``(N, n_u)`` planned inputs (``u[0]`` is the control to apply).
-        lam: ``(N, n_lam)`` planned contact forces.
+        lam: ``(N, n_lam)`` planned contact forces, from the last QP step (so slightly negative
+            where the plan's complementarity is not met; ``delta`` holds the projected ones).
         delta: ``(N, n_z)`` the last projection (the warm start of the next solve).
         primal_residual: ``(K,)`` ``max_k |z_k - delta_k|`` after each ADMM iteration.
         dual_residual: ``(K,)`` ``max_k |delta_k - delta_k^{prev}|`` of each iteration.
         complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
-        times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed ``lam_0``), ``"total"``.
+        times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed
+            ``lam_0``), ``"total"`` (a CVXPY path's first solve includes its compilation).
         qp_failures: QP steps that failed (``"cvxpy"`` path) and fell back to C3's plan
             ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning` says so).
     """
@@ -83,24 +85,45 @@ class Plan:
 class C3:
     """C3 for an LCS ``model`` over ``horizon`` steps.
 
+    The weights act on the model's own units, of ``x``, ``u`` and of ``lam``: a learned model's
+    ``lam`` has arbitrary units, so ``G`` and ``U`` on ``lam`` (and ``eta``) may need scaling to
+    its forces' size.
+
     Args:
         model: an :class:`lcs_cvx.LCS` (as learned, physical units; :meth:`lcs_cvx.LCS.from_matrices`
-            or :meth:`lcs_cvx.LCS.from_c3` for a written one), or a list of ``horizon`` of them.
-        horizon: ``N``.
-        Q ``(n_x, n_x)`` or its diagonal; R ``(n_u, n_u)`` or its diagonal: stage weights.
-        QN: terminal weight, a matrix, its diagonal, or ``"dare"`` (the Riccati solution of
-            ``(A, B, Q, R)`` of the first step).
-        G, U: consensus weights over ``z = (x, lam, u)`` (``(x, lam, u, eta)`` for ``"c3+"``),
-            matrices or diagonals; None: C3's published cart-pole weights for the projection.
-        projection: ``"c3+"`` (closed form), ``"qp"`` (convex relaxation) or ``"miqp"`` (exact).
-        admm_iterations: ``K``; rho_scale: the growth of ``G`` per iteration.
+            or :meth:`lcs_cvx.LCS.from_c3` for a written one), or a list of ``horizon`` of them
+            (a time-varying system).
+        horizon: ``N``, the number of steps planned.
+        Q: stage weight on ``x - x_des``, ``(n_x, n_x)`` or its diagonal ``(n_x,)``.
+        R: stage weight on ``u``, ``(n_u, n_u)`` or its diagonal.
+        QN: terminal weight, a matrix, its diagonal, or ``"dare"``: the solution of the discrete
+            algebraic Riccati equation of the first step's ``(A, B)`` and ``(Q, R)`` (the
+            linearisation at the target when no unit is active there).
+        G: consensus weight of the QP step over ``z = (x, lam, u)`` (``(x, lam, u, eta)`` for
+            ``"c3+"``), a matrix or its diagonal; None: C3's published cart-pole weights for the
+            projection (``"qp"``, ``"miqp"``: 0.1 on ``x`` and ``lam``; ``"c3+"``: 1 on ``lam``
+            and ``eta``).
+        U: metric of the projection over ``z``; None: C3's published cart-pole weights
+            (``"qp"``, ``"miqp"``: 1000 on ``x``, 1 on ``lam``; ``"c3+"``: 1 on ``lam``, 10,000 on
+            ``eta``; diagonal on ``(lam, eta)`` for ``"c3+"``).
+        projection: ``"c3+"`` (closed form), ``"qp"`` (C3's convex relaxation) or ``"miqp"``
+            (exact, big-M binaries; the ``control`` extra's SCIP).
+        admm_iterations: ``K``, the ADMM iterations before the last QP step.
+        rho_scale: the growth of ``G`` per iteration (and the shrinking of the scaled dual).
         x_des: the target, ``(n_x,)`` or ``(N + 1, n_x)``; default the origin.
-        x_bounds, u_bounds, lam_bounds: box bounds ``(lo, hi)``; they need ``qp_path="cvxpy"``.
-        qp_path: ``"fast"`` (default without bounds) or ``"cvxpy"``; qp_solver: ``"CLARABEL"`` or
-            ``"OSQP"`` for the ``"cvxpy"`` path.
-        projection_solver: the CVXPY solver of ``"qp"`` (Clarabel) or ``"miqp"`` (SCIP).
+        x_bounds: box bounds ``(lo, hi)`` on ``x_1 .. x_N`` (scalars or ``(n_x,)``, ``+-inf`` for
+            none); they need ``qp_path="cvxpy"``.
+        u_bounds: box bounds on ``u_0 .. u_{N-1}``.
+        lam_bounds: box bounds on ``lam_0 .. lam_{N-1}``.
+        qp_path: ``"fast"`` (default without bounds: the QP as an affine map, batched) or
+            ``"cvxpy"`` (the declared problem, default with bounds).
+        qp_solver: ``"CLARABEL"`` or ``"OSQP"`` (the ``"cvxpy"`` path).
+        projection_solver: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"``
+            (default SCIP; Gurobi and other mixed-integer QP solvers CVXPY reaches are accepted).
         warm_start: ``ctrl(x0)`` starts from the previous plan's ``delta`` shifted by one step.
         big_m: the big-M of the ``"miqp"`` projection (C3's ``M``).
+        fix_lam0: fix ``lam_0`` to the LCP solution at ``x0`` (with ``u = 0``); None: when ``E = 0`` exactly (as
+            C3 does), so a learned model whose ``E`` is merely small needs ``fix_lam0=True``.
         arrays: the array back-end of the solve (``"auto"``: NumPy for CPU tensors, torch on
             other devices; ``"torch"`` runs torch on the CPU too).
     """
@@ -109,7 +132,8 @@ class C3:
                  U: Any = None, projection: str = "c3+", admm_iterations: int = 10, rho_scale: float = 2.0,
                  x_des: Any = None, x_bounds: Any = None, u_bounds: Any = None, lam_bounds: Any = None,
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
-                 warm_start: bool = True, big_m: float = 1000.0, arrays: str = "auto"):
+                 warm_start: bool = True, big_m: float = 1000.0, fix_lam0: bool | None = None,
+                 arrays: str = "auto"):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
         self.horizon = Horizon.of(model, horizon)
@@ -134,7 +158,9 @@ class C3:
         bounds = Bounds.of(self.layout, x=x_bounds, u=u_bounds, lam=lam_bounds)
         self.bounds = bounds
         path = qp_path or ("cvxpy" if bounds.any() else "fast")
-        self.fix_lam0 = not hz.input_in_complementarity() and hz.n_lam > 0
+        if fix_lam0 is None:
+            fix_lam0 = not hz.input_in_complementarity()
+        self.fix_lam0 = bool(fix_lam0) and hz.n_lam > 0
         self.x_des = self._target(x_des)
         rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
         self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,

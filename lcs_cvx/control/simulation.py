@@ -19,7 +19,7 @@ __all__ = ["ClosedLoop", "closed_loop"]
 @dataclasses.dataclass
 class ClosedLoop:
     """Closed-loop trajectories: ``x (B, T + 1, n_x)``, ``u (B, T, n_u)``; ``settled (B,)`` the
-    first step from which ``|x|_inf <= tol`` held for ``hold`` steps (``-1`` if never);
+    first step from which ``|x - x_des|_inf <= tol`` held for ``hold`` steps (``-1`` if never);
     ``solve_times (T,)`` seconds per controller call."""
 
     x: torch.Tensor
