@@ -47,6 +47,7 @@ DOCUMENTED_MODULES = (
     "lcs_cvx.layers",
     "lcs_cvx.io",
     "lcs_cvx.train",
+    "lcs_cvx.datasets",
 )
 
 #: Words that narrate how the software was made rather than what it does.
