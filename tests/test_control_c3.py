@@ -175,3 +175,47 @@ def test_the_torch_back_end_plans_as_numpy(cartpole):
         assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-10), name
     with pytest.raises(lcs_cvx.LCSInputError, match="arrays: expected one of"):
         controller(P, "c3+", arrays="jax")
+
+
+def test_dare_uses_the_mode_active_at_the_target():
+    """QN = "dare" linearises the model in the contact mode active at x_des: there the LCS step
+    is that affine map (checked against the step itself), and a unit active at the target
+    changes QN from the free mode's."""
+    from lcs_cvx.control import Horizon, dare
+    from lcs_cvx.control.costs import mode_dynamics
+
+    rng = np.random.default_rng(5)
+    n_x, n_u, n_lam = 3, 1, 2
+    m = dict(A=np.eye(n_x) + 0.1 * rng.standard_normal((n_x, n_x)), B=rng.standard_normal((n_x, n_u)),
+             C=rng.standard_normal((n_x, n_lam)), d=np.zeros(n_x), D=rng.standard_normal((n_lam, n_x)),
+             E=rng.standard_normal((n_lam, n_u)), F=np.array([[2.0, 0.5], [-0.5, 1.0]]), c=np.array([-1.0, 1.0]))
+    model = lcs_cvx.LCS.from_matrices(**m)  # unit 0 active at the origin (c_0 < 0), unit 1 not
+    A_S, B_S, S = mode_dynamics(Horizon.of(model, 1), np.zeros(n_x), np.zeros(n_u))
+    assert S == [0]
+    dx, du = 1e-4 * rng.standard_normal((4, n_x)), 1e-4 * rng.standard_normal((4, n_u))
+    base = model.step(np.zeros((1, n_x)), np.zeros((1, n_u))).detach().numpy()
+    moved = model.step(dx, du).detach().numpy()
+    np.testing.assert_allclose(moved - base, dx @ A_S.T + du @ B_S.T, atol=1e-12)
+    ctrl = C3(model, 4, Q=np.ones(n_x), R=np.ones(n_u))
+    assert ctrl.target_mode == [0]
+    np.testing.assert_allclose(ctrl.QN, dare(A_S, B_S, np.eye(n_x), np.eye(n_u)), rtol=1e-10)
+    assert not np.allclose(ctrl.QN, dare(m["A"], m["B"], np.eye(n_x), np.eye(n_u)), rtol=1e-3)
+
+
+def test_default_projection_metric_weighs_u_where_it_enters_the_complementarity(cartpole):
+    rng = np.random.default_rng(6)
+    with_E = lcs_cvx.LCS.from_matrices(A=np.eye(3) + 0.05 * rng.standard_normal((3, 3)), B=rng.standard_normal((3, 1)),
+                                       C=rng.standard_normal((3, 2)), d=np.zeros(3), D=rng.standard_normal((2, 3)),
+                                       E=rng.standard_normal((2, 1)), F=np.eye(2), c=np.ones(2))
+    U_free = np.diagonal(C3(cartpole.model, 3, Q=np.ones(4), R=np.ones(1), projection="qp").U[0])
+    U_with = np.diagonal(C3(with_E, 3, Q=np.ones(3), R=np.ones(1), projection="qp").U[0])
+    assert U_free[-1] == 0.0 and U_with[-1] == 1000.0
+
+
+def test_warm_start_from_a_given_delta(cartpole):
+    ctrl = controller(cartpole, "c3+")
+    plan = ctrl.solve(cartpole.x0)
+    again = ctrl.solve(cartpole.x0, warm_start=plan.delta)  # the converged delta, unshifted
+    assert float(again.primal_residual[0]) < float(plan.primal_residual[0])
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"warm_start: expected a Plan or a finite delta of shape \(5, 9\)"):
+        ctrl.solve(cartpole.x0, warm_start=np.zeros((4, 9)))

@@ -42,6 +42,7 @@ from .costs import (
     OnDevice,
     dare,
     default_consensus_weights,
+    mode_dynamics,
     weight_matrix,
 )
 from .projection import Projection
@@ -97,15 +98,18 @@ class C3:
         Q: stage weight on ``x - x_des``, ``(n_x, n_x)`` or its diagonal ``(n_x,)``.
         R: stage weight on ``u``, ``(n_u, n_u)`` or its diagonal.
         QN: terminal weight, a matrix, its diagonal, or ``"dare"``: the solution of the discrete
-            algebraic Riccati equation of the first step's ``(A, B)`` and ``(Q, R)`` (the
-            linearisation at the target when no unit is active there).
+            algebraic Riccati equation of ``(Q, R)`` and the last step's dynamics in the contact
+            mode active at the target (``x_des`` with ``u = 0``; with no unit active there, as
+            for a physical model at rest away from contact, ``(A, B)`` itself); the mode is
+            kept as ``ctrl.target_mode``. A learned model's ``lam`` may be active at the target.
         G: consensus weight of the QP step over ``z = (x, lam, u)`` (``(x, lam, u, eta)`` for
             ``"c3+"``), a matrix or its diagonal; None: C3's published cart-pole weights for the
             projection (``"qp"``, ``"miqp"``: 0.1 on ``x`` and ``lam``; ``"c3+"``: 1 on ``lam``
             and ``eta``).
         U: metric of the projection over ``z``; None: C3's published cart-pole weights
-            (``"qp"``, ``"miqp"``: 1000 on ``x``, 1 on ``lam``; ``"c3+"``: 1 on ``lam``, 10,000 on
-            ``eta``; diagonal on ``(lam, eta)`` for ``"c3+"``).
+            (``"qp"``, ``"miqp"``: 1000 on ``x``, 1 on ``lam``, and 1000 on ``u`` where ``u``
+            enters the complementarity; ``"c3+"``: 1 on ``lam``, 10,000 on ``eta``; diagonal on
+            ``(lam, eta)`` for ``"c3+"``).
         projection: ``"c3+"`` (closed form), ``"qp"`` (C3's convex relaxation) or ``"miqp"``
             (exact, big-M binaries; the ``control`` extra's SCIP).
         admm_iterations: ``K``, the ADMM iterations before the last QP step.
@@ -146,13 +150,16 @@ class C3:
         self.rho_scale = check_positive("rho_scale", rho_scale)
         self.Q = weight_matrix("Q", Q, hz.n_x, N)
         self.R = weight_matrix("R", R, hz.n_u, N)
+        self.x_des = self._target(x_des)
         if isinstance(QN, str):
             if QN != "dare":
                 raise LCSInputError(f"QN: expected a matrix, its diagonal or 'dare', received {QN!r}")
-            self.QN = dare(hz.A[0], hz.B[0], self.Q[0], self.R[0])
+            A_S, B_S, self.target_mode = mode_dynamics(hz, self.x_des[0, -1].numpy(), np.zeros(hz.n_u), hz.N - 1)
+            self.QN = dare(A_S, B_S, self.Q[-1], self.R[-1])
         else:
+            self.target_mode = None
             self.QN = weight_matrix("QN", QN, hz.n_x, 1)[0]
-        G0, U0 = default_consensus_weights(self.layout, projection)
+        G0, U0 = default_consensus_weights(self.layout, projection, hz.input_in_complementarity())
         self.G = weight_matrix("G", G0 if G is None else G, self.layout.n_z, N)
         self.U = weight_matrix("U", U0 if U is None else U, self.layout.n_z, N)
         bounds = Bounds.of(self.layout, x=x_bounds, u=u_bounds, lam=lam_bounds)
@@ -161,7 +168,6 @@ class C3:
         if fix_lam0 is None:
             fix_lam0 = not hz.input_in_complementarity()
         self.fix_lam0 = bool(fix_lam0) and hz.n_lam > 0
-        self.x_des = self._target(x_des)
         rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
         self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
                          bounds=bounds, path=path, solver=qp_solver)
@@ -183,6 +189,21 @@ class C3:
             raise LCSInputError(f"x_des: expected finite ({nx},) or ({N + 1}, {nx}), received shape {tuple(t.shape)}")
         return t.unsqueeze(0).clone()
 
+    def _start(self, warm_start: Plan | Any, X0: torch.Tensor) -> torch.Tensor | None:
+        """The ADMM's first ``delta`` ``(B, N, n_z)`` from ``warm_start``, or None (cold)."""
+        if warm_start is None:
+            return None
+        if isinstance(warm_start, Plan):
+            return self._shift(warm_start, X0.shape[0])
+        N, nz = self.horizon.N, self.layout.n_z
+        d = torch.as_tensor(warm_start).to(X0)
+        if d.shape == (N, nz):
+            d = d.expand(X0.shape[0], N, nz)
+        if d.shape != (X0.shape[0], N, nz) or not bool(torch.isfinite(d).all()):
+            raise LCSInputError(f"warm_start: expected a Plan or a finite delta of shape ({N}, {nz}) or "
+                                f"({X0.shape[0]}, {N}, {nz}), received shape {tuple(d.shape)}")
+        return d
+
     def _shift(self, plan: Plan, batch: int) -> torch.Tensor | None:
         """The previous plan's ``delta`` shifted by one step (its last step repeated)."""
         delta = plan.delta if plan.delta.dim() == 3 else plan.delta.unsqueeze(0)
@@ -191,9 +212,10 @@ class C3:
         return torch.cat([delta[:, 1:], delta[:, -1:]], dim=1)
 
     @torch.no_grad()
-    def solve(self, x0: Any, *, x_des: Any = None, warm_start: Plan | None = None) -> Plan:
-        """The plan from ``x0`` ``(n_x,)`` or a batch ``(B, n_x)``; ``warm_start`` a previous
-        :class:`Plan` of the same batch size (its ``delta`` shifted by one step starts the ADMM).
+    def solve(self, x0: Any, *, x_des: Any = None, warm_start: Plan | Any = None) -> Plan:
+        """The plan from ``x0`` ``(n_x,)`` or a batch ``(B, n_x)``. ``warm_start``: a previous
+        :class:`Plan` of the same batch size (its ``delta`` shifted by one step starts the ADMM),
+        or a starting ``delta`` of the user's ``(N, n_z)`` or ``(B, N, n_z)``.
         With ``qp_path="fast"`` and ``projection="c3+"`` the whole solve runs on ``x0``'s device."""
         t_start = time.perf_counter()
         hz, lay = self.horizon, self.layout
@@ -211,7 +233,7 @@ class C3:
             t = time.perf_counter()
             lam0 = self._lcp_at(X0)
             t_lcp = time.perf_counter() - t
-        delta = self._shift(warm_start, B) if warm_start is not None else None
+        delta = self._start(warm_start, X0)
         if delta is None:
             delta = X0.new_zeros(B, N, lay.n_z)
         x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))

@@ -28,9 +28,11 @@ import scipy.linalg
 import torch
 
 from .._checks import LCSInputError
-from ..system import LCS
+from ..lcp import solve_lcp
+from ..system import ACTIVE_TOL, LCS
 
-__all__ = ["Horizon", "Layout", "OnDevice", "dare", "weight_matrix", "default_consensus_weights", "psd_factor"]
+__all__ = ["Horizon", "Layout", "OnDevice", "dare", "mode_dynamics", "weight_matrix", "default_consensus_weights",
+           "psd_factor"]
 
 PROJECTIONS = ("c3+", "qp", "miqp")
 
@@ -178,6 +180,23 @@ def psd_factor(M: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(w, 0.0, None))[..., :, None] * np.swapaxes(V, -1, -2)
 
 
+def mode_dynamics(horizon: Horizon, x: np.ndarray, u: np.ndarray, k: int = 0) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """The affine dynamics of step ``k``'s LCS in the contact mode active at ``(x, u)``: with
+    ``S`` the units with ``lam_i > 0`` there, ``lam_S = -F_SS^{-1} (D_S x + E_S u + c_S)``, so
+    ``A_S = A - C_S F_SS^{-1} D_S`` and ``B_S = B - C_S F_SS^{-1} E_S``. Returns
+    ``(A_S, B_S, S)``; with no unit active, ``(A, B, [])``."""
+    A, B, C, D, E, F, c = (getattr(horizon, n)[k] for n in ("A", "B", "C", "D", "E", "F", "c"))
+    if horizon.n_lam == 0:
+        return A, B, []
+    q = torch.as_tensor(D @ x + E @ u + c)[None]
+    lam = solve_lcp(torch.as_tensor(F), q).lam[0].numpy()
+    S = [int(i) for i in np.flatnonzero(lam > ACTIVE_TOL)]
+    if not S:
+        return A, B, []
+    solve = np.linalg.solve(F[np.ix_(S, S)], np.concatenate([D[S], E[S]], axis=1))
+    return A - C[:, S] @ solve[:, : horizon.n_x], B - C[:, S] @ solve[:, horizon.n_x:], S
+
+
 def dare(A: Any, B: Any, Q: Any, R: Any) -> np.ndarray:
     """The stabilising solution ``P`` of ``P = A^T P A - A^T P B (R + B^T P B)^{-1} B^T P A + Q``."""
     A, B, Q, R = (np.atleast_2d(np.asarray(v, dtype=np.float64)) for v in (A, B, Q, R))
@@ -188,12 +207,16 @@ def dare(A: Any, B: Any, Q: Any, R: Any) -> np.ndarray:
     return 0.5 * (P + P.T)
 
 
-def default_consensus_weights(layout: Layout, projection: str) -> tuple[np.ndarray, np.ndarray]:
+def default_consensus_weights(layout: Layout, projection: str, input_in_complementarity: bool = False
+                              ) -> tuple[np.ndarray, np.ndarray]:
     """``G`` and ``U`` diagonals when the user gives none: C3's published cart-pole weights.
 
     ``"qp"`` and ``"miqp"``: ``G`` 0.1 on ``x`` and ``lam``, ``U`` 1000 on ``x`` and 1 on
-    ``lam`` (0 on ``u``). ``"c3+"``: ``G`` 1 on ``lam`` and ``eta``; ``U`` 1 on ``lam`` and
-    10,000 on ``eta`` (0 on ``x`` and ``u``).
+    ``lam``; 0 on ``u``, as published for a system whose input does not enter the
+    complementarity (``E = 0``); where it does, ``U`` is 1000 on ``u`` as on ``x``, or the
+    projection would reach any contact mode by moving ``u`` freely. ``"c3+"``: ``G`` 1 on
+    ``lam`` and ``eta``; ``U`` 1 on ``lam`` and 10,000 on ``eta`` (its projection leaves ``x``
+    and ``u`` as they are).
     """
     G = np.zeros(layout.n_z)
     U = np.zeros(layout.n_z)
@@ -207,4 +230,6 @@ def default_consensus_weights(layout: Layout, projection: str) -> tuple[np.ndarr
         G[layout.lam] = 0.1
         U[layout.x] = 1000.0
         U[layout.lam] = 1.0
+        if input_in_complementarity:
+            U[layout.u] = 1000.0
     return G, U

@@ -34,6 +34,8 @@ from typing import Any
 import cvxpy as cp
 import numpy as np
 import scipy.linalg
+import torch
+from threadpoolctl import threadpool_limits
 
 from .._checks import LCSInputError
 from .._kernels.c3 import affine_qp
@@ -227,7 +229,9 @@ class QPStep:
         self._LG = psd_factor(G)
         self._LQ = psd_factor(np.concatenate([Q, QN[None]]))
         if path == "fast":
-            maps = [self._affine_map(Q, R, QN, G, rho) for rho in self.rho_levels]
+            # BLAS threads as torch's: a dense solve per level, a few milliseconds each
+            with threadpool_limits(limits=torch.get_num_threads()):
+                maps = [self._affine_map(Q, R, QN, G, rho) for rho in self.rho_levels]
             n_t = horizon.N * layout.n_z
             p_t = layout.n_x + (layout.n_lam if fix_lam0 else 0)
             Y = np.stack([m[0].T for m in maps])  # (levels, n_p, n_y)
