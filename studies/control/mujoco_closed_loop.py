@@ -14,13 +14,14 @@ Random starts (seeded, ``seed = 0``): a side ``s = +-1`` with equal odds, then
 Controllers (all with the stage weights ``Q = diag(5, 20, 0.5, 0.5)`` of ``mpc_example``):
 
 - ``no input``;
-- ``C3, learned LCS n_lam=8``: :class:`lcs_cvx.control.C3` (``"c3+"``, horizon 10, 10 ADMM
-  iterations, default ``G``, ``U``, ``QN = "dare"``, ``R = 0.1``) on
-  ``lcs_violation_nlam8.npz``;
-- ``C3, learned LCS n_lam=8, active-mode QN``: the same with ``R = 1`` and ``QN`` the Riccati
-  solution of the learned LCS's affine dynamics *in the contact mode active at the origin*
-  (``QN = "dare"`` linearises the free mode ``lam = 0``, which is not the learned model's dynamics
-  there: its ``lam`` are partly hidden units, several active at the upright origin);
+- ``C3, learned LCS n_lam=8, free-mode QN``: :class:`lcs_cvx.control.C3` (``"c3+"``, horizon 10,
+  10 ADMM iterations, default ``G``, ``U``, ``R = 0.1``) on ``lcs_violation_nlam8.npz``, with
+  ``QN`` the Riccati solution of the free mode ``lam = 0`` (``A``, ``B``), which is not the learned
+  model's dynamics at the origin: its ``lam`` are partly hidden units, several active there;
+- ``C3, learned LCS n_lam=8, active-mode QN``: the same with ``R = 1`` and ``QN = "dare"``, the
+  Riccati solution of the learned LCS's affine dynamics *in the contact mode active at the
+  target* (:func:`lcs_cvx.control.costs.mode_dynamics`; equal to this study's
+  :func:`active_mode_dynamics` to 1e-13);
 - ``C3, learned LCS n_lam=2, active-mode QN``: the same on ``lcs_violation_nlam2.npz`` with
   ``R = 3`` (the best learned model found for C3, see the report);
 - ``C3, hand-written LCS``: the cart-pole linearised about the upright pole with the plant's
@@ -255,10 +256,10 @@ def _c3_learned(name: str, R: float, active_qn: bool) -> Callable[[dict[str, Any
         from lcs_cvx.control.costs import dare
 
         model = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz"))
-        qn: Any = "dare"
-        if active_qn:
-            A_S, B_S = active_mode_dynamics(model.to_matrices())
-            qn = dare(A_S, B_S, np.diag(Q_STAGE), np.array([[R]]))
+        qn: Any = "dare"  # the mode active at the target
+        if not active_qn:
+            m = model.to_matrices()
+            qn = dare(m["A"], m["B"], np.diag(Q_STAGE), np.array([[R]]))
         return C3Wrapper(C3(model, 10, Q=list(Q_STAGE), R=[R], QN=qn))
     return make
 
@@ -289,7 +290,7 @@ def _mppi_mlp(ctx: dict[str, Any]) -> Any:
 #: name -> factory(context) of a controller ``x -> u`` (None: no input)
 CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "no input": lambda ctx: None,
-    "C3, learned LCS n_lam=8": _c3_learned("violation_nlam8", 0.1, False),
+    "C3, learned LCS n_lam=8, free-mode QN": _c3_learned("violation_nlam8", 0.1, False),
     "C3, learned LCS n_lam=8, active-mode QN": _c3_learned("violation_nlam8", 1.0, True),
     "C3, learned LCS n_lam=2, active-mode QN": _c3_learned("violation_nlam2", 3.0, True),
     "C3, hand-written LCS": _c3_hand,
@@ -492,13 +493,13 @@ _FINDINGS = [
     "(4 s runs), before the 50-start runs of the table.",
     "",
     "- **The learned `lam` are not contacts.** The learned LCSs have `lam` active at the upright "
-    "origin (`lcs_violation_nlam8`: five of eight; `lcs_violation_nlam2`: one of two), so C3's "
-    "`QN = \"dare\"`, which linearises the *free* mode `lam = 0` of the first step, is not the "
-    "learned model's dynamics near the target. With it, C3 on the `n_lam = 2` model lets the pole "
+    "origin (`lcs_violation_nlam8`: five of eight; `lcs_violation_nlam2`: one of two), so the "
+    "Riccati solution of the *free* mode `lam = 0` is not the terminal cost of the learned "
+    "model's dynamics near the target. With it, C3 on the `n_lam = 2` model lets the pole "
     "fall in 4 of 6 scenarios (final |θ| up to 3.9 rad); with `QN` the Riccati solution of the mode "
-    "active at the origin (`active_mode_dynamics`) the pole ends upright "
-    "(|θ| ≈ 0.015 rad) in every scenario with `R = 3` (in 5 of 6 with `R = 1`). That is the one change that made C3 do something "
-    "useful on a learned model.",
+    "active at the target (`QN = \"dare\"`, which takes that mode) the pole ends upright "
+    "(|θ| ≈ 0.015 rad) in every scenario with `R = 3` (in 5 of 6 with `R = 1`). That is the one "
+    "change that made C3 do something useful on a learned model.",
     "- **But C3 on the `n_lam = 2` model parks the cart against a wall.** It ends at "
     "x_c ≈ +0.17 m, from either side, the tip touching the right wall, so every run fails the "
     "no-contact part of the test (table: median final |x_c| 0.17 m). At that state the learned "
@@ -522,10 +523,11 @@ _FINDINGS = [
     "the active-mode `QN`, or setting the small learned `E` to 0 (so that C3 fixes `lam_0` by the "
     "LCP at `x0`) succeed in 0 of 6 scenarios. So do the `n_lam = 4` and the prediction-loss models "
     "(`n_lam` = 2, 4, 8) with the default or the active-mode `QN`.",
-    "- **The `\"qp\"` and `\"miqp\"` projections** (C3's published `G`, `U`) give worse plans on "
-    "the learned models (violation ~4.8): their default `U` is 0 on `u`, and the learned `E` is not "
-    "zero, so the projection may move `u` as far as it likes to reach a contact mode, and the QP "
-    "step ignores that `u`. `\"miqp\"` takes ~24 s per solve with `n_lam = 8`.",
+    "- **The `\"qp\"` and `\"miqp\"` projections** with C3's published `G`, `U` (0 on `u`) gave "
+    "worse plans on the learned models (violation ~4.8): the learned `E` is not zero, so the "
+    "projection could move `u` as far as it liked to reach a contact mode, and the QP step ignored "
+    "that `u`; the default `U` now weighs `u` (1000, as `x`) when `E` is not zero. `\"miqp\"` "
+    "takes ~24 s per solve with `n_lam = 8`.",
     "- **C3 itself is not the problem on an LCS that is a physical model.** On the hand-written "
     "LCS of the plant (two walls, diagonal `F`, `E = 0`, no `lam` active at the target) C3 with "
     "its default `G`, `U` succeeds in 49 of 50 starts at ~0.6 ms per step, the plans' violation "
