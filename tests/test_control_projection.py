@@ -54,7 +54,7 @@ def test_c3plus_is_the_exact_projection_of_its_set():
     U[lay.eta] = rng.uniform(0.5, 2, hz.n_lam)
     proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "c3+")
     c = rng.standard_normal((20, N, lay.n_z))
-    delta = proj(XP, c)
+    delta = proj.bind(XP, c)(c)
     for b in range(20):
         for k in range(N):
             want, want_cost = c3plus_by_enumeration(c[b, k], lay, U[lay.lam], U[lay.eta])
@@ -65,7 +65,8 @@ def test_c3plus_is_the_exact_projection_of_its_set():
             assert np.all(d[lay.lam] >= 0) and np.all(d[lay.eta] >= 0)
             assert np.all(d[lay.lam] * d[lay.eta] == 0)
             np.testing.assert_array_equal(d[lay.x], c[b, k, lay.x])  # x and u pass through
-    torch_delta = proj(array_ops(torch.zeros(1), "torch"), torch.tensor(c))
+    tc = torch.tensor(c)
+    torch_delta = proj.bind(array_ops(tc, "torch"), tc)(tc)
     assert torch.equal(torch_delta, torch.tensor(delta))
 
 
@@ -80,7 +81,7 @@ def test_miqp_equals_the_enumeration_of_sign_patterns(n_lam):
     U = np.concatenate([rng.uniform(1, 3, hz.n_x), rng.uniform(0.5, 2, hz.n_lam), rng.uniform(0.5, 1, hz.n_u)])
     proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "miqp")
     c = rng.standard_normal((2, N, lay.n_z))
-    delta = proj(XP, c)
+    delta = proj.bind(XP, c)(c)
     m = model.to_matrices()
     for b in range(2):
         for k in range(N):
@@ -102,7 +103,7 @@ def test_qp_projection_satisfies_the_constraints_of_its_relaxation():
     U = np.concatenate([np.full(hz.n_x, 1000.0), np.ones(hz.n_lam), np.zeros(hz.n_u)])
     proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, N), "qp")
     c = np.random.default_rng(8).standard_normal((3, N, lay.n_z))
-    delta = proj(XP, c)
+    delta = proj.bind(XP, c)(c)
     m = model.to_matrices()
     lam = delta[..., lay.lam]
     eta = (np.einsum("ij,bkj->bki", m["D"], delta[..., lay.x]) + np.einsum("ij,bkj->bki", m["E"], delta[..., lay.u])

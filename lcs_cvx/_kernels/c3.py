@@ -34,13 +34,14 @@ def rollout(x0: Any, u: Any, lam: Any, A: Any, B: Any, C: Any, d: Any) -> list[A
 
 
 def violation(xp: Any, xs: list[Any], u: Any, lam: Any, D: Any, E: Any, F: Any, c: Any) -> Any:
-    """``max_k max_i |min(lam, D_k x_k + E_k u_k + F_k lam_k + c_k)_i|`` per plan, ``(B, 1)``."""
-    worst = None
-    for k in range(D.shape[0]):
-        eta = xs[k] @ D[k].T + u[:, k] @ E[k].T + lam[:, k] @ F[k].T + c[k]
-        v = xp.amax_abs(xp.minimum(lam[:, k], eta))
-        worst = v if worst is None else xp.where(v > worst, v, worst)
-    return worst
+    """``max_k max_i |min(lam, D_k x_k + E_k u_k + F_k lam_k + c_k)_i|`` per plan, ``(B, 1)``:
+    the steps as the batch of one product each (``(N, B, .)``)."""
+    B, N = u.shape[0], u.shape[1]
+    steps = lambda a: a.swapaxes(0, 1)  # noqa: E731  (B, N, m) <-> (N, B, m)
+    x = xp.concat([v.reshape(B, 1, -1) for v in xs[:N]]).reshape(B, N, -1)
+    eta = (steps(x) @ D.swapaxes(1, 2) + steps(u) @ E.swapaxes(1, 2) + steps(lam) @ F.swapaxes(1, 2)
+           + c[:, None, :])
+    return xp.amax_abs(xp.minimum(steps(lam), eta).swapaxes(0, 1).reshape(B, -1))
 
 
 def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqrt_w_eta: Any) -> Any:
@@ -49,8 +50,8 @@ def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqr
     cl, ce = c[..., lam], c[..., eta]
     keep_eta = ce * sqrt_w_eta > cl * sqrt_w_lam
     out = xp.copy(c)
-    out[..., lam] = xp.clamp_min(xp.where(keep_eta, 0.0, cl), 0.0)
-    out[..., eta] = xp.clamp_min(xp.where(keep_eta, ce, 0.0), 0.0)
+    out[..., lam] = xp.where(keep_eta, 0.0, xp.clamp_min(cl, 0.0))
+    out[..., eta] = xp.where(keep_eta, xp.clamp_min(ce, 0.0), 0.0)
     return out
 
 
@@ -83,7 +84,8 @@ def admm(xp: Any, qp_step: Callable[..., tuple[Any, Any, int]], project: Callabl
     z, xN, bad = qp_step(iterations, delta if last_target_is_delta else delta - w)
     t_qp += time.perf_counter() - t0
     B = delta.shape[0]
-    primal = xp.concat([xp.amax_abs(d.reshape(B, -1)) for d in primal])
-    dual = xp.concat([xp.amax_abs(d.reshape(B, -1)) for d in dual])
+    # (B, K * m) -> one row per (plan, iteration) -> (B, K)
+    primal = xp.amax_abs(xp.concat([d.reshape(B, -1) for d in primal]).reshape(B * iterations, -1)).reshape(B, -1)
+    dual = xp.amax_abs(xp.concat([d.reshape(B, -1) for d in dual]).reshape(B * iterations, -1)).reshape(B, -1)
     return {"z": z, "x_N": xN, "delta": delta, "primal": primal, "dual": dual,
             "failures": failures + bad, "qp": t_qp, "projection": t_proj}

@@ -227,21 +227,17 @@ class C3:
         B, N = X0.shape[0], hz.N
         xp = array_ops(X0, self.arrays if fast else "numpy")
         xd = (self.x_des if x_des is None else self._target(x_des)).to(X0).expand(B, N + 1, hz.n_x)
-        t_lcp = 0.0
-        lam0 = None
-        if self.fix_lam0:
-            t = time.perf_counter()
-            lam0 = self._lcp_at(X0)
-            t_lcp = time.perf_counter() - t
         delta = self._start(warm_start, X0)
         if delta is None:
             delta = X0.new_zeros(B, N, lay.n_z)
         x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))
-        lam0_a = None if lam0 is None else xp.wrap(lam0.contiguous())
         mats = self._matrices.on(xp, X0)
+        t = time.perf_counter()
+        lam0_a = self._lcp_at(xp, x0_a, mats) if self.fix_lam0 else None
+        t_lcp = time.perf_counter() - t
         with xp.threads():
             qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a)
-            out = admm(xp, qp_step, lambda c: self.project(xp, c), delta_a, self.admm_iterations,
+            out = admm(xp, qp_step, self.project.bind(xp, x0_a), delta_a, self.admm_iterations,
                        self.rho_scale, last_target_is_delta=lay.with_eta)
             z = out["z"]
             u, lam = z[..., lay.u], z[..., lay.lam]
@@ -264,15 +260,15 @@ class C3:
                                                 ("x", "u", "lam", "delta", "primal_residual", "dual_residual", "complementarity")})
         return plan
 
-    def _lcp_at(self, X0: torch.Tensor) -> torch.Tensor:
-        """``lam_0 = LCP(F_0, D_0 x0 + c_0)`` ``(B, n_lam)`` (``E = 0``): zero where ``q >= 0``,
-        else the pivoting kernel's exact solution."""
-        hz = self.horizon
-        F0, D0, c0 = (torch.as_tensor(getattr(hz, k)[0]).to(X0) for k in ("F", "D", "c"))
-        q = X0 @ D0.mT + c0
+    def _lcp_at(self, xp: Any, x0: Any, mats: dict[str, Any]) -> Any:
+        """``lam_0 = LCP(F_0, D_0 x0 + c_0)`` ``(B, n_lam)`` (``E = 0``, or ``u = 0`` where
+        ``fix_lam0`` is forced) on ``xp``'s arrays: zero where ``q >= 0``, else the pivoting
+        kernel's exact solution."""
+        q = x0 @ mats["D"][0].T + mats["c"][0]
         if bool((q >= 0).all()):
-            return torch.zeros_like(q)
-        return solve_lcp_unchecked(F0, q).lam
+            return q * 0.0
+        F0 = xp.unwrap(mats["F"][0])
+        return xp.wrap(solve_lcp_unchecked(F0, xp.unwrap(xp.contiguous(q))).lam)
 
     def __call__(self, x0: Any) -> torch.Tensor:
         """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),

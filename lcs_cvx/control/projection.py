@@ -26,6 +26,7 @@ Shapes: ``c (B, N, n_z)`` in, ``delta (B, N, n_z)`` out.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from typing import Any
 
 import cvxpy as cp
@@ -124,11 +125,17 @@ class Projection:
             metric[:, nx:nx + nl, nx:nx + nl] = alpha * 0.5 * (horizon.F + np.swapaxes(horizon.F, 1, 2))
         self._L = psd_factor(metric)
 
-    def __call__(self, xp: Any, c: Any) -> Any:
-        """``delta (B, N, n_z)``, the projection of every step of ``c (B, N, n_z)`` (arrays of
-        ``xp``; ``"qp"`` and ``"miqp"`` on NumPy arrays)."""
+    def bind(self, xp: Any, like: Any) -> Callable[[Any], Any]:
+        """The projection of one solve, ``project(c) -> delta`` for ``c (B, N, n_z)`` on the arrays
+        of ``xp`` (``"qp"`` and ``"miqp"``: NumPy arrays); ``like``: an array of the solve."""
         if self.kind == "c3+":
-            return project_c3plus(xp, c, self.layout.lam, self.layout.eta, *self._sqrt_w.on(xp, c).values())
+            lam, eta = self.layout.lam, self.layout.eta
+            w_lam, w_eta = self._sqrt_w.on(xp, like).values()
+            return lambda c: project_c3plus(xp, c, lam, eta, w_lam, w_eta)
+        return self._solve_cvxpy
+
+    def _solve_cvxpy(self, c: np.ndarray) -> np.ndarray:
+        """The ``"qp"`` or ``"miqp"`` projection, the declared problem re-solved per plan."""
         n = self.layout.n_x + self.layout.n_lam + self.layout.n_u
         out = c.copy()
         for b in range(c.shape[0]):
