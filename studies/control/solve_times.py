@@ -132,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="studies/results/control")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--solves", type=int, default=50)
+    ap.add_argument("--note", default="", help="conditions of the machine, printed under the command")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     P = c3_cartpole()
@@ -175,7 +176,8 @@ def main(argv: list[str] | None = None) -> int:
         "# C3 solve times on C3's cart-pole", "",
         f"Written by `{result['command']}` on {result['date']}, {result['machine']}. N = 5, 10 ADMM "
         f"iterations; each number is the median over {args.repeats} rounds (p95 beside it) of the mean "
-        "time of a round's solves (the implementations interleaved round by round).", "",
+        "time of a round's solves (the implementations interleaved round by round)."
+        + (f" {args.note}" if args.note else ""), "",
         "| projection / QP path | ms per solve (median) | p95 |", "|---|---:|---:|",
     ]
     for k, v in result["per_solve_s"].items():
