@@ -27,8 +27,10 @@ EXTRAS = {
     "physics": {"mujoco"},
     "docs": {"mkdocs-material", "mkdocstrings"},
     "dev": {"pytest", "hypothesis", "ruff", "pytest-timeout"},
-    "baselines": {"pyparc", "pycddlib", "pypoman", "mip", "faiss-cpu", "scikit-learn"},
+    "baselines": {"pyparc", "pypoman", "pycddlib", "mip", "faiss-cpu", "scikit-learn"},
+    "control": {"pyscipopt"},
 }
+# (not pyscipopt, the control extra's SCIP: CVXPY itself imports every solver it finds installed)
 OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib", "pyparc", "sklearn", "faiss",
                     "mip", "pypoman", "cdd")
 
