@@ -537,8 +537,11 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
               f"{d['fail_bouncing']} of them still in wall contact in their last 100 steps.")
     w("")
     if "miqp" in C:
-        w(f"The miqp projection was run from {C['miqp']['n']} random states only (plus C3's x0), against "
-          f"{C['c3+']['n'] if 'c3+' in C else '–'} for the others: its success rate is the least certain.\n")
+        n_m = C["miqp"]["n"]
+        w(f"The miqp projection runs from the first {settings.miqp_states} random states only (plus C3's x0), "
+          f"against {C['c3+']['n'] if 'c3+' in C else '–'} for the others"
+          + (f"; {n_m} of them have finished so far" if n_m < settings.miqp_states else "")
+          + ": its success rate is the least certain.\n")
     for one, two in (("c3+", "lqr"), ("qp", "lqr"), ("qp", "c3+")):
         if {one, two} <= set(C):
             r1, r2 = s["runs"][one], s["runs"][two]
