@@ -113,6 +113,22 @@ def test_qp_projection_satisfies_the_constraints_of_its_relaxation():
     assert np.abs(delta[..., lay.x] - c[..., lay.x]).max() < 0.1
 
 
+def test_projection_options_reach_the_solver(monkeypatch):
+    model = random_model(n_lam=2, seed=7)
+    ctrl = lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="qp",
+                              projection_options={"tol_gap_abs": 1e-9})
+    seen = []
+    real = cp.Problem.solve
+
+    def spy(self, *args, **kwargs):
+        seen.append(kwargs)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp.Problem, "solve", spy)
+    ctrl.solve(np.array([0.1, -0.2, 0.3]))
+    assert seen and all(kw.get("tol_gap_abs") == 1e-9 and kw.get("solver") == "CLARABEL" for kw in seen)
+
+
 def test_project_enumerate_agrees_with_a_direct_mixed_integer_solve():
     pytest.importorskip("pyscipopt")
     model = random_model(n_lam=2, seed=11)

@@ -68,8 +68,9 @@ class Plan:
         complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
         times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed
             ``lam_0``), ``"total"`` (a CVXPY path's first solve includes its compilation).
-        qp_failures: QP steps that failed (``"cvxpy"`` path) and fell back to C3's plan
-            ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning` says so).
+        qp_failures: QP steps that failed (``"cvxpy"`` path; counted over the whole batch) and fell
+            back to C3's plan ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning`
+            says so).
     """
 
     x: torch.Tensor
@@ -124,6 +125,8 @@ class C3:
         qp_solver: ``"CLARABEL"`` or ``"OSQP"`` (the ``"cvxpy"`` path).
         projection_solver: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"``
             (default SCIP; Gurobi and other mixed-integer QP solvers CVXPY reaches are accepted).
+        projection_options: keyword arguments of that solver's ``Problem.solve`` (for SCIP, e.g.
+            ``{"scip_params": {"limits/time": 1.0, "limits/gap": 1e-4}}``).
         warm_start: ``ctrl(x0)`` starts from the previous plan's ``delta`` shifted by one step.
         big_m: the big-M of the ``"miqp"`` projection (C3's ``M``).
         fix_lam0: fix ``lam_0`` to the LCP solution at ``x0`` (with ``u = 0``); None: when ``E = 0`` exactly (as
@@ -136,7 +139,8 @@ class C3:
                  U: Any = None, projection: str = "c3+", admm_iterations: int = 10, rho_scale: float = 2.0,
                  x_des: Any = None, x_bounds: Any = None, u_bounds: Any = None, lam_bounds: Any = None,
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
-                 warm_start: bool = True, big_m: float = 1000.0, fix_lam0: bool | None = None,
+                 projection_options: dict[str, Any] | None = None, warm_start: bool = True,
+                 big_m: float = 1000.0, fix_lam0: bool | None = None,
                  arrays: str = "auto"):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
@@ -171,7 +175,8 @@ class C3:
         rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
         self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
                          bounds=bounds, path=path, solver=qp_solver)
-        self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m)
+        self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m,
+                                  options=projection_options)
         self.warm_start = warm_start
         array_ops(torch.zeros(0), arrays)  # checks the name
         self.arrays = arrays

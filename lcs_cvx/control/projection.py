@@ -82,14 +82,18 @@ class Projection:
     """The projection step ``projection`` (``"c3+"``, ``"qp"`` or ``"miqp"``) with metric ``U``
     ``(N, n_z, n_z)``.
 
-    ``solver``: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"`` (default SCIP).
+    ``solver``: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"`` (default SCIP);
+    ``options``: keyword arguments of its ``Problem.solve`` (e.g. ``{"scip_params":
+    {"limits/time": 1.0}}``).
     ``alpha``, ``scaling``: C3's ``qp_projection_alpha`` (0.01) and ``qp_projection_scaling``
     (1000); ``big_m``: C3's ``M`` (1000).
     """
 
     def __init__(self, horizon: Horizon, layout: Layout, U: np.ndarray, projection: str, *,
-                 solver: str | None = None, alpha: float = 0.01, scaling: float = 1000.0, big_m: float = 1000.0):
+                 solver: str | None = None, alpha: float = 0.01, scaling: float = 1000.0, big_m: float = 1000.0,
+                 options: dict[str, Any] | None = None):
         self.horizon, self.layout, self.kind = horizon, layout, projection
+        self.options = dict(options or {})
         nx, nl, nu = layout.n_x, layout.n_lam, layout.n_u
         if projection == "c3+":
             idx = np.r_[np.arange(layout.n_x, layout.n_x + nl), np.arange(layout.eta.start, layout.eta.stop)]
@@ -141,7 +145,7 @@ class Projection:
         for b in range(c.shape[0]):
             self.target.value = np.einsum("kij,kj->ki", self._L, c[b, :, :n])
             try:
-                self.problem.solve(solver=self.solver)
+                self.problem.solve(solver=self.solver, **self.options)
             except cp.error.SolverError as exc:
                 raise SolverError(f"the '{self.kind}' projection failed in {self.solver}: {exc}") from exc
             if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
