@@ -160,3 +160,33 @@ def test_bad_projection_inputs_are_named(monkeypatch):
     U[3, 6] = U[6, 3] = 0.5  # couples lam_0 and eta_0
     with pytest.raises(lcs_cvx.LCSInputError, match="U: the 'c3\\+' projection is closed-form for a U diagonal"):
         lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), U=U)
+
+
+def test_qp_projection_set_up_once_in_clarabel_equals_the_declared_problem():
+    """The "qp" projection's direct Clarabel QP (set up once, only its linear term updated) and
+    the declared CVXPY problem solve the same relaxation."""
+    model = random_model(n_lam=3, seed=9)
+    N = 3
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    U = weight_matrix("U", np.concatenate([np.full(hz.n_x, 1000.0), np.ones(hz.n_lam), np.full(hz.n_u, 0.5)]), lay.n_z, N)
+    direct = Projection(hz, lay, U, "qp")
+    declared = Projection(hz, lay, U, "qp", solver="CLARABEL",
+                          options={"tol_gap_abs": 1e-11, "tol_gap_rel": 1e-11, "tol_feas": 1e-11})
+    assert direct.direct and not declared.direct
+    c = np.random.default_rng(10).standard_normal((4, N, lay.n_z))
+    a, b = direct.bind(XP, c)(c), declared.bind(XP, c)(c)
+    assert np.abs(a - b).max() < 1e-6 * max(1.0, np.abs(a).max())
+
+
+def test_qp_projection_keeps_unweighted_coordinates_at_the_point():
+    """C3's published U leaves u unweighted; where u does not enter the constraints (E = 0) any
+    value is optimal, and the direct QP keeps the point's."""
+    P = lcs_cvx.control.c3_cartpole()
+    hz = Horizon.of(P.model, 2)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    _, U = P.weights["qp"]
+    proj = Projection(hz, lay, weight_matrix("U", U, lay.n_z, 2), "qp")
+    c = np.random.default_rng(11).standard_normal((2, 2, lay.n_z))
+    delta = proj.bind(XP, c)(c)
+    assert np.abs(delta[..., lay.u] - c[..., lay.u]).max() < 1e-6
