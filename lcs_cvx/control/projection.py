@@ -13,7 +13,8 @@ The steps are independent, so every method projects all of them (and all initial
   ``U``-metric is zeroed and the other clipped at 0 (``U`` diagonal on ``lam`` and ``eta``).
 - ``"qp"``: C3's convex relaxation, the ``lam`` block of ``U`` replaced by ``alpha F`` and
   ``(1 - alpha) lam^T F lam`` added, subject to ``lam >= 0`` and ``D x + E u + F lam + c >= 0``
-  (declared once in CVXPY, all steps in one problem).
+  (all steps in one problem, declared once in CVXPY; solved by Clarabel with the QP set up
+  once and only its linear term updated per plan, or through CVXPY when a solver is named).
 - ``"miqp"``: exact, with big-M binaries ``b``: ``0 <= lam <= M (1 - b)``,
   ``0 <= D x + E u + F lam + c <= M b`` (declared once in CVXPY, solved by a mixed-integer solver:
   SCIP from the ``control`` extra, or a commercial one CVXPY reaches).

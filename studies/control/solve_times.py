@@ -142,12 +142,16 @@ def main(argv: list[str] | None = None) -> int:
     for proj, path in (("c3+", "fast"), ("c3+", "cvxpy"), ("qp", "fast"), ("qp", "cvxpy"), ("miqp", "fast")):
         G, U = P.weights[proj]
         ctrls[(proj, path)] = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U, projection=proj, qp_path=path)
+    # the "qp" projection as the declared CVXPY problem (naming its solver selects it)
+    G, U = P.weights["qp"]
+    ctrls[("qp (declared projection)", "fast")] = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U, projection="qp",
+                                                    projection_solver="CLARABEL")
     dense = DenseC3Plus(ctrls[("c3+", "fast")])
     for x0 in states[:5]:  # the plain version is the same controller
         u_fast = ctrls[("c3+", "fast")].solve(x0).u[0].numpy()
         assert np.allclose(dense.solve(x0), u_fast, atol=1e-6), (dense.solve(x0), u_fast)
     count = {("c3+", "fast"): args.solves, ("c3+", "cvxpy"): 5, ("qp", "fast"): 10, ("qp", "cvxpy"): 3,
-             ("miqp", "fast"): 2}
+             ("miqp", "fast"): 2, ("qp (declared projection)", "fast"): 5}
     per_solve: dict[str, list[float]] = {}
     for _ in range(args.repeats):
         for key, ctrl in ctrls.items():
