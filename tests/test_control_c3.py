@@ -22,19 +22,21 @@ def controller(P, projection, **kw):
     return C3(P.model, P.horizon, Q=P.Q, R=P.R, QN="dare", G=G, U=U, projection=projection, **kw)
 
 
-@pytest.mark.parametrize("projection", ["c3+", "qp"])
-def test_c3_cartpole_end_to_end(cartpole, projection):
+@pytest.mark.parametrize("projection, options", [("c3+", {}), ("qp", {}), ("miqp", {"projection_solver": "enumerate"})])
+def test_c3_cartpole_end_to_end(cartpole, projection, options):
     """C3's end-to-end test: from x0 = (0.1, -0.5, 0.5, -0.4), closing the loop on the exact LCS
     brings every coordinate within 0.1 of zero and keeps it there for 30 steps. (The "miqp"
-    projection does too, at step 187 of 216; at about a second per solve it runs in the control
-    study; here its projections are checked against enumeration.)"""
-    ctrl = controller(cartpole, projection)
+    projection runs here by its active sets; through SCIP, at about a second per solve, it runs
+    in the control study, settling at the same step 187.)"""
+    ctrl = controller(cartpole, projection, **options)
     res = closed_loop(ctrl, cartpole.model, cartpole.x0, 400, stop_when_settled=True)
     assert 0 < int(res.settled[0]) < 400
     assert float(res.x[0, -1].abs().max()) <= 0.1
     # the walls were hit on the way (the problem is not the LQR's)
     lam = cartpole.model.solve_lcp(res.x[0, :-1], res.u[0]).lam.detach()
     assert float(lam.max()) > 0
+    if projection == "miqp":
+        assert int(res.settled[0]) == 187  # as SCIP's big-M projection does
 
 
 @pytest.mark.parametrize("projection", ["c3+", "qp"])

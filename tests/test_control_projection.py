@@ -4,6 +4,7 @@ enumeration of its 2^n_lam choices, "miqp" against the enumeration of the sign p
 
 from __future__ import annotations
 
+import importlib.util
 import itertools
 
 import cvxpy as cp
@@ -95,6 +96,61 @@ def test_miqp_equals_the_enumeration_of_sign_patterns(n_lam):
             assert np.abs(np.minimum(lam, eta)).max() < 1e-6
 
 
+@pytest.mark.parametrize("n_lam", [2, 3])
+def test_miqp_by_active_sets_equals_the_enumeration_of_sign_patterns(n_lam):
+    """projection_solver="enumerate" (3^n_lam active sets, closed form) is the exact projection:
+    equal to the sign-pattern oracle on random points and on points already in the set with
+    lam_i = eta_i = 0 (degenerate), and to SCIP's big-M projection where SCIP is installed."""
+    model = random_model(n_lam=n_lam, seed=n_lam)
+    N = 2
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    rng = np.random.default_rng(11)
+    U = np.concatenate([rng.uniform(1, 3, hz.n_x), rng.uniform(0.5, 2, hz.n_lam), rng.uniform(0.5, 1, hz.n_u)])
+    Um = weight_matrix("U", U, lay.n_z, N)
+    proj = Projection(hz, lay, Um, "miqp", solver="enumerate")
+    m = model.to_matrices()
+    c = rng.standard_normal((3, N, lay.n_z))
+    # a degenerate point of the set: lam = 0, eta_0 = 0 (x moved onto D_0 x + E_0 u + c_0 = 0), eta >= 0
+    for _ in range(200):
+        p = rng.standard_normal(lay.n_z)
+        p[lay.lam] = 0.0
+        p[lay.x] -= (m["D"][0] @ p[lay.x] + m["E"][0] @ p[lay.u] + m["c"][0]) * m["D"][0] / (m["D"][0] @ m["D"][0])
+        if (m["D"] @ p[lay.x] + m["E"] @ p[lay.u] + m["c"]).min() >= -1e-12:
+            break
+    else:
+        raise AssertionError("no degenerate point found")
+    c[2, 0] = p
+    delta = proj.bind(XP, c)(c)
+    for b in range(3):
+        for k in range(N):
+            want = project_enumerate(c[b, k], np.diag(U), m["D"], m["E"], m["F"], m["c"], hz.n_x, hz.n_u)
+            # the oracle's interior-point QPs end ~1e-6 from a boundary where lam_i = eta_i = 0;
+            # the closed form is on it, and costs no more
+            assert np.abs(delta[b, k] - want).max() < 1e-5
+            cost = np.sum(U * (delta[b, k] - c[b, k]) ** 2)
+            assert cost <= np.sum(U * (want - c[b, k]) ** 2) + 1e-12
+            lam = delta[b, k, lay.lam]
+            eta = m["D"] @ delta[b, k, lay.x] + m["E"] @ delta[b, k, lay.u] + m["F"] @ lam + m["c"]
+            assert lam.min() >= -1e-12 and eta.min() >= -1e-9 and np.abs(lam * eta).max() < 1e-9
+    np.testing.assert_allclose(delta[2, 0], c[2, 0], atol=1e-12)  # already in the set: kept
+    if importlib.util.find_spec("pyscipopt"):
+        scip = Projection(hz, lay, Um, "miqp").bind(XP, c)(c)
+        assert np.abs(scip - delta).max() < 1e-5
+
+
+def test_miqp_by_active_sets_names_its_limits():
+    hz = Horizon.of(random_model(n_lam=7, seed=1), 2)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    with pytest.raises(lcs_cvx.LCSInputError, match="n_lam <= 6, received 7"):
+        Projection(hz, lay, weight_matrix("U", np.ones(lay.n_z), lay.n_z, 2), "miqp", solver="enumerate")
+    hz = Horizon.of(random_model(n_lam=2, seed=1), 2)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=False)
+    U = np.ones((lay.n_z, lay.n_z))  # PSD, rank one, no zero diagonal: no tie-break helps
+    with pytest.raises(lcs_cvx.LCSInputError, match="singular U"):
+        Projection(hz, lay, weight_matrix("U", U, lay.n_z, 2), "miqp", solver="enumerate")
+
+
 def test_qp_projection_satisfies_the_constraints_of_its_relaxation():
     model = random_model(n_lam=3, seed=7)
     N = 2
@@ -150,7 +206,7 @@ def test_bad_projection_inputs_are_named(monkeypatch):
     model = random_model()
     with pytest.raises(lcs_cvx.LCSInputError, match="projection: expected one of"):
         lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="admm")
-    with pytest.raises(lcs_cvx.LCSInputError, match="projection_solver: expected a mixed-integer QP solver"):
+    with pytest.raises(lcs_cvx.LCSInputError, match="projection_solver: expected 'enumerate' or a mixed-integer QP solver"):
         lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="miqp", projection_solver="OSQP")
     # a mixed-integer solver that is not installed: the error names the extra
     monkeypatch.setattr(cp, "installed_solvers", lambda: ["CLARABEL", "OSQP"])

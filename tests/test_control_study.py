@@ -40,7 +40,8 @@ def test_every_unit_is_recorded_once_with_its_keys(smoke):
     _, records = smoke
     st = cartpole_c3.Settings.smoke()
     states = {"x0"} | {str(i) for i in range(st.states)}
-    expected = {"c3+": states, "lqr": states, "qp": states, "c3+ cvxpy": {"x0"}, "miqp": {"x0"}}
+    expected = {"c3+": states, "lqr": states, "qp": states, "c3+ cvxpy": {"x0"}, "miqp": {"x0"},
+                "miqp enum": states}
     keys = [cartpole_c3.unit_key(r) for r in records]
     assert len(keys) == len(set(keys))
     for name, want in expected.items():
@@ -81,12 +82,15 @@ def test_exact_optimum_is_a_feasible_lower_bound(smoke):
             assert e["scip_cost"] == pytest.approx(e["cost"], rel=1e-9)
     assert sum("enumerated_cost" in e for e in exact.values()) == 2  # x0 and the first random state
     gaps = []
-    for name in ("c3+", "qp", "miqp", "lqr", "c3+ cvxpy"):
+    for name in ("c3+", "qp", "miqp", "miqp enum", "lqr", "c3+ cvxpy"):
         for s, r in by(records, "run", name).items():
             gap = (r["plan_cost"] - exact[s]["cost"]) / exact[s]["cost"]
             assert gap >= -1e-6, (name, s, gap)
             gaps.append(gap)
-    assert len(gaps) == 3 * (cartpole_c3.Settings.smoke().states + 1) + 2
+    assert len(gaps) == 4 * (cartpole_c3.Settings.smoke().states + 1) + 2
+    # SCIP's first plan and the active sets' are the same plan (the same exact projection)
+    assert by(records, "run", "miqp")["x0"]["plan_cost"] == pytest.approx(
+        by(records, "run", "miqp enum")["x0"]["plan_cost"], rel=1e-6)
     # C3's first plans are near the optimum here
     c3 = by(records, "run", "c3+")
     assert all((c3[s]["plan_cost"] - exact[s]["cost"]) / exact[s]["cost"] < 0.5 for s in c3)

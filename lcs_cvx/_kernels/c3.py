@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["admm", "affine_qp", "project_c3plus", "rollout", "violation"]
+__all__ = ["active_set_maps", "admm", "affine_qp", "project_active_sets", "project_c3plus", "rollout", "violation"]
 
 
 def affine_qp(base: Any, Yt: Any, target: Any) -> tuple[Any, Any]:
@@ -53,6 +53,54 @@ def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqr
     out[..., lam] = xp.where(keep_eta, 0.0, xp.clamp_min(cl, 0.0))
     out[..., eta] = xp.where(keep_eta, xp.clamp_min(ce, 0.0), 0.0)
     return out
+
+
+def active_set_maps(metric: Any, rows: Any) -> list[tuple[Any, Any]]:
+    """The ``3^n_lam`` active sets of the complementarity set ``0 <= lam _|_ eta >= 0``, each as the
+    affine map of its equality-constrained projection (NumPy).
+
+    ``metric (N, n, n)`` positive definite; ``rows (N, 2 n_lam, n)``: ``lam = rows[:, :n_lam] z``
+    and ``eta = rows[:, n_lam:] z + offset``. Per coordinate ``i`` an active set holds ``lam_i = 0``,
+    ``eta_i = 0`` or both; with ``A`` its rows, the nearest point of ``{A z + b = 0}`` is
+    ``z = c - K (A c + b)``, ``K = M^-1 A^T (A M^-1 A^T)^+``. Returns ``(active, K (N, n, m))`` per set.
+    """
+    import itertools
+
+    import numpy as np
+
+    nl = rows.shape[1] // 2
+    Minv = np.linalg.inv(metric)
+    maps = []
+    for choice in itertools.product((0, 1, 2), repeat=nl):
+        active = np.array([i for i, a in enumerate(choice) if a != 1] + [nl + i for i, a in enumerate(choice) if a != 0])
+        A = rows[:, active]
+        MAt = Minv @ A.swapaxes(1, 2)
+        maps.append((active, MAt @ np.linalg.pinv(A @ MAt, hermitian=True)))
+    return maps
+
+
+def project_active_sets(c: Any, metric: Any, rows: Any, offset: Any, maps: list[tuple[Any, Any]]) -> tuple[Any, Any]:
+    """The exact projection of ``c (B, N, n)`` onto ``{0 <= lam _|_ eta >= 0}`` in the metric
+    ``(N, n, n)`` (NumPy): the nearest point of each active set of :func:`active_set_maps`, kept
+    where it is feasible (``lam, eta >= 0`` and the set's equalities, to 1e-9 relative), the
+    cheapest one. The projection's minimiser is the nearest point of its own active set, so this is
+    the exact projection; ``offset (N, 2 n_lam)`` (0 for ``lam``, the LCP's ``c`` for ``eta``).
+    Returns the projection and ``found (B, N)``: whether some active set was feasible."""
+    import numpy as np
+
+    value = np.einsum("kmn,bkn->bkm", rows, c) + offset
+    tol = 1e-9 * (1.0 + np.abs(value).max(axis=-1))
+    best, out = np.full(c.shape[:2], np.inf), c.copy()
+    for active, K in maps:
+        d = c - np.einsum("knm,bkm->bkn", K, value[..., active])
+        v = np.einsum("kmn,bkn->bkm", rows, d) + offset
+        ok = (v.min(axis=-1) >= -tol) & (np.abs(v[..., active]).max(axis=-1, initial=0.0) <= tol)
+        step = d - c
+        cost = np.einsum("bkn,knm,bkm->bk", step, metric, step)
+        better = ok & (cost < best)
+        best = np.where(better, cost, best)
+        out[better] = d[better]
+    return out, np.isfinite(best)
 
 
 def admm(xp: Any, qp_step: Callable[..., tuple[Any, Any, int]], project: Callable[[Any], Any], delta: Any,

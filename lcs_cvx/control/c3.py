@@ -124,7 +124,9 @@ class C3:
             ``"cvxpy"`` (the declared problem, default with bounds).
         qp_solver: ``"CLARABEL"`` or ``"OSQP"`` (the ``"cvxpy"`` path).
         projection_solver: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"``
-            (default SCIP; Gurobi and other mixed-integer QP solvers CVXPY reaches are accepted).
+            (default SCIP; Gurobi and other mixed-integer QP solvers CVXPY reaches are accepted;
+            ``"enumerate"``: the same exact projection by its ``3^n_lam`` active sets in closed
+            form, batched, for ``n_lam <= 6``; ~1,000x faster than SCIP at ``n_lam = 2``).
         projection_options: keyword arguments of that solver's ``Problem.solve`` (for SCIP, e.g.
             ``{"scip_params": {"limits/time": 1.0, "limits/gap": 1e-4}}``).
         warm_start: ``ctrl(x0)`` starts from the previous plan's ``delta`` shifted by one step.

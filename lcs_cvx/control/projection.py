@@ -17,7 +17,10 @@ The steps are independent, so every method projects all of them (and all initial
   once and only its linear term updated per plan, or through CVXPY when a solver is named).
 - ``"miqp"``: exact, with big-M binaries ``b``: ``0 <= lam <= M (1 - b)``,
   ``0 <= D x + E u + F lam + c <= M b`` (declared once in CVXPY, solved by a mixed-integer solver:
-  SCIP from the ``control`` extra, or a commercial one CVXPY reaches).
+  SCIP from the ``control`` extra, or a commercial one CVXPY reaches); or, with
+  ``solver="enumerate"`` and ``n_lam <= 6``, by its ``3^n_lam`` active sets (per coordinate
+  ``lam_i = 0``, ``eta_i = 0`` or both), each an equality-constrained least-squares problem in
+  closed form, batched: no solver, the same projection.
 - :func:`project_enumerate`: exact, by the ``2^n_lam`` sign patterns, each a convex QP (the test
   oracle of ``"miqp"``; small ``n_lam`` only).
 
@@ -34,7 +37,7 @@ import cvxpy as cp
 import numpy as np
 
 from .._checks import LCSInputError, SolverError
-from .._kernels.c3 import project_c3plus
+from .._kernels.c3 import active_set_maps, project_active_sets, project_c3plus
 from .._optional import require
 from .costs import Horizon, Layout, OnDevice, psd_factor
 
@@ -74,8 +77,10 @@ def _declare(horizon: Horizon, layout: Layout, U: np.ndarray, kind: str, *, alph
         if kind == "qp":
             cost += cp.sum_squares(LF[k] @ lam)
             cons += [lam >= 0, eta / scaling >= 0]
-        else:
+        elif kind == "miqp":
             cons += [lam >= 0, lam <= big_m * (1 - b[k]), eta >= 0, eta <= big_m * b[k]]
+        else:  # the pattern as equalities: the inequality pairs would leave no interior to Clarabel
+            cons += [lam >= 0, eta >= 0, cp.multiply(b[k], lam) == 0, cp.multiply(1 - b[k], eta) == 0]
     return cp.Problem(cp.Minimize(cost), cons), target, delta, b
 
 
@@ -151,10 +156,14 @@ class Projection:
             d_eta = np.diagonal(U[:, layout.eta, layout.eta], axis1=1, axis2=2)
             self._sqrt_w = OnDevice({"lam": np.sqrt(d_lam), "eta": np.sqrt(d_eta)})
             return
+        if projection == "miqp" and solver == "enumerate":
+            self._setup_active_sets(U)
+            return
         if projection == "miqp":
             solver = solver or "SCIP"
             if solver not in MIQP_SOLVERS:
-                raise LCSInputError(f"projection_solver: expected a mixed-integer QP solver, one of {MIQP_SOLVERS}, received {solver!r}")
+                raise LCSInputError("projection_solver: expected 'enumerate' or a mixed-integer QP solver, one of "
+                                    f"{MIQP_SOLVERS}, received {solver!r}")
             if solver not in cp.installed_solvers():
                 if solver == "SCIP":
                     require("pyscipopt", "control", "the 'miqp' projection (SCIP)")
@@ -178,6 +187,38 @@ class Projection:
         if self.direct:
             self._clarabel = _relaxation_qp(horizon, layout, metric, alpha=alpha, scaling=scaling)
 
+    def _setup_active_sets(self, U: np.ndarray) -> None:
+        """The ``"miqp"`` projection by enumeration of active sets: the metric (a 1e-9 relative
+        weight on the coordinates ``U`` leaves unweighted, which keeps them at the point, as the
+        ``"qp"`` projection does), the constraint rows and the ``3^n_lam`` affine maps."""
+        hz, lay = self.horizon, self.layout
+        nx, nl, n = lay.n_x, lay.n_lam, lay.n_x + lay.n_lam + lay.n_u
+        if nl > 6:
+            raise LCSInputError(f"projection_solver='enumerate': 3^n_lam active sets; expected n_lam <= 6, received {nl}")
+        metric = U[:, :n, :n].copy()
+        for k in range(hz.N):
+            free = np.flatnonzero(np.diagonal(metric[k]) <= 0)
+            metric[k, free, free] += 1e-9 * max(1.0, float(np.abs(metric[k]).max()))
+        if np.any(np.linalg.eigvalsh(metric).min(axis=1) <= 0):
+            raise LCSInputError("U: projection_solver='enumerate' needs U positive definite on (x, lam, u) "
+                                "once its unweighted coordinates get a tie-break weight; received a singular U")
+        rows = np.zeros((hz.N, 2 * nl, n))
+        rows[:, :nl, nx:nx + nl] = np.eye(nl)
+        rows[:, nl:] = np.concatenate([hz.D, hz.F, hz.E], axis=2)
+        offset = np.concatenate([np.zeros((hz.N, nl)), hz.c], axis=1)
+        self.solver, self.direct = "enumerate", False
+        self._active = (metric, rows, offset, active_set_maps(metric, rows))
+
+    def _solve_active_sets(self, c: np.ndarray) -> np.ndarray:
+        """The exact projection by :func:`~lcs_cvx._kernels.c3.project_active_sets`."""
+        n = self.layout.n_x + self.layout.n_lam + self.layout.n_u
+        out = c.copy()
+        out[..., :n], found = project_active_sets(c[..., :n], *self._active)
+        if not found.all():
+            raise SolverError("the 'miqp' projection: no active set of the complementarity set is feasible "
+                              f"for {int((~found).sum())} step(s)")
+        return out
+
     def bind(self, xp: Any, like: Any) -> Callable[[Any], Any]:
         """The projection of one solve, ``project(c) -> delta`` for ``c (B, N, n_z)`` on the arrays
         of ``xp`` (``"qp"`` and ``"miqp"``: NumPy arrays); ``like``: an array of the solve."""
@@ -185,6 +226,8 @@ class Projection:
             lam, eta = self.layout.lam, self.layout.eta
             w_lam, w_eta = self._sqrt_w.on(xp, like).values()
             return lambda c: project_c3plus(xp, c, lam, eta, w_lam, w_eta)
+        if self.solver == "enumerate":
+            return self._solve_active_sets
         return self._solve_direct if self.direct else self._solve_cvxpy
 
     def _solve_direct(self, c: np.ndarray) -> np.ndarray:
@@ -227,7 +270,10 @@ class Projection:
         QP, Clarabel at tight tolerances); ``self.delta`` then holds the exact projection."""
         self.polish_pattern.value = np.round(self.binaries.value)
         self.polish_target.value = self.target.value
-        self.polish.solve(solver="CLARABEL", **POLISH_OPTIONS)
+        try:
+            self.polish.solve(solver="CLARABEL", **POLISH_OPTIONS)
+        except cp.error.SolverError as exc:
+            raise SolverError(f"the 'miqp' projection: the QP of {self.solver}'s sign pattern failed in Clarabel: {exc}") from exc
         if self.polish.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
             raise SolverError(f"the 'miqp' projection: the QP of {self.solver}'s sign pattern returned {self.polish.status}")
         self.delta.value = self.polish_delta.value
@@ -237,7 +283,7 @@ def project_enumerate(c: Any, U: Any, D: Any, E: Any, F: Any, lcp_c: Any, n_x: i
     """The exact projection of one point ``c (n_x + n_lam + n_u,)`` onto
     ``{0 <= lam _|_ D x + E u + F lam + lcp_c >= 0}`` in the ``U``-metric, by enumerating the
     ``2^n_lam`` patterns (on ``S``: ``eta_S = 0, lam_S >= 0``; off ``S``: ``lam = 0, eta >= 0``),
-    each a convex QP solved by Clarabel. The oracle of ``"miqp"``; ``n_lam <= 10``."""
+    each a convex QP solved by Clarabel at tight tolerances. The oracle of ``"miqp"``; ``n_lam <= 10``."""
     c, U = np.asarray(c, dtype=np.float64), np.asarray(U, dtype=np.float64)
     D, E, F, lcp_c = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (D, E, F, lcp_c))
     nl = F.shape[0]
@@ -257,7 +303,7 @@ def project_enumerate(c: Any, U: Any, D: Any, E: Any, F: Any, lcp_c: Any, n_x: i
         if (~on).any():
             cons += [lam[~on] == 0, eta[~on] >= 0]
         prob = cp.Problem(cp.Minimize(cp.sum_squares(L @ (d - c))), cons)
-        prob.solve(solver="CLARABEL")
+        prob.solve(solver="CLARABEL", **POLISH_OPTIONS)
         if prob.status == cp.OPTIMAL and prob.value < best_cost:
             best, best_cost = d.value.copy(), prob.value
     if best is None:

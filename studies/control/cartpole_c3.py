@@ -11,6 +11,8 @@ model. Initial states are drawn uniformly (seed 0) from the box ``|x_c| <= 0.3``
 - ``c3+ cvxpy``: the same, the QP step solved by CVXPY + Clarabel (timing comparison; a few states);
 - ``qp``: C3 with C3's convex (QP) projection, CVXPY + Clarabel;
 - ``miqp``: C3 with the exact mixed-integer projection, CVXPY + SCIP (slow: a subset of states);
+- ``miqp enum``: the same exact projection by its active sets (``projection_solver="enumerate"``),
+  every state;
 - ``lqr``: ``u = -K x`` from the Riccati equation of ``(A, B, Q, R)``, ignoring the walls.
 
 A run succeeds when ``|x|_inf <= 0.1`` holds for 30 consecutive steps within 600 steps (C3's
@@ -59,10 +61,14 @@ MACHINE = "2-core x86-64 VM, 1 torch thread"
 #: controller name -> (projection, qp_path); None: the LQR baseline
 CONTROLLERS: dict[str, tuple[str, str | None] | None] = {
     "c3+": ("c3+", "fast"), "lqr": None, "c3+ cvxpy": ("c3+", "cvxpy"), "qp": ("qp", None), "miqp": ("miqp", None),
+    "miqp enum": ("miqp", None),
 }
+#: controllers whose projection is solved another way than by default
+PROJECTION_SOLVER = {"miqp enum": "enumerate"}
 LABELS = {"c3+": "C3, c3+ projection (fast path)", "c3+ cvxpy": "C3, c3+ projection (CVXPY QP path)",
-          "qp": "C3, qp projection", "miqp": "C3, miqp projection", "lqr": "LQR ignoring contact"}
-COLORS = {"c3+": "C0", "c3+ cvxpy": "C4", "qp": "C2", "miqp": "C3", "lqr": "C7"}
+          "qp": "C3, qp projection", "miqp": "C3, miqp projection (SCIP)",
+          "miqp enum": "C3, miqp projection (active sets)", "lqr": "LQR ignoring contact"}
+COLORS = {"c3+": "C0", "c3+ cvxpy": "C4", "qp": "C2", "miqp": "C3", "miqp enum": "C1", "lqr": "C7"}
 #: states whose trajectories (cart position, pole angle) are stored and drawn
 TRAJ_STATES = ("x0", "0", "1")
 FILE = "cartpole_c3"
@@ -157,7 +163,7 @@ class Study:
                 proj, path = spec
                 G, U = self.P.weights[proj]
                 ctrl = C3(self.P.model, self.P.horizon, Q=self.P.Q, R=self.P.R, QN="dare", G=G, U=U,
-                          projection=proj, qp_path=path)
+                          projection=proj, qp_path=path, projection_solver=PROJECTION_SOLVER.get(name))
                 if not np.allclose(ctrl.QN, self.QN, rtol=1e-10, atol=1e-8):
                     raise RuntimeError("C3's terminal weight differs from the exact problem's")
                 self._ctrls[name] = ctrl
@@ -320,6 +326,7 @@ class Study:
             ("c3+ cvxpy", lambda: self.run_controller("c3+ cvxpy", ["x0"] + [str(i) for i in range(st.cvxpy_states)],
                                                       st.qp_steps)),
             ("qp", lambda: self.run_controller("qp", ["x0"] + rand, st.qp_steps)),
+            ("miqp enum", lambda: self.run_controller("miqp enum", ["x0"] + rand, st.steps)),
             ("miqp", lambda: self.run_controller("miqp", ["x0"] + [str(i) for i in range(st.miqp_states)],
                                                  st.miqp_steps)),
         ]
@@ -393,7 +400,7 @@ def _fmt(v: float, digits: int = 3) -> str:
 def summarize(records: list[dict[str, Any]], settings: Settings) -> dict[str, Any]:
     """The numbers of the report, from the units finished so far."""
     steps_of = {"c3+": settings.steps, "lqr": settings.steps, "c3+ cvxpy": settings.qp_steps,
-                "qp": settings.qp_steps, "miqp": settings.miqp_steps}
+                "qp": settings.qp_steps, "miqp": settings.miqp_steps, "miqp enum": settings.steps}
     runs: dict[str, dict[str, dict[str, Any]]] = {k: {} for k in CONTROLLERS}
     exact: dict[str, dict[str, Any]] = {}
     batch = None
@@ -492,7 +499,7 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
              + (f" (1-minute load average {min(loads):.1f} to {max(loads):.1f} while it ran: the two cores were "
                 "shared with other work, so absolute times are pessimistic)" if loads else "") + ".")
     C = s["controllers"]
-    order = [c for c in ("c3+", "qp", "miqp", "lqr", "c3+ cvxpy") if c in C]
+    order = [c for c in ("c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C]
     L: list[str] = []
     w = L.append
     w("# C3 on the cart-pole with soft walls: closed loop, cost gap, time per solve\n")
@@ -505,8 +512,10 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
       f"|θ| ≤ {BOX[1]} rad, |ẋ_c| ≤ {BOX[2]} m/s, |θ̇| ≤ {BOX[3]} rad/s (a box around C3's x0 = "
       "(0.1, −0.5, 0.5, −0.4), which is run separately). A run succeeds when |x|∞ ≤ 0.1 holds for "
       f"30 consecutive steps within {settings.steps} steps ({settings.steps * 0.01:g} s). "
-      f"The `miqp` projection (SCIP through CVXPY, about a second or more per solve) runs on the first "
-      f"{settings.miqp_states} of these states only, and each of its runs stops 30 steps after it settles "
+      "The exact (`miqp`) projection runs two ways: by its 3^n_λ active sets in closed form "
+      "(`projection_solver=\"enumerate\"`, every state), and as C3 solves it, big-M binaries through CVXPY "
+      f"and SCIP (about a second or more per solve), on the first {settings.miqp_states} of these states "
+      "only, each of those runs stopping 30 steps after it settles "
       "(its final error is the error at that step); `c3+ cvxpy` runs on the first "
       f"{settings.cvxpy_states} states, for its time per solve.\n")
     w(stamp + "\n")
@@ -542,7 +551,13 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
           f"against {C['c3+']['n'] if 'c3+' in C else '–'} for the others"
           + (f"; {n_m} of them have finished so far" if n_m < settings.miqp_states else "")
           + ": its success rate is the least certain.\n")
-    for one, two in (("c3+", "lqr"), ("qp", "lqr"), ("qp", "c3+")):
+    if {"miqp", "miqp enum"} <= set(C):
+        r1, r2 = s["runs"]["miqp"], s["runs"]["miqp enum"]
+        both = [x for x in r1 if x in r2 and "settled" in r1[x] and "settled" in r2[x]]
+        same = sum(r1[x]["settled"] == r2[x]["settled"] for x in both)
+        w(f"The exact projection by SCIP and by active sets: on the {len(both)} states both ran, the runs settle "
+          f"at the same step (or both fail) from {same}.\n")
+    for one, two in (("c3+", "lqr"), ("qp", "lqr"), ("qp", "c3+"), ("miqp enum", "c3+")):
         if {one, two} <= set(C):
             r1, r2 = s["runs"][one], s["runs"][two]
             both = [x for x in r1 if x != "x0" and x in r2 and "success" in r1[x] and "success" in r2[x]]
@@ -676,7 +691,7 @@ def plot(s: dict[str, Any], path: str, settings: Settings) -> None:
             axes[i, j].grid(alpha=0.3)
         axes[0, j].legend(fontsize=7)
     C = s["controllers"]
-    names = [c for c in ("c3+", "qp", "miqp", "lqr", "c3+ cvxpy") if c in C and C[c]["n"]]
+    names = [c for c in ("c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C and C[c]["n"]]
     ax = axes[2, 0]
     for i, c in enumerate(names):
         d = C[c]
