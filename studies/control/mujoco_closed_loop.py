@@ -478,8 +478,9 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
                   "`studies.physics.plant.sample_transitions` (seed 0); the MLP's held-out error "
                   f"(normalised increment, mean squared) is {ctx['mlp_val']:.4f}. MPPI: "
                   + ", ".join(f"{k} {v}" for k, v in ctx["mppi"].items()) + ".", ""]
-    lines += _FINDINGS + _versus_mlp(summ) + ["", "Pusher–slider: not in this study yet; its learned LCS plans in the slider's frame, so a "
-                                              "goal pose needs the world pose added to the model first."] + ["", "![final |θ| and success per controller](mujoco_closed_loop.png)", ""]
+    lines += _FINDINGS + _versus_mlp(summ) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
+                                              "(`studies/control/pusher_closed_loop.py`): its learned LCS plans in the slider's "
+                                              "frame, so the world pose is appended to the model there."] + ["", "![final |θ| and success per controller](mujoco_closed_loop.png)", ""]
     with open(os.path.join(args.out, "mujoco_closed_loop.md"), "w") as f:
         f.write("\n".join(lines))
     _plot(records, list(summ), os.path.join(args.out, "mujoco_closed_loop.png"))
