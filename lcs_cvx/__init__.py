@@ -38,6 +38,7 @@ from .train import ObjectiveOptions as ObjectiveOptions
 from .train import PolishOptions as PolishOptions
 from .train import PruneOptions as PruneOptions
 from .train import RefineOptions as RefineOptions
+from .train import RolloutOptions as RolloutOptions
 from .train import RunOptions as RunOptions
 from .train import fit as fit
 from .train import fit_ensemble as fit_ensemble
@@ -65,6 +66,7 @@ __all__ = [
     "make_dataset",
     "ObjectiveOptions",
     "PolishOptions",
+    "RolloutOptions",
     "prediction_loss",
     "prediction_loss_info",
     "PruneOptions",

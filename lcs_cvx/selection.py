@@ -8,7 +8,8 @@ on the same data and measures each one's relative error (the paper's ``e_test``,
     e(n) = sum_t ||x'_theta_n(x_t, u_t) - x'_t||^2 / sum_t ||x'_t||^2
 
 on transitions it did not train on: a validation set, or a held-out fraction of the training
-set. :func:`choose` then applies a parsimony rule to the table ``{n: e(n)}``: the smallest
+set. Given :class:`lcs_cvx.Trajectories`, whole trajectories are held out and the held-out score
+is :func:`lcs_cvx.fit`'s (the rollout error at ``holdout_horizon``, 1 by default). :func:`choose` then applies a parsimony rule to the table ``{n: e(n)}``: the smallest
 ``n`` whose error is within ``(1 + tolerance)`` of the lowest.
 """
 
@@ -28,6 +29,7 @@ from .data import Dataset
 from .metrics import relative_error
 from .system import DEFAULT_STIFFNESS, LCS
 from .train.driver import fit
+from .trajectories import Trajectories
 
 __all__ = ["Selection", "select_n_lam", "choose"]
 
@@ -158,7 +160,9 @@ def select_n_lam(
     ``n* = min {n : e(n) <= (1 + tolerance) min_m e(m)}``.
 
     Args:
-        train: the training transitions, an :class:`lcs_cvx.Dataset`.
+        train: the training transitions, an :class:`lcs_cvx.Dataset`, or
+            :class:`lcs_cvx.Trajectories` (held out by whole trajectories; ``validation`` then
+            trajectories too, and the score :func:`lcs_cvx.fit`'s ``heldout_error``).
         candidates: the ``n_lam`` to try, distinct integers >= 1 (e.g. ``[1, 2, 4, 8]``).
         validation: held-out transitions with ``train``'s ``n_x`` and ``n_u``; default: split
             ``holdout`` of ``train`` off.
@@ -196,8 +200,9 @@ def select_n_lam(
         >>> [row["n_lam"] for row in sel.table], sel.model.n_lam == sel.n_lam
         ([1, 2, 3], True)
     """
-    if not isinstance(train, Dataset):
-        raise LCSInputError(f"train: expected an lcs_cvx.Dataset, received {type(train).__name__}")
+    if not isinstance(train, (Dataset, Trajectories)):
+        raise LCSInputError(f"train: expected an lcs_cvx.Dataset or lcs_cvx.Trajectories, received {type(train).__name__}")
+    by_trajectory = isinstance(train, Trajectories)
     if isinstance(candidates, (str, bytes)) or not isinstance(candidates, Iterable):
         raise LCSInputError(
             f"candidates: expected a list of integers >= 1 such as [1, 2, 4, 8], received {candidates!r}"
@@ -216,16 +221,17 @@ def select_n_lam(
     if not isinstance(refit, bool):
         raise LCSInputError(f"refit: expected True or False, received {refit!r}")
     if validation is not None:
-        if not isinstance(validation, Dataset):
+        if not isinstance(validation, Trajectories if by_trajectory else Dataset):
             raise LCSInputError(
-                f"validation: expected an lcs_cvx.Dataset (or None), received {type(validation).__name__}"
+                f"validation: expected an lcs_cvx.{'Trajectories' if by_trajectory else 'Dataset'} "
+                f"(as train, or None), received {type(validation).__name__}"
             )
         if (validation.n_x, validation.n_u) != (train.n_x, train.n_u):
             raise LCSInputError(
                 f"validation: expected n_x={train.n_x}, n_u={train.n_u} (train's), received "
                 f"n_x={validation.n_x}, n_u={validation.n_u}"
             )
-        if len(validation) == 0:
+        if not by_trajectory and len(validation) == 0:
             raise LCSInputError("validation: expected at least one sample, received an empty dataset")
         if refit:
             raise LCSInputError(
@@ -233,6 +239,9 @@ def select_n_lam(
                 "train already), received True"
             )
         part, held, where = train, validation, "validation set"
+    elif by_trajectory:
+        part, held = train.split(1.0 - holdout, seed=seed)
+        where = f"held-out {100 * holdout:g}% of train's trajectories"
     else:
         part, held = train.split(1.0 - holdout, seed=seed)
         if len(part) == 0 or len(held) == 0:
@@ -259,10 +268,14 @@ def select_n_lam(
     table, results = [], {}
     for i, n in enumerate(cands, start=1):
         t0 = time.perf_counter()
-        result = fit(build(n), part, progress=False, seed=seed, **fit_options)
+        if by_trajectory:  # fit scores the held-out trajectories itself
+            result = fit(build(n), part, progress=False, seed=seed, validation=held, **fit_options)
+            held_error, part_error = result.heldout_error, relative_error(result.model, part.to_transitions())
+        else:
+            result = fit(build(n), part, progress=False, seed=seed, **fit_options)
+            held_error, part_error = relative_error(result.model, held), relative_error(result.model, part)
         wall = time.perf_counter() - t0
-        row = {"n_lam": n, "validation_error": relative_error(result.model, held),
-               "train_error": relative_error(result.model, part), "wall_time": wall}
+        row = {"n_lam": n, "validation_error": held_error, "train_error": part_error, "wall_time": wall}
         table.append(row)
         results[n] = result
         if report:

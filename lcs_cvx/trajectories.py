@@ -34,9 +34,11 @@ def _matrix(name: str, value: Any) -> torch.Tensor:
         raise LCSInputError(f"{name}: expected a 2-D array of numbers, received {type(value).__name__} ({exc})") from None
     if t.dim() != 2:
         raise LCSInputError(f"{name}: expected a 2-D array, received shape {tuple(t.shape)}")
-    bad = int((~torch.isfinite(t)).sum())
-    if bad:
-        raise LCSInputError(f"{name}: expected finite values, received {bad} NaN/inf entries")
+    bad = ~torch.isfinite(t)
+    if bool(bad.any()):
+        row, col = (int(i) for i in bad.nonzero()[0])
+        raise LCSInputError(f"{name}: expected finite values, received {int(bad.sum())} NaN/inf entries, "
+                            f"the first in row {row}, column {col} ({float(t[row, col])})")
     return t
 
 
@@ -164,6 +166,7 @@ class Trajectories:
         path: str | os.PathLike,
         columns: Mapping[str, Sequence[str]] | None = None,
         trajectory: str = "trajectory",
+        time: str | None = None,
     ) -> Trajectories:
         """Load an ``.npz`` written by :meth:`save`, or a ``.csv`` (the name ends in ``.csv``,
         any case) with a header row and one state per row.
@@ -176,6 +179,9 @@ class Trajectories:
         ignored. Row ``t`` holds ``x_t`` and ``u_t``, the input that drives ``x_t`` to
         ``x_{t+1}``; the last row of a trajectory has no next state, so its inputs are not
         read (leave them empty). Blank lines and lines starting with ``#`` are skipped.
+        ``time`` names a time column: an LCS is discrete-time, so steps of uneven length within a
+        trajectory (a spread above 1 % of the median step) are reported by a ``UserWarning``
+        naming the trajectory and the spread.
 
         Every problem is an :class:`LCSInputError` naming the file (and the line and column
         where there is one), as for :meth:`Dataset.from_csv`; a trajectory with a single row
@@ -183,7 +189,9 @@ class Trajectories:
         """
         path = os.fspath(path)
         if path.lower().endswith(".csv"):
-            return cls._from_csv(path, columns, trajectory)
+            return cls._from_csv(path, columns, trajectory, time)
+        if time is not None:
+            raise LCSInputError(f"time: only for .csv files, received time={time!r} for {path!r}")
         if columns is not None:
             raise LCSInputError(f"columns: only for .csv files, received columns={columns!r} for {path!r}")
         if not os.path.isfile(path):
@@ -215,8 +223,11 @@ class Trajectories:
             raise LCSInputError(f"path: in {path!r}: {exc}") from None
 
     @classmethod
-    def _from_csv(cls, path: str, columns: Mapping[str, Sequence[str]] | None, trajectory: str) -> Trajectories:
+    def _from_csv(cls, path: str, columns: Mapping[str, Sequence[str]] | None, trajectory: str,
+                  time: str | None) -> Trajectories:
         header, rows = read_csv(path)
+        if time is not None and time not in header:
+            raise LCSInputError(f"time: expected a column {time!r} in the header of {path!r}, received {header}")
         if trajectory not in header:
             raise LCSInputError(
                 f"trajectory: expected a column {trajectory!r} (the trajectory id) in the header of "
@@ -241,7 +252,25 @@ class Trajectories:
                 )
             xs.append(csv_numbers(path, header, g, names["x"]))
             us.append(csv_numbers(path, header, g[:-1], names["u"]))  # the last row's inputs: unread
+            if time is not None:
+                _check_steps(path, tid, csv_numbers(path, header, g, [time])[:, 0])
         return cls(xs, us)
+
+
+def _check_steps(path: str, tid: str, t: Any) -> None:
+    """A ``UserWarning`` when the time steps of trajectory ``tid`` spread by more than 1 % of
+    their median (the LCS is discrete-time: one step is one sampling period)."""
+    import warnings
+
+    dt = np.diff(np.asarray(t, dtype=np.float64))
+    med = float(np.median(dt))
+    if med <= 0:
+        raise LCSInputError(f"time: trajectory {tid!r} of {path!r}: expected increasing times, received a median step of {med:g}")
+    spread = float(dt.max() - dt.min())
+    if spread > 0.01 * med:
+        warnings.warn(f"time: trajectory {tid!r} of {path!r} has uneven steps: from {dt.min():g} to {dt.max():g} "
+                      f"(spread {spread:g}, {100 * spread / med:.3g} % of the median step {med:g}); an LCS is "
+                      "discrete-time, one step per sample: resample to a uniform step", UserWarning, stacklevel=3)
 
 
 def rollout_error(model: Any, trajectories: Trajectories, horizons: int | Iterable[int] = (1, 5, 20)) -> dict[int, float]:

@@ -235,6 +235,8 @@ class _Result:
     settings: _Settings
     n_fallback: int = 0
     fallback_residual: float = 0.0
+    beats_affine: bool | None = None
+    verdict: str = ""
 
 
 class _FakeFit:
@@ -293,7 +295,8 @@ def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
         "--loss", "prediction", "--optimizer", "gauss-newton", "--recipe", "best",
         "--iterations", "7", "--lr", "0.5", "--batch-size", "11", "--gamma", "0.02",
         "--eps", "1e-3", "--seed", "5", "--stiffness", "0.25", "--checkpoint", str(ckpt),
-        "--resume", "--threads", "2", "--out", str(out),
+        "--resume", "--threads", "2", "--rollout-horizon", "3", "--rollout-iterations", "4",
+        "--holdout-horizon", "2", "--affine-if-better", "--out", str(out),
     ]
     fake_fit.truth = LCS(2, 1, 3, stiffness=1.0, seed=1)
     assert main(argv) == 0
@@ -304,7 +307,8 @@ def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
     assert kwargs == {
         "loss": "prediction", "optimizer": "gauss-newton", "recipe": "best", "iterations": 7,
         "lr": 0.5, "batch_size": 11, "gamma": 0.02, "eps": 1e-3, "seed": 5,
-        "checkpoint": str(ckpt), "resume": True, "progress": True,
+        "checkpoint": str(ckpt), "resume": True, "progress": True, "rollout_horizon": 3,
+        "rollout_iterations": 4, "holdout_horizon": 2, "affine_if_better": True,
     }
     assert isinstance(test, Dataset) and len(test) == 100
     fresh = LCS(2, 1, 3, stiffness=0.25, seed=5)
@@ -611,7 +615,9 @@ def test_fit_and_predict_on_trajectory_rows(files, truth, fake_fit, capsys):
     names = ["--state", "z,vz", "--input", "fz", "--trajectory-column", "run"]
     out = path.with_name("m.npz")
     assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out), *names]) == 0
-    (_, train, _), = fake_fit.calls
+    (_, runs, _), = fake_fit.calls
+    assert isinstance(runs, lcs_cvx.Trajectories) and runs.lengths == (6, 11, 4)  # passed whole: held out by run
+    train = runs.to_transitions()
     expected = trajs.to_transitions()  # the next state: the next row of the same run
     assert len(train) == 21 and torch.equal(train.x, expected.x) and torch.equal(train.x_next, expected.x_next)
     assert torch.equal(train.u, expected.u)
@@ -640,7 +646,7 @@ def test_a_trajectory_label_beside_next_state_columns_is_a_label(files, truth, f
     assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out)]) == 0
     assert len(fake_fit.calls[-1][1]) == 10  # every row, the last of each run included
     assert main(["fit", "--data", str(path), "--n-lam", "2", "--out", str(out), "--trajectory-column", "trajectory"]) == 0
-    assert len(fake_fit.calls[-1][1]) == 8  # the next rows of each run
+    assert sum(fake_fit.calls[-1][1].lengths) == 8  # the next rows of each run
     capsys.readouterr()
 
 

@@ -26,6 +26,7 @@ from lcs_cvx.train import (
     extra_units,
     resolve_options,
 )
+from lcs_cvx.train.holdout import Split
 
 
 @pytest.fixture(scope="module")
@@ -157,7 +158,7 @@ def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypat
         return next(verdicts)
 
     monkeypatch.setattr(driver, "kept_fit", verdict)
-    monkeypatch.setattr(driver, "affine_error", lambda train, test: math.inf)  # every run beats it
+    monkeypatch.setattr(Split, "affine_score", lambda self: math.inf)  # every run beats it
     result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
                          eval_every=10, refine="gauss-newton", refine_iterations=2, restarts=4,
                          restart_tolerance=3.0)
@@ -167,9 +168,8 @@ def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypat
 
 
 def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small, monkeypatch):
-    from lcs_cvx.train import driver
 
-    monkeypatch.setattr(driver, "affine_error", lambda train, test: math.inf)
+    monkeypatch.setattr(Split, "affine_score", lambda self: math.inf)
     _, train, _ = small
     options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
                    refine_iterations=2, restarts=3)
@@ -192,12 +192,12 @@ def test_restart_tolerance_runs_restarts_until_one_beats_the_affine_map(small, m
     fit_part, holdout = train.split(0.8, seed=0)
     calls = []
 
-    def level(fit_data, test):  # an affine error that run 1 beats and run 0 does not
-        calls.append((len(fit_data), len(test)))
+    def level(split):  # an affine error that run 1 beats and run 0 does not
+        calls.append((len(split.fit), len(split.holdout)))
         return scores[1] / driver.AFFINE_MARGIN * 1.0001
 
     assert scores[0] > scores[1]  # the fixture's runs: the first is the worse
-    monkeypatch.setattr(driver, "affine_error", level)
+    monkeypatch.setattr(Split, "affine_score", level)
     result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4), train, **options)
     assert result.restart_scores == scores[:2]  # run 0 did not beat it, run 1 did: run 2 skipped
     assert calls == [(len(fit_part), len(holdout))]  # computed once, on the fit and held-out parts
@@ -456,8 +456,8 @@ def test_fallbacks_are_recorded(small, monkeypatch):
 def test_old_checkpoint_format_is_refused(small, tmp_path):
     _, train, _ = small
     ckpt = tmp_path / "old.ckpt"
-    torch.save({"format": 2, "options": {}, "done": []}, ckpt)
-    with pytest.raises(LCSInputError, match=r"checkpoint: .* has format 2, expected 3 \(written by another version"):
+    torch.save({"format": 3, "options": {}, "done": []}, ckpt)
+    with pytest.raises(LCSInputError, match=r"checkpoint: .* has format 3, expected 4 \(written by another version"):
         lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, checkpoint=ckpt, resume=True)
 
 
@@ -465,7 +465,7 @@ def test_old_checkpoint_format_is_refused(small, tmp_path):
 def _changed(a: FitOptions, b: FitOptions) -> set[tuple[str, str]]:
     """The fields (group, name) in which ``a`` and ``b`` differ, compared field by field."""
     out = {("recipe", "")} if a.recipe != b.recipe else set()
-    for group in ("objective", "adam", "prune", "refine", "polish", "run"):
+    for group in ("objective", "adam", "prune", "refine", "polish", "rollout", "run"):
         ga, gb = getattr(a, group), getattr(b, group)
         out |= {(group, f.name) for f in dataclasses.fields(ga)
                 if getattr(ga, f.name) != getattr(gb, f.name)}
@@ -482,6 +482,8 @@ _NEW_VALUES = {
     "refine_batch": 100, "damping": 1e-2, "polish_iterations": 10, "polish_lr": 1e-3,
     "restarts": 3, "holdout": 0.2, "restart_tolerance": 2.0, "seed": 5, "eval_every": 7,
     "checkpoint_every": 11, "keep_best": True, "normalize": False, "init": ("affine", "model"),
+    "rollout_horizon": 7, "rollout_iterations": 12, "rollout_lr": 2e-3, "rollout_batch": 9,
+    "holdout_horizon": 4, "affine_if_better": True,
 }
 
 

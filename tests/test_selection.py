@@ -204,7 +204,7 @@ def test_progress_lines_on_a_terminal(data, fake_fit, monkeypatch, capsys):
         ({"candidates": "124"}, r"candidates: expected a list of integers >= 1"),
         ({"candidates": 4}, r"candidates: expected a list of integers >= 1"),
         ({"candidates": [2, 1, 2]}, r"candidates: expected distinct n_lam, received \[2\] more than once"),
-        ({"validation": "v"}, r"validation: expected an lcs_cvx.Dataset \(or None\), received str"),
+        ({"validation": "v"}, r"validation: expected an lcs_cvx.Dataset \(as train, or None\), received str"),
         ({"validation": "n_u"}, r"validation: expected n_x=2, n_u=1 \(train's\), received n_x=2, n_u=2"),
         ({"validation": "empty"}, r"validation: expected at least one sample"),
         ({"holdout": 0.0}, r"holdout: expected a fraction in \(0, 1\), received 0.0"),
@@ -215,7 +215,7 @@ def test_progress_lines_on_a_terminal(data, fake_fit, monkeypatch, capsys):
         ({"checkpoint": "run.ckpt"}, r"checkpoint: expected none in select_n_lam"),
         ({"refit": True, "validation": "ok"}, r"refit: expected False with a validation set"),
         ({"train": "tiny"}, r"train: expected enough samples to hold 0.2 of them out, received 2"),
-        ({"train": [1]}, r"train: expected an lcs_cvx.Dataset, received list"),
+        ({"train": [1]}, r"train: expected an lcs_cvx.Dataset or lcs_cvx.Trajectories, received list"),
     ],
 )
 def test_bad_input_is_named(data, fake_fit, kwargs, says):

@@ -74,6 +74,17 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=None,
                    help="learn in normalised coordinates and fold the result back into the "
                    "data's units (default: the recipe's; on except with --recipe paper)")
+    p.add_argument("--rollout-horizon", type=positive_int, default=None, metavar="H",
+                   help="with a trajectory file: refine on the simulation error of H-step rollouts "
+                   "(lcs_cvx.fit's rollout_horizon)")
+    p.add_argument("--rollout-iterations", type=positive_int, default=None,
+                   help="steps of that refinement (default: 300)")
+    p.add_argument("--holdout-horizon", type=positive_int, default=None, metavar="H",
+                   help="with a trajectory file: score the held-out trajectories by the H-step "
+                   "rollout error (default: 1, the one-step error)")
+    p.add_argument("--affine-if-better", action="store_true", default=None,
+                   help="write the least-squares affine map (an LCS with C = 0) when it scores at "
+                   "least as well on held-out data")
     p.add_argument("--checkpoint", default=None, help="checkpoint file written during training")
     p.add_argument("--resume", action="store_true", default=None,
                    help="continue from --checkpoint")
@@ -112,7 +123,7 @@ def run_fit(args: argparse.Namespace) -> int:
             f"received {args.holdout:g}"
         )
     cols = Columns.from_args(args)
-    train, _ = read_table("data", args.data, cols)
+    train, trajectories = read_table("data", args.data, cols)
     test = validation = None
     if args.test is not None:
         test, _ = read_table("test", args.test, cols)
@@ -128,7 +139,8 @@ def run_fit(args: argparse.Namespace) -> int:
     seed = 0 if args.seed is None else args.seed
     # passed on to lcs_cvx.fit only when given: fit's defaults and recipes decide the rest
     passed = ("loss", "optimizer", "recipe", "iterations", "lr", "batch_size", "gamma", "eps",
-              "seed", "init", "normalize", "checkpoint", "resume")
+              "seed", "init", "normalize", "checkpoint", "resume", "rollout_horizon",
+              "rollout_iterations", "holdout_horizon", "affine_if_better")
     options = {k: getattr(args, k) for k in passed if getattr(args, k) is not None}
     print(
         f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
@@ -158,7 +170,9 @@ def run_fit(args: argparse.Namespace) -> int:
         n_lam = args.n_lam
         model = LCS(train.n_x, train.n_u, n_lam, stiffness=args.stiffness, seed=seed)
         print(f"model: n_lam={n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
-        result = _train(args, lambda: fit_lcs(model, train, test=test, progress=True, **options))
+        # a trajectory file is passed whole: fit holds out whole trajectories
+        data = trajectories if trajectories is not None else train
+        result = _train(args, lambda: fit_lcs(model, data, test=test, progress=True, **options))
     wall = time.perf_counter() - t0
 
     metadata = {
@@ -184,6 +198,8 @@ def run_fit(args: argparse.Namespace) -> int:
     if test is not None:
         print(f"e_test: {relative_error_for('test', result.model, test):.6g}")
     print(f"train relative error: {relative_error_for('data', result.model, train):.6g}")
+    if result.beats_affine is not None:
+        print(result.verdict)
     print(f"wall time: {wall:.2f} s")
     print(f"saved: {args.out}")
     return 0

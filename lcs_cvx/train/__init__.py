@@ -21,6 +21,7 @@ from .phase_options import ObjectiveOptions as ObjectiveOptions
 from .phase_options import PolishOptions as PolishOptions
 from .phase_options import PruneOptions as PruneOptions
 from .phase_options import RefineOptions as RefineOptions
+from .phase_options import RolloutOptions as RolloutOptions
 from .phase_options import RunOptions as RunOptions
 from .phase_options import extra_units as extra_units
 from .recipes import FLAT_OPTIONS as FLAT_OPTIONS
@@ -31,6 +32,6 @@ from .state import TrainState as TrainState
 
 __all__ = [
     "fit", "fit_ensemble", "FitResult", "FitOptions", "RECIPES", "FLAT_OPTIONS", "ObjectiveOptions", "AdamOptions",
-    "PruneOptions", "RefineOptions", "PolishOptions", "RunOptions", "TrainState", "extra_units",
+    "PruneOptions", "RefineOptions", "PolishOptions", "RolloutOptions", "RunOptions", "TrainState", "extra_units",
     "resolve_options", "CHECKPOINT_FORMAT",
 ]

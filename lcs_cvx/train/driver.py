@@ -1,5 +1,6 @@
-r""":func:`fit`: learn an LCS from transitions by minimising ``L(theta) + omega ||C||_F^2``
-(paper eq. (4)), with restarts, checkpoints and resume.
+r""":func:`fit`: learn an LCS from transitions or trajectories by minimising ``L(theta) + omega
+||C||_F^2`` (paper eq. (4)), with restarts, checkpoints and resume, and score it against the
+least-squares affine map on held-out data.
 
 A run goes through the phases of :mod:`lcs_cvx.train.phases` (Adam, pruning, second-order
 refinement, polish; options in :mod:`lcs_cvx.train.options`). With ``restarts > 1`` the runs start
@@ -13,6 +14,7 @@ uninterrupted one (wall times aside).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import math
@@ -27,11 +29,14 @@ import torch
 from .._checks import LCSInputError
 from ..data import Dataset
 from ..io import atomic_write
-from ..metrics import affine_error, relative_error
+from ..metrics import relative_error
 from ..parameter_constraints import check_learnable
 from ..scaling import Scaling, fold_back, in_user_coordinates
+from ..simulation_error import Windows
 from ..system import LCS
+from ..trajectories import Trajectories
 from .ensemble import train_together
+from .holdout import Split, affine_lcs, split_data
 from .inputs import check_data, fit_options
 from .options import FitOptions
 from .phases import run_phases
@@ -41,8 +46,8 @@ from .state import TrainState
 
 __all__ = ["FitResult", "fit", "CHECKPOINT_FORMAT"]
 
-#: 3: the run state of :class:`TrainState` and grouped options.
-CHECKPOINT_FORMAT = 3
+#: 4: the run state of :class:`TrainState` (with the simulation-error phase) and grouped options.
+CHECKPOINT_FORMAT = 4
 #: With ``restart_tolerance``, a run succeeds only with a held-out error below this fraction of
 #: the least-squares affine map's (:func:`lcs_cvx.metrics.affine_error`).
 AFFINE_MARGIN = 0.5
@@ -120,27 +125,28 @@ def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] |
 
 def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitOptions,
                        learner_for: Callable[[int], LCS], fit_data: Dataset, test_data: Dataset | None,
-                       score_on: Callable[[Dataset], Callable[[LCS], float]], test: Dataset | None,
-                       holdout: Dataset | None, elapsed: Callable[[], float]) -> LCS:
+                       run_score: Callable[[LCS], float] | None, holdout_score: Callable[[LCS], float] | None,
+                       elapsed: Callable[[], float]) -> LCS:
     """``fit(ensemble=True)``: the restarts not in ``done`` trained in one batched loop
     (:func:`lcs_cvx.train.ensemble.train_together`), then closed as the sequential loop closes
     each (best iterate, held-out score, ``done`` and ``history``). Returns the last learner."""
     remaining = range(len(done), r.restarts)
     learners = [learner_for(k) for k in remaining]
-    states = [TrainState(m, fit_data, test_data, opts, k, score=score_on(test) if test is not None else None)
+    states = [TrainState(m, fit_data, test_data, opts, k, score=run_score)
               for m, k in zip(learners, remaining, strict=True)]
     train_together(states, throw=True, elapsed=elapsed)
     for st in states:
-        done.append(close_run(st, r, score_on(holdout) if holdout is not None else None))
+        done.append(close_run(st, r, holdout_score))
         history.extend(st.history)
     return learners[-1]
 
 
 def fit(
     model: LCS,
-    train: Dataset,
+    train: Dataset | Trajectories,
     options: FitOptions | None = None,
     *,
+    validation: Dataset | Trajectories | None = None,
     test: Dataset | None = None,
     recipe: str | None = None,
     callbacks: Sequence[Callable[[dict, LCS], Any]] = (),
@@ -154,8 +160,14 @@ def fit(
 
     Args:
         model: an :class:`lcs_cvx.LCS`, the initialisation (float64 recommended).
-        train: :class:`lcs_cvx.Dataset` of transitions ``(x, u, x')``.
+        train: :class:`lcs_cvx.Dataset` of transitions ``(x, u, x')``, or
+            :class:`lcs_cvx.Trajectories`: then whole trajectories are held out (``holdout``),
+            the held-out score can be a rollout error (``holdout_horizon``) and the
+            simulation-error phase can run (``rollout_horizon``).
         options: a :class:`FitOptions` (e.g. ``lcs_cvx.RECIPES["best"]``); default: ``recipe``'s.
+        validation: held-out data (transitions or trajectories) instead of a part of ``train``:
+            the held-out score of restarts, ``keep_best`` without ``test``, and
+            :attr:`FitResult.heldout_error`.
         test: optional dataset; its relative error (the paper's e_test) is recorded with every
             history record and drives ``keep_best``.
         recipe: ``"paper"``, ``"best"`` or None (plain defaults), when ``options`` is not given.
@@ -191,15 +203,17 @@ def fit(
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
     check_learnable(model)
     opts = fit_options(options, recipe, overrides)
-    train = check_data("train", train, model)
+    split = split_data(train, validation, opts.run, opts.rollout.horizon)
+    fit_user = check_data("train", split.fit, model)
+    if isinstance(split.holdout, Dataset):
+        split = dataclasses.replace(split, holdout=check_data("validation", split.holdout, model))
+    holdout = split.holdout
+    windows = Windows(split.trajectories, opts.rollout.horizon) if opts.rollout.horizon is not None else None
     test = check_data("test", test, model) if test is not None else None
     store = _Checkpoint(os.fspath(checkpoint) if checkpoint is not None else None, opts)
     ckpt = store.load() if resume else None
     r = opts.run
 
-    fit_user, holdout = train, None
-    if r.restarts > 1:
-        fit_user, holdout = train.split(1.0 - r.holdout, seed=r.seed)
     # the coordinates of learning: normalised (folded back at the end) or the user's own
     scaling = Scaling.fit(fit_user, model) if r.normalize else None
     fit_data = scaling.encode(fit_user) if scaling is not None else fit_user
@@ -211,6 +225,16 @@ def fit(
     def score_on(data: Dataset) -> Callable[[LCS], float]:
         return lambda m: relative_error(in_units(m), data)
 
+    def holdout_score(m: LCS) -> float:
+        return split.score(in_units(m))
+
+    def run_score() -> Callable[[LCS], float] | None:
+        """What a run records as ``e_test`` and ``keep_best`` follows: ``test``'s error, else the
+        held-out score with ``keep_best``."""
+        if test is not None:
+            return score_on(test)
+        return holdout_score if r.keep_best and holdout is not None else None
+
     user_callbacks = [lambda rec, m, cb=cb: cb(rec, in_units(m)) for cb in callbacks]
     done: list[dict] = [] if ckpt is None else ckpt["done"]
     t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
@@ -219,7 +243,8 @@ def fit(
         from tqdm.auto import tqdm
 
         total = r.restarts * (opts.adam.iterations + opts.polish.iterations
-                              + (opts.refine.iterations if opts.refine.method else 0))
+                              + (opts.refine.iterations if opts.refine.method else 0)
+                              + (opts.rollout.iterations if opts.rollout.horizon is not None else 0))
         bar = tqdm(total=total, desc="fit", unit="it", dynamic_ncols=True)
     t_start = time.perf_counter()
 
@@ -233,8 +258,8 @@ def fit(
 
     @functools.cache
     def affine_score() -> float:
-        """The affine map's held-out error (computed once, when first needed)."""
-        return affine_error(fit_user, holdout)
+        """The affine map's held-out score (computed once, when first needed)."""
+        return split.affine_score()
 
     def succeeded(run: dict) -> bool:
         """Whether a finished run kept its fit and beat the affine map (``restart_tolerance``)."""
@@ -252,15 +277,15 @@ def fit(
     try:
         if ensemble and len(done) < r.restarts:
             learner = _restarts_together(done, history, r, opts, learner_for, fit_data, test_data,
-                                         score_on, test, holdout, elapsed)
+                                         run_score(), holdout_score if holdout is not None else None, elapsed)
             if bar is not None:
                 bar.update(bar.total - bar.n)
         for restart in range(len(done), r.restarts):
             if r.restart_tolerance is not None and any(succeeded(d) for d in done):
                 break
             learner = learner_for(restart)
-            state = TrainState(learner, fit_data, test_data, opts, restart,
-                               score=score_on(test) if test is not None else None)
+            state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
+                               windows=windows, scaling=scaling)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:
@@ -270,7 +295,7 @@ def fit(
                 store.save(restart, done, state.state_dict(), elapsed())
 
             stopped = run_phases(state, callbacks=user_callbacks, save=save, elapsed=elapsed, bar=bar)
-            done.append(close_run(state, r, score_on(holdout) if holdout is not None else None))
+            done.append(close_run(state, r, holdout_score if holdout is not None else None))
             history.extend(state.history)
             if stopped:
                 break
@@ -286,4 +311,25 @@ def fit(
         fold_back(scaling, learner, model)
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
-    return FitResult(model, history, opts, scores, elapsed(), scaling)
+    result = FitResult(model, history, opts, scores, elapsed(), scaling)
+    return _against_affine(result, split, affine_score, r.affine_if_better) if holdout is not None else result
+
+
+def _against_affine(result: FitResult, split: Split, affine_score: Callable[[], float],
+                    affine_if_better: bool) -> FitResult:
+    """``result`` with the held-out scores of its model and of the least-squares affine map on
+    the same split (:attr:`FitResult.verdict` says which is better) and the growth of its
+    held-out rollouts; with ``affine_if_better``, when the affine map scores at least as well,
+    the affine map (as an LCS, ``C = 0``) written into the returned model, the learned one kept
+    as ``learned``."""
+    model = result.model
+    result = dataclasses.replace(result, heldout_error=split.score(model), affine_heldout_error=affine_score(),
+                                 heldout_growth=split.growth(model))
+    if result.beats_affine or not affine_if_better:
+        return result
+    learned = copy.deepcopy(model)
+    affine = affine_lcs(split.affine, model)
+    with torch.no_grad():
+        for name in ("A", "B", "C", "d"):
+            getattr(model, name).copy_(getattr(affine, name))
+    return dataclasses.replace(result, learned=learned, returned_affine=True)

@@ -2,7 +2,7 @@ r""":class:`FitOptions`, every option of :func:`lcs_cvx.fit`: one frozen datacla
 phase (:mod:`lcs_cvx.train.phase_options`), and the flat keywords of :func:`lcs_cvx.fit` as
 aliases of their fields.
 
-A run minimises ``L(theta) + omega ||C||_F^2`` (paper eq. (4)) in up to four phases, in this
+A run minimises ``L(theta) + omega ||C||_F^2`` (paper eq. (4)) in up to five phases, in this
 order; each phase has its own options:
 
 - :class:`ObjectiveOptions` -- which loss (eq. (9) or (6)) and its constants.
@@ -14,6 +14,8 @@ order; each phase has its own options:
 - :class:`RefineOptions` -- Levenberg--Marquardt steps (Gauss--Newton or Newton, Lemma 4,
   :mod:`lcs_cvx.second_order`) on large batches.
 - :class:`PolishOptions` -- a final Adam polish on the prediction loss (eq. (6)).
+- :class:`RolloutOptions` -- simulation-error refinement on windows of trajectories
+  (:mod:`lcs_cvx.simulation_error`).
 - :class:`RunOptions` -- what is not a phase: restarts, seed, records, checkpoints.
 
 :class:`FitOptions` holds one of each; it is the only representation of a run's options. Most
@@ -38,6 +40,7 @@ from .phase_options import (
     PolishOptions,
     PruneOptions,
     RefineOptions,
+    RolloutOptions,
     RunOptions,
     option_error,
 )
@@ -67,6 +70,7 @@ class FitOptions:
     prune: PruneOptions = field(default_factory=PruneOptions)
     refine: RefineOptions = field(default_factory=RefineOptions)
     polish: PolishOptions = field(default_factory=PolishOptions)
+    rollout: RolloutOptions = field(default_factory=RolloutOptions)
     run: RunOptions = field(default_factory=RunOptions)
     #: the recipe these options came from (``"paper"``, ``"best"``) or None.
     recipe: str | None = None
@@ -125,7 +129,8 @@ class FitOptions:
 
 
 GROUPS = {"objective": ObjectiveOptions, "adam": AdamOptions, "prune": PruneOptions,
-           "refine": RefineOptions, "polish": PolishOptions, "run": RunOptions}
+           "refine": RefineOptions, "polish": PolishOptions, "rollout": RolloutOptions,
+           "run": RunOptions}
 
 
 # -- the flat keywords: aliases of fields ---------------------------------------------------
@@ -156,8 +161,11 @@ FLAT_ALIASES: Mapping[str, tuple[Field, ...]] = MappingProxyType({
     "refine": (("refine", "method"),), "refine_iterations": (("refine", "iterations"),),
     "refine_batch": (("refine", "batch_size"),), "damping": (("refine", "damping"),),
     "polish_iterations": (("polish", "iterations"),), "polish_lr": (("polish", "lr"),),
+    "rollout_horizon": (("rollout", "horizon"),), "rollout_iterations": (("rollout", "iterations"),),
+    "rollout_lr": (("rollout", "lr"),), "rollout_batch": (("rollout", "batch_size"),),
     **_same_names("run", "restarts", "holdout", "restart_tolerance", "seed", "eval_every",
-                  "checkpoint_every", "keep_best", "normalize", "init"),
+                  "checkpoint_every", "keep_best", "normalize", "init", "holdout_horizon",
+                  "affine_if_better"),
 })
 
 #: The keywords that alias other fields with ``optimizer="gauss-newton"`` or ``"newton"``: there

@@ -6,6 +6,7 @@
 - :class:`PruneOptions` -- pruning the extra units (:func:`lcs_cvx.resizing.prune_units`).
 - :class:`RefineOptions` -- Levenberg--Marquardt steps (Lemma 4, :mod:`lcs_cvx.second_order`).
 - :class:`PolishOptions` -- a final Adam polish on the prediction loss (eq. (6)).
+- :class:`RolloutOptions` -- simulation-error refinement on windows of the training trajectories.
 - :class:`RunOptions` -- what is not a phase: restarts, seed, records, checkpoints, start.
 """
 
@@ -19,7 +20,7 @@ from .._checks import LCSInputError
 
 __all__ = [
     "ObjectiveOptions", "AdamOptions", "PruneOptions", "RefineOptions", "PolishOptions",
-    "RunOptions", "extra_units", "option_error",
+    "RolloutOptions", "RunOptions", "extra_units", "option_error",
 ]
 
 LOSSES = ("violation", "prediction")
@@ -206,6 +207,35 @@ class PolishOptions:
 
 
 @dataclass(frozen=True)
+class RolloutOptions:
+    """Simulation-error refinement (:mod:`lcs_cvx.simulation_error`): Adam on the mean squared
+    error of ``horizon``-step open-loop rollouts of the model from windows of the training
+    trajectories, the last phase of a run. Needs the training data as
+    :class:`lcs_cvx.Trajectories`.
+
+    Attributes:
+        horizon: ``H``, the steps of a window (None: no such phase). Flat keyword
+            ``rollout_horizon``.
+        iterations: Adam steps (``rollout_iterations``).
+        lr: the learning rate, constant (``rollout_lr``).
+        batch_size: windows per step, drawn at random from every window of every training
+            trajectory (``rollout_batch``).
+    """
+
+    horizon: int | None = None
+    iterations: int = 300
+    lr: float = 1e-3
+    batch_size: int = 64
+
+    def __post_init__(self) -> None:
+        if self.horizon is not None:
+            _count(self, 1, "horizon")
+        _count(self, 0, "iterations")
+        _count(self, 1, "batch_size")
+        _positive(self, "lr")
+
+
+@dataclass(frozen=True)
 class RunOptions:
     """What is not a phase.
 
@@ -213,7 +243,9 @@ class RunOptions:
         restarts: independent runs (the first from the given model, the others from fresh
             initialisations); the one with the lowest relative error on a held-out ``holdout``
             fraction of the data is returned.
-        holdout: see ``restarts`` (only used when ``restarts > 1``).
+        holdout: see ``restarts``; the fraction held out when ``restarts > 1``, and with
+            :class:`lcs_cvx.Trajectories` as data always (whole trajectories), unless
+            ``validation`` is given.
         restart_tolerance: with ``restarts > 1``, run a further restart only while no finished
             run *succeeded*: kept its fit -- ended (after pruning and refinement) at a training
             loss at most ``restart_tolerance`` times its loss at the end of the Adam phase
@@ -226,7 +258,14 @@ class RunOptions:
         eval_every: Adam and polish steps between history records.
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
             second-order step are always followed by one).
-        keep_best: return the iterate with the lowest e_test on ``test`` instead of the last.
+        keep_best: return the iterate with the lowest e_test on ``test`` instead of the last
+            (without ``test``, the lowest held-out score when there is a held-out part).
+        holdout_horizon: with :class:`lcs_cvx.Trajectories` as data, the held-out score is the
+            rollout error (:func:`lcs_cvx.rollout_error`) at this horizon on the held-out
+            trajectories (1: the one-step relative error).
+        affine_if_better: return the least-squares affine map as an LCS (``C = 0``) when its
+            held-out score is at most the learned LCS's (:attr:`lcs_cvx.FitResult.beats_affine`);
+            the learned model is kept in :attr:`lcs_cvx.FitResult.learned`.
         normalize: learn in normalised coordinates (:class:`lcs_cvx.scaling.Scaling`: ``x``,
             ``u`` and the increment ``x' - x`` scaled by the training set's statistics) and fold
             the result back exactly into the user's units. The losses' constants, the
@@ -252,9 +291,14 @@ class RunOptions:
     keep_best: bool = False
     normalize: bool = True
     init: str | tuple[str, ...] = "increment"
+    holdout_horizon: int = 1
+    affine_if_better: bool = False
 
     def __post_init__(self) -> None:
-        _count(self, 1, "restarts", "eval_every", "checkpoint_every")
+        _count(self, 1, "restarts", "eval_every", "checkpoint_every", "holdout_horizon")
+        for name in ("keep_best", "affine_if_better"):
+            if not isinstance(getattr(self, name), bool):
+                raise option_error(name, "True or False", getattr(self, name))
         if isinstance(self.init, (list, tuple)):  # a TOML or JSON list is the tuple
             object.__setattr__(self, "init", tuple(self.init))
             if not self.init or any(k not in INITS for k in self.init):

@@ -11,6 +11,8 @@ alone.
   (:func:`lcs_cvx.resizing.prune_units`), a few Gauss--Newton steps after each removal.
 - :class:`RefinePhase` -- Levenberg--Marquardt steps (:mod:`lcs_cvx.second_order`, Lemma 4).
 - :class:`PolishPhase` -- Adam on the prediction loss (eq. (6)).
+- :class:`RolloutPhase` -- Adam on the simulation error of ``H``-step windows of the training
+  trajectories (:mod:`lcs_cvx.simulation_error`).
 """
 
 from __future__ import annotations
@@ -26,11 +28,12 @@ from ..losses import prediction_fast, regularizer, violation_fast
 from ..parameter_constraints import free_entries, mask_gradients_, project_
 from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
+from ..simulation_error import simulation_error
 from ..system import LCS
 from .options import FitOptions
 from .state import Outcome, TrainState
 
-__all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "phases", "run_phases", "divergence"]
+__all__ = ["AdamPhase", "PrunePhase", "RefinePhase", "PolishPhase", "RolloutPhase", "phases", "run_phases", "divergence"]
 
 
 def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteration: int,
@@ -257,9 +260,37 @@ class PolishPhase(Phase):
         return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.fallback_residual)
 
 
+class RolloutPhase(Phase):
+    """Adam on the simulation error (:func:`lcs_cvx.simulation_error.simulation_error`) of
+    ``batch_size`` windows of ``H`` steps drawn at random from the training trajectories,
+    constant learning rate. Recorded and checkpointed as the polish."""
+
+    key = "rollout"
+
+    def __init__(self, options: FitOptions) -> None:
+        super().__init__(options)
+        self.record_every = options.run.eval_every
+        self.checkpoint_every = options.run.checkpoint_every
+
+    def length(self, state: TrainState) -> int:
+        ro = self.options.rollout
+        return ro.iterations if ro.horizon is not None else 0
+
+    def step(self, state: TrainState) -> Outcome:
+        ro, obj = self.options.rollout, self.options.objective
+        w = state.windows
+        idx = torch.randint(len(w), (min(ro.batch_size, len(w)),), generator=state.generator)
+        kw = {"dtype": state.model.dtype, "device": state.model.device}
+        x0, us, xs = (t.to(**kw) for t in w.batch(idx))
+        value = simulation_error(state.model, x0, us, xs, state.scaling) + regularizer(state.model, obj.reg)
+        loss = _adam_step(state.rollout_adam, state.model, value, state.iteration + 1, ro.lr)
+        return Outcome(loss, obj.eps, ro.lr)
+
+
 def phases(options: FitOptions) -> list[Phase]:
     """The phases of a run, in order."""
-    return [AdamPhase(options), PrunePhase(options), RefinePhase(options), PolishPhase(options)]
+    return [AdamPhase(options), PrunePhase(options), RefinePhase(options), PolishPhase(options),
+            RolloutPhase(options)]
 
 
 def run_phases(

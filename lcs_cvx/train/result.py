@@ -37,6 +37,19 @@ class FitResult:
         scaling: the normalised coordinates the model was learned in
             (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
             history is in those coordinates; ``e_test`` and the restart scores are in the user's.
+        heldout_error: the held-out score of the learned model (:func:`lcs_cvx.relative_error`
+            on held-out transitions, or :func:`lcs_cvx.rollout_error` at ``holdout_horizon`` on
+            held-out trajectories); None without a held-out part.
+        affine_heldout_error: the same score of the least-squares affine map fitted on the same
+            training part: the learned LCS contains that map (``C = 0``), so it should score
+            below it.
+        heldout_growth: with held-out trajectories, the largest ``max_t ||x_hat_t|| / max_t
+            ||x_t||`` of the learned model's rollouts over each whole held-out trajectory
+            (:func:`lcs_cvx.simulation_error.rollout_growth`: near 1 for a stable model, inf when
+            a rollout overflows).
+        learned: with ``affine_if_better`` when the affine map scored at least as well, the
+            learned LCS (:attr:`model` then holds the affine map, ``C = 0``); else None.
+        returned_affine: whether :attr:`model` holds the affine map.
     """
 
     model: LCS
@@ -45,6 +58,36 @@ class FitResult:
     restart_scores: list[float] = field(default_factory=list)
     wall_time: float = 0.0
     scaling: Scaling | None = None
+    heldout_error: float | None = None
+    affine_heldout_error: float | None = None
+    heldout_growth: float | None = None
+    learned: LCS | None = None
+    returned_affine: bool = False
+
+    @property
+    def beats_affine(self) -> bool | None:
+        """Whether the learned model's held-out score is below the affine map's (None without
+        a held-out part)."""
+        if self.heldout_error is None or self.affine_heldout_error is None:
+            return None
+        return self.heldout_error < self.affine_heldout_error
+
+    @property
+    def verdict(self) -> str:
+        """One line on the learned model against the affine map on held-out data."""
+        if self.beats_affine is None:
+            return "no held-out data: the learned LCS was not compared with the affine map"
+        h = self.settings.run.holdout_horizon
+        what = "one-step relative error" if h == 1 else f"{h}-step rollout error"
+        line = (f"held-out {what}: LCS {self.heldout_error:.4g}, affine least squares "
+                f"{self.affine_heldout_error:.4g}")
+        if self.heldout_growth is not None:
+            line += f"; largest held-out rollout growth {self.heldout_growth:.3g}"
+        if self.beats_affine:
+            return line + ": the LCS is better"
+        return line + (": the LCS is NOT better than the affine map" +
+                       ("; the affine map is returned (affine_if_better)" if self.returned_affine
+                        else "; fit(..., affine_if_better=True) returns the affine map"))
 
     @property
     def kept_restart(self) -> int:

@@ -20,6 +20,8 @@ from ..data import Dataset
 from ..metrics import relative_error
 from ..parameter_constraints import allowed_extra_units
 from ..resizing import add_units
+from ..scaling import Scaling
+from ..simulation_error import Windows
 from ..system import LCS, PARAMETER_NAMES
 from .options import FitOptions
 from .phase_options import extra_units
@@ -27,7 +29,7 @@ from .phase_options import extra_units
 __all__ = ["TrainState", "Outcome", "PHASES"]
 
 #: The phases, in the order a run goes through them.
-PHASES = ("adam", "prune", "refine", "polish")
+PHASES = ("adam", "prune", "refine", "polish", "rollout")
 
 
 @dataclass(frozen=True)
@@ -47,12 +49,17 @@ class TrainState:
     """One run of :func:`lcs_cvx.fit` (one restart)."""
 
     def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
-                 restart: int, score: Callable[[LCS], float] | None = None) -> None:
+                 restart: int, score: Callable[[LCS], float] | None = None,
+                 windows: Windows | None = None, scaling: Scaling | None = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
+        # the simulation-error phase: windows of the training trajectories (user's units) and the
+        # coordinates the model is learned in
+        self.windows, self.scaling = windows, scaling
         # e_test of a model being trained (default: its relative error on ``test``; under
         # normalisation, the error of the folded-back model in the user's units)
         self.score = score if score is not None else (lambda m: relative_error(m, test))
+        self.scored = score is not None or test is not None
         a = options.adam
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
@@ -61,6 +68,8 @@ class TrainState:
         self.adam = torch.optim.Adam(self.work.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
         self.polish_adam = torch.optim.Adam(model.parameters(), lr=options.polish.lr,
                                             betas=a.betas, eps=a.adam_eps)
+        self.rollout_adam = torch.optim.Adam(model.parameters(), lr=options.rollout.lr,
+                                             betas=a.betas, eps=a.adam_eps)
         self.perm = torch.randperm(len(train), generator=self.generator)
         self.pos = 0
         self.steps = dict.fromkeys(PHASES, 0)
@@ -75,8 +84,8 @@ class TrainState:
 
     @property
     def iteration(self) -> int:
-        """Optimiser steps done in this run (Adam, second-order and polish steps)."""
-        return self.steps["adam"] + self.steps["refine"] + self.steps["polish"]
+        """Optimiser steps done in this run (Adam, second-order, polish and rollout steps)."""
+        return self.steps["adam"] + self.steps["refine"] + self.steps["polish"] + self.steps["rollout"]
 
     # -- data
     def next_batch(self, size: int) -> torch.Tensor:
@@ -117,7 +126,7 @@ class TrainState:
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict[str, Any]:
         """Close the current stretch of steps as one history record (and track the best iterate
         when ``keep_best``)."""
-        e_test = self.score(self.work) if self.test is not None else None
+        e_test = self.score(self.work) if self.scored else None
         rec = {
             "iteration": self.iteration, "phase": phase,
             "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
@@ -150,7 +159,7 @@ class TrainState:
             "model": params(self.model), "work": params(self.work) if grown else None,
             # after the pruning, the Adam moments belong to the discarded grown model
             "adam": self.adam.state_dict() if grown or self.n_extra == 0 else None,
-            "polish_adam": self.polish_adam.state_dict(),
+            "polish_adam": self.polish_adam.state_dict(), "rollout_adam": self.rollout_adam.state_dict(),
             "generator": self.generator.get_state(), "perm": self.perm, "pos": self.pos,
             "steps": dict(self.steps), "history": self.history, "damping": self.damping,
             "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
@@ -167,6 +176,7 @@ class TrainState:
         if st["adam"] is not None:
             self.adam.load_state_dict(st["adam"])
         self.polish_adam.load_state_dict(st["polish_adam"])
+        self.rollout_adam.load_state_dict(st["rollout_adam"])
         self.generator.set_state(st["generator"])
         self.perm, self.pos = st["perm"], st["pos"]
         self.steps, self.history, self.damping = dict(st["steps"]), st["history"], st["damping"]

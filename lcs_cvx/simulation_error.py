@@ -1,0 +1,152 @@
+r"""The simulation error of an LCS on recorded trajectories: the multi-step (output-error)
+criterion that training can refine on, and the checks of a learned model's rollouts.
+
+A window is ``H`` recorded steps ``x_s, u_s, ..., u_{s+H-1}, x_{s+H}`` of one trajectory. The
+model rolls out from the recorded ``x_s`` under the recorded inputs,
+
+.. math::
+
+    \hat x_{h+1} = A \hat x_h + B u_{s+h} + C \lambda(\hat x_h, u_{s+h}) + d,\quad \hat x_0 = x_s,
+
+with ``lambda`` the exact LCP solution (its gradient the implicit function's, Lemma 1, through
+:meth:`lcs_cvx.LCS.step`), and the loss is the mean over windows, steps and coordinates of
+``((x_hat_h - x_{s+h}) / sigma)^2``, ``sigma`` the spread of the one-step change of each
+coordinate. One-step losses (eqs. (6), (9)) start every step from a measured, noisy state and
+are biased when the states are noisy (errors in variables); the simulation error is not, and it
+trains what a user of the model measures: rollouts.
+
+- :class:`Windows`: every window of ``H`` steps of a :class:`~lcs_cvx.Trajectories`, sampled in
+  batches.
+- :func:`simulation_error`: the loss of a batch of windows, differentiable in the parameters;
+  in normalised coordinates (:class:`lcs_cvx.scaling.Scaling`) when a scaling is given.
+- :func:`affine_rollout_error`: :func:`lcs_cvx.rollout_error` of an affine map, the baseline.
+- :func:`rollout_growth`: how far the rollouts of a model over whole trajectories grow.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ._checks import LCSInputError
+from .metrics import AffineMap
+from .scaling import Scaling
+from .trajectories import Trajectories
+
+__all__ = ["Windows", "simulation_error", "affine_rollout_error", "rollout_growth"]
+
+
+class Windows:
+    """Every window of ``horizon`` steps of ``trajectories`` (starts ``s = 0 .. T_i - H`` of each
+    trajectory ``i``), as row indices into the stacked states ``X (sum_i (T_i + 1), n_x)`` and
+    inputs ``U (sum_i T_i, n_u)``.
+
+    A trajectory shorter than ``horizon`` has no window (a ``UserWarning`` counts them and
+    names the first); if none has one, an :class:`LCSInputError` names the horizon and the
+    longest trajectory.
+    """
+
+    def __init__(self, trajectories: Trajectories, horizon: int) -> None:
+        if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+            raise LCSInputError(f"rollout_horizon: expected an integer >= 1, received {horizon!r}")
+        longest = max(trajectories.lengths)
+        if horizon > longest:
+            raise LCSInputError(
+                f"rollout_horizon: expected at most {longest} steps (the longest trajectory's), "
+                f"received {horizon}: no trajectory has a window of that length")
+        short = [i for i, T in enumerate(trajectories.lengths) if T < horizon]
+        if short:
+            import warnings
+
+            warnings.warn(f"rollout_horizon: {len(short)} of {len(trajectories)} trajectories are shorter than "
+                          f"{horizon} steps (the first: index {short[0]}, {trajectories.lengths[short[0]]} steps) "
+                          "and have no window", UserWarning, stacklevel=3)
+        self.horizon = horizon
+        self.X = torch.cat(trajectories.xs)
+        self.U = torch.cat(trajectories.us)
+        xr, ur, x0, u0 = [], [], 0, 0
+        for T in trajectories.lengths:
+            n = T - horizon + 1
+            if n > 0:
+                xr.append(torch.arange(x0, x0 + n))
+                ur.append(torch.arange(u0, u0 + n))
+            x0, u0 = x0 + T + 1, u0 + T
+        self.x_rows, self.u_rows = torch.cat(xr), torch.cat(ur)
+
+    def __len__(self) -> int:
+        return int(self.x_rows.numel())
+
+    def batch(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Windows ``idx``: start states ``(B, n_x)``, inputs ``(B, H, n_u)`` and the recorded
+        states ``x_{s+1} .. x_{s+H}`` ``(B, H, n_x)``."""
+        steps = torch.arange(self.horizon)
+        xs = self.X[self.x_rows[idx, None] + steps + 1]
+        return self.X[self.x_rows[idx]], self.U[self.u_rows[idx, None] + steps], xs
+
+
+def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.Tensor,
+                     scaling: Scaling | None = None) -> torch.Tensor:
+    """The mean of ``((x_hat_h - x_h) / sigma)^2`` over the windows ``(x0 (B, n_x), us (B, H,
+    n_u), xs (B, H, n_x))``, ``x_hat`` the rollout of ``model``; differentiable in its parameters.
+
+    With ``scaling``, ``model`` is in its normalised coordinates (it maps ``z, v`` to the scaled
+    change ``y``): each step encodes ``x_hat``, steps, and decodes ``x' = K x + m_y + S_y y``;
+    ``sigma = S_y``. Without, ``model`` is in the data's units and ``sigma = 1``.
+    """
+    s = scaling._on(x0) if scaling is not None else None
+    x, total = x0, x0.new_zeros(())
+    for h in range(us.shape[1]):
+        u = us[:, h]
+        if s is None:
+            x = model.step(x, u)
+            err = x - xs[:, h]
+        else:
+            x = s.k * x + s.my + s.sy * model.step((x - s.mx) / s.sx, (u - s.mu) / s.su)
+            err = (x - xs[:, h]) / s.sy
+        total = total + err.pow(2).mean()
+    return total / us.shape[1]
+
+
+def _rollouts(step: Any, trajectories: Trajectories, horizon: int | None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """``(predicted, recorded)`` states of every window of ``horizon`` steps (None: each whole
+    trajectory from its first state), stacked by step ``h = 1 .. H``: ``(H, W, n_x)`` each."""
+    out = []
+    if horizon is None:
+        for x, u in zip(trajectories.xs, trajectories.us, strict=True):
+            xh, pred = x[:1], []
+            for t in range(u.shape[0]):
+                xh = step(xh, u[t:t + 1])
+                pred.append(xh)
+            out.append((torch.stack(pred), x[1:, None]))
+        return out
+    w = Windows(trajectories, horizon)
+    x0, us, xs = w.batch(torch.arange(len(w)))
+    xh, pred = x0, []
+    for h in range(horizon):
+        xh = step(xh, us[:, h])
+        pred.append(xh)
+    return [(torch.stack(pred), xs.transpose(0, 1))]
+
+
+def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon: int) -> float:
+    """:func:`lcs_cvx.rollout_error` at ``horizon`` of the affine map ``x' = W [x; u; 1]``
+    (:func:`lcs_cvx.metrics.affine_lstsq`): ``sum ||x_hat_{s+H} - x_{s+H}||^2 / sum
+    ||x_{s+H}||^2`` over the windows."""
+    with torch.no_grad():
+        (pred, rec), = _rollouts(lambda x, u: affine.step(x, u), trajectories, horizon)
+    return float((pred[-1] - rec[-1]).pow(2).sum() / rec[-1].pow(2).sum())
+
+
+def rollout_growth(model: Any, trajectories: Trajectories) -> float:
+    """The largest ``max_t ||x_hat_t|| / max_t ||x_t||`` over ``trajectories``, each rolled out
+    open loop from its first state to its end (inf when a rollout leaves the finite numbers): a
+    stable model stays near 1, a diverging one grows without bound."""
+    worst = 0.0
+    with torch.no_grad():
+        for pred, rec in _rollouts(lambda x, u: model.step(x, u), trajectories, None):
+            top = float(rec.norm(dim=-1).max())
+            if not bool(torch.isfinite(pred).all()):
+                return float("inf")
+            worst = max(worst, float(pred.norm(dim=-1).max()) / max(top, 1e-300))
+    return worst

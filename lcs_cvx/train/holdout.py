@@ -1,0 +1,127 @@
+"""The data of a :func:`lcs_cvx.fit` run split into what it trains on and what it holds out, and
+the held-out scores of the learned model and of the least-squares affine map on the same split.
+
+:func:`split_data` takes the user's ``train`` (a :class:`lcs_cvx.Dataset` of transitions or
+:class:`lcs_cvx.Trajectories`) and optional ``validation``:
+
+- ``validation`` given: it is the held-out part, ``train`` is trained on whole;
+- :class:`~lcs_cvx.Trajectories`: ``holdout`` of the trajectories, whole ones, held out (random
+  transitions of one run would leak their neighbours into validation); with one trajectory,
+  nothing;
+- a :class:`~lcs_cvx.Dataset`: ``holdout`` of the transitions, held out with ``restarts > 1``
+  only (as before trajectories were accepted).
+
+The held-out score (:meth:`Split.score`) is the relative error (:func:`lcs_cvx.relative_error`)
+on held-out transitions, or the rollout error (:func:`lcs_cvx.rollout_error`) at
+``holdout_horizon`` on held-out trajectories.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .._checks import LCSInputError
+from ..data import Dataset
+from ..metrics import AffineMap, affine_lstsq, relative_error
+from ..simulation_error import affine_rollout_error, rollout_growth
+from ..system import LCS
+from ..trajectories import Trajectories, rollout_error
+from .phase_options import RunOptions
+
+__all__ = ["Split", "split_data", "affine_lcs"]
+
+
+@dataclass(frozen=True)
+class Split:
+    """``fit``: the training transitions; ``trajectories``: the training trajectories (None when
+    the data were transitions); ``holdout``: the held-out transitions or trajectories (None: no
+    held-out part); ``horizon``: the rollout horizon of the held-out score."""
+
+    fit: Dataset
+    trajectories: Trajectories | None
+    holdout: Dataset | Trajectories | None
+    horizon: int
+
+    def score(self, model: Any) -> float:
+        """The held-out score of ``model`` (in the user's units)."""
+        if isinstance(self.holdout, Trajectories):
+            return rollout_error(model, self.holdout, self.horizon)[self.horizon]
+        return relative_error(model, self.holdout)
+
+    @functools.cached_property
+    def affine(self) -> AffineMap:
+        """The least-squares affine map of the training transitions."""
+        return affine_lstsq(self.fit)
+
+    def affine_score(self) -> float:
+        """The held-out score of :attr:`affine`."""
+        if isinstance(self.holdout, Trajectories):
+            return affine_rollout_error(self.affine, self.holdout, self.horizon)
+        return relative_error(self.affine, self.holdout)
+
+    def growth(self, model: Any) -> float | None:
+        """:func:`lcs_cvx.simulation_error.rollout_growth` on the held-out trajectories (None
+        when the held-out part is transitions)."""
+        return rollout_growth(model, self.holdout) if isinstance(self.holdout, Trajectories) else None
+
+
+def _as_transitions(name: str, data: Any) -> Dataset:
+    if isinstance(data, Trajectories):
+        return data.to_transitions()
+    if isinstance(data, Dataset):
+        return data
+    raise LCSInputError(f"{name}: expected an lcs_cvx.Dataset or lcs_cvx.Trajectories, received {type(data).__name__}")
+
+
+def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: int | None) -> Split:
+    """The :class:`Split` of a run (module docstring); every inconsistency is an
+    :class:`LCSInputError` naming its argument."""
+    fit_all = _as_transitions("train", train)
+    if validation is not None:
+        _as_transitions("validation", validation)
+        if (validation.n_x, validation.n_u) != (fit_all.n_x, fit_all.n_u):
+            raise LCSInputError(f"validation: expected n_x={fit_all.n_x}, n_u={fit_all.n_u} (train's), "
+                                f"received n_x={validation.n_x}, n_u={validation.n_u}")
+    trajectories = train if isinstance(train, Trajectories) else None
+    if rollout_horizon is not None and trajectories is None:
+        raise LCSInputError("rollout_horizon: the simulation-error phase rolls out windows of trajectories; "
+                            f"expected train as an lcs_cvx.Trajectories, received {type(train).__name__}")
+    holdout: Dataset | Trajectories | None = validation
+    if validation is None and trajectories is not None and len(trajectories) >= 2:
+        trajectories, holdout = trajectories.split(1.0 - run.holdout, seed=run.seed)
+    elif validation is None and trajectories is None and run.restarts > 1:
+        fit_all, holdout = fit_all.split(1.0 - run.holdout, seed=run.seed)
+    fit = trajectories.to_transitions() if trajectories is not None else fit_all
+    if run.holdout_horizon > 1:
+        if not isinstance(holdout, Trajectories):
+            raise LCSInputError("holdout_horizon: a rollout score needs held-out trajectories; expected 1 with "
+                                f"{'no held-out part' if holdout is None else 'held-out transitions'}, "
+                                f"received {run.holdout_horizon}")
+        longest = max(holdout.lengths)
+        if run.holdout_horizon > longest:
+            raise LCSInputError(f"holdout_horizon: expected at most {longest} steps (the longest held-out "
+                                f"trajectory's), received {run.holdout_horizon}")
+    if trajectories is not None and rollout_horizon is not None and rollout_horizon > max(trajectories.lengths):
+        raise LCSInputError(f"rollout_horizon: expected at most {max(trajectories.lengths)} steps (the longest "
+                            f"training trajectory's), received {rollout_horizon}")
+    return Split(fit, trajectories, holdout, run.holdout_horizon)
+
+
+def affine_lcs(affine: AffineMap, like: LCS) -> LCS:
+    """The affine map ``x' = A x + B u + d`` as an LCS of ``like``'s sizes with ``C = 0`` (its
+    units have no effect); ``like``'s other parameters are kept."""
+    import copy
+
+    model = copy.deepcopy(like)
+    W = affine.W.to(dtype=model.dtype, device=model.device)
+    n_x, n_u = model.n_x, model.n_u
+    with torch.no_grad():
+        model.A.copy_(W[:n_x].T)
+        model.B.copy_(W[n_x:n_x + n_u].T)
+        model.d.copy_(W[-1])
+        model.C.zero_()
+    return model

@@ -1,0 +1,169 @@
+"""fit on trajectories (lcs_cvx.train.holdout and the simulation-error phase): whole trajectories
+held out, the held-out scores of the LCS and of the affine map on the same split, the affine map
+returned on request, rollout scores and early stopping on them, the simulation-error phase
+(it lowers its loss; a killed run resumes exactly), select_n_lam on trajectories, and the named
+errors of bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import lcs_cvx
+from lcs_cvx.metrics import affine_lstsq
+from lcs_cvx.simulation_error import affine_rollout_error, rollout_growth
+from lcs_cvx.train.holdout import split_data
+from lcs_cvx.train.phase_options import RunOptions
+
+
+def make_trajectories(truth, K, T, seed=0, noise=0.0):
+    rng = np.random.default_rng(seed)
+    xs, us = [], []
+    for _ in range(K):
+        u = rng.uniform(-3, 3, (T, truth.n_u))
+        x = truth.rollout(rng.uniform(-5, 5, truth.n_x), u).detach().numpy()
+        xs.append(x + noise * rng.standard_normal(x.shape))
+        us.append(u)
+    return lcs_cvx.Trajectories(xs, us)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return lcs_cvx.random_lcs(2, 1, 2, seed=0)
+
+
+@pytest.fixture(scope="module")
+def data(truth):
+    return make_trajectories(truth, 10, 25, seed=1)
+
+
+def fit(data, seed=3, **kw):
+    model = lcs_cvx.LCS(2, 1, 2, seed=seed)
+    return model, lcs_cvx.fit(model, data, progress=False, **{"iterations": 200, **kw})
+
+
+def test_whole_trajectories_are_held_out(data):
+    split = split_data(data, None, RunOptions(holdout=0.3, seed=2), None)
+    assert isinstance(split.holdout, lcs_cvx.Trajectories)
+    assert len(split.trajectories) == 7 and len(split.holdout) == 3
+    firsts = {tuple(x[0].tolist()) for x in data.xs}
+    train_firsts = {tuple(x[0].tolist()) for x in split.trajectories.xs}
+    held_firsts = {tuple(x[0].tolist()) for x in split.holdout.xs}
+    assert train_firsts | held_firsts == firsts and not train_firsts & held_firsts
+    assert len(split.fit) == sum(split.trajectories.lengths)  # trains on the kept trajectories only
+
+
+def test_heldout_scores_of_the_lcs_and_of_the_affine_map(data):
+    model, result = fit(data, holdout_horizon=5, holdout=0.3)
+    split = split_data(data, None, RunOptions(holdout=0.3), None)
+    want = lcs_cvx.rollout_error(model, split.holdout, 5)[5]
+    assert result.heldout_error == pytest.approx(want, rel=1e-12)
+    affine = affine_lstsq(split.fit)
+    assert result.affine_heldout_error == pytest.approx(affine_rollout_error(affine, split.holdout, 5), rel=1e-12)
+    assert result.heldout_growth == pytest.approx(rollout_growth(model, split.holdout), rel=1e-12)
+    assert result.beats_affine == (result.heldout_error < result.affine_heldout_error)
+    assert "5-step rollout error" in result.verdict and f"{result.heldout_error:.4g}" in result.verdict
+
+
+def test_affine_if_better_returns_the_affine_map_and_keeps_the_learned_model(data):
+    """A run of two Adam steps leaves the LCS far above the affine map: with affine_if_better the
+    returned model is the affine map (C = 0), scoring exactly its held-out error."""
+    model, result = fit(data, iterations=2, affine_if_better=True)
+    assert result.beats_affine is False and result.returned_affine
+    assert torch.count_nonzero(model.C) == 0
+    assert result.learned is not None and torch.count_nonzero(result.learned.C) > 0
+    split = split_data(data, None, RunOptions(), None)
+    assert lcs_cvx.relative_error(model, split.holdout.to_transitions()) == pytest.approx(
+        result.affine_heldout_error, rel=1e-10)
+    assert "the affine map is returned" in result.verdict
+    _, kept = fit(data, iterations=2)  # without the option: said, not done
+    assert kept.beats_affine is False and not kept.returned_affine and kept.learned is None
+    assert "affine_if_better=True" in kept.verdict
+
+
+def test_a_dataset_keeps_its_old_behaviour(truth):
+    """Transitions with one run: nothing held out, no comparison; the training is unchanged."""
+    train = lcs_cvx.make_dataset(truth, 500, seed=1)
+    _, result = fit(train)
+    assert result.heldout_error is None and result.beats_affine is None
+    assert result.verdict.startswith("no held-out data")
+
+
+def test_validation_trajectories_replace_the_split(truth, data):
+    val = make_trajectories(truth, 3, 25, seed=9)
+    model, result = fit(data, validation=val, holdout_horizon=3)
+    assert result.heldout_error == pytest.approx(lcs_cvx.rollout_error(model, val, 3)[3], rel=1e-12)
+
+
+def test_keep_best_follows_the_heldout_score_without_a_test_set(data):
+    model, result = fit(data, keep_best=True, holdout_horizon=4, eval_every=20, lr=3e-2)
+    scores = [h["e_test"] for h in result.history]
+    assert all(s is not None and math.isfinite(s) for s in scores)
+    assert result.heldout_error == pytest.approx(min(scores), rel=1e-9)
+
+
+def test_the_simulation_error_phase_runs_last_and_lowers_its_loss(truth):
+    noisy = make_trajectories(truth, 10, 25, seed=1, noise=0.05)
+    _, result = fit(noisy, rollout_horizon=5, rollout_iterations=120, eval_every=20, rollout_lr=3e-3)
+    phases = [h["phase"] for h in result.history]
+    assert phases[-6:] == ["rollout"] * 6 and "rollout" not in phases[:-6]
+    losses = [h["loss"] for h in result.history if h["phase"] == "rollout"]
+    assert losses[-1] < losses[0]
+
+
+def test_a_stopped_simulation_error_phase_resumes_exactly(data, tmp_path):
+    kw = dict(iterations=40, eval_every=10, checkpoint_every=10, rollout_horizon=4, rollout_iterations=40)
+    ckpt = tmp_path / "run.ckpt"
+    stopped = lcs_cvx.LCS(2, 1, 2, seed=3)
+    lcs_cvx.fit(stopped, data, progress=False, checkpoint=ckpt,
+                callbacks=[lambda rec, m: rec["phase"] == "rollout" and rec["iteration"] == 60], **kw)
+    resumed_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    resumed = lcs_cvx.fit(resumed_model, data, progress=False, checkpoint=ckpt, resume=True, **kw)
+    clean_model = lcs_cvx.LCS(2, 1, 2, seed=3)
+    clean = lcs_cvx.fit(clean_model, data, progress=False, **kw)
+    for name, p in clean_model.named_parameters():
+        assert torch.equal(p, getattr(resumed_model, name)), name
+    strip = lambda hist: [{k: v for k, v in h.items() if k != "wall_time"} for h in hist]  # noqa: E731
+    assert strip(resumed.history) == strip(clean.history)
+
+
+def test_select_n_lam_on_trajectories_scores_by_fit(data):
+    sel = lcs_cvx.select_n_lam(data, [1, 2], iterations=100, progress=False, holdout=0.3, holdout_horizon=3)
+    for row in sel.table:
+        assert row["validation_error"] == sel.results[row["n_lam"]].heldout_error
+    assert "trajectories" in sel.validation
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"rollout_horizon": 3}, "rollout_horizon: the simulation-error phase rolls out windows of trajectories"),
+    ({"holdout_horizon": 3}, "holdout_horizon: a rollout score needs held-out trajectories"),
+])
+def test_trajectory_options_with_transitions_are_named(truth, kw, match):
+    with pytest.raises(lcs_cvx.LCSInputError, match=match):
+        fit(lcs_cvx.make_dataset(truth, 100, seed=1), **kw)
+
+
+def test_horizons_longer_than_the_trajectories_are_named(data):
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"rollout_horizon: expected at most 25 steps .* received 30"):
+        fit(data, rollout_horizon=30)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"holdout_horizon: expected at most 25 steps .* received 26"):
+        fit(data, holdout_horizon=26)
+
+
+def test_a_non_finite_log_entry_is_named_with_its_row():
+    x = np.zeros((5, 2))
+    x[3, 1] = np.nan
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"xs\[0\]: expected finite values, .* row 3, column 1"):
+        lcs_cvx.Trajectories([x], [np.zeros((4, 1))])
+
+
+def test_uneven_time_steps_are_reported(tmp_path):
+    path = tmp_path / "log.csv"
+    rows = ["trajectory,t,x_0,u_0"] + [f"a,{t},{i},0" for i, t in enumerate([0.0, 0.01, 0.02, 0.035, 0.045])]
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.warns(UserWarning, match=r"time: trajectory 'a' .* uneven steps: from 0.01 to 0.015 \(spread 0.005"):
+        tr = lcs_cvx.Trajectories.load(path, columns={"x": ["x_0"], "u": ["u_0"]}, time="t")
+    assert tr.lengths == (4,)
