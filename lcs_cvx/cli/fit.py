@@ -128,10 +128,15 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.test is not None:
         test, _ = read_table("test", args.test, cols)
         check_dims("test", args.test, test, train.n_x, train.n_u, f"as in {args.data!r}")
+    validation_runs = None
     if auto and args.validation is not None:
-        validation, _ = read_table("validation", args.validation, cols)
+        validation, validation_runs = read_table("validation", args.validation, cols)
         check_dims("validation", args.validation, validation, train.n_x, train.n_u,
                    f"as in {args.data!r}")
+        if (trajectories is None) != (validation_runs is None):
+            raise LCSInputError(
+                f"validation: expected {'a trajectory file' if trajectories is not None else 'transitions'}, "
+                f"as --data is, received {args.validation!r}")
     check_target("out", args.out)  # fail before training, not after
     check_target("checkpoint", args.checkpoint)
     if args.resume and args.checkpoint is None:
@@ -157,12 +162,15 @@ def run_fit(args: argparse.Namespace) -> int:
         print(f"model: n_lam auto among {', '.join(map(str, sorted(cands)))}, stiffness "
               f"{args.stiffness:g}, init seed {seed}", flush=True)
         options.pop("seed", None)  # select_n_lam's own, passed on to fit
+        # a trajectory file is passed whole: whole runs are held out
         selection = _train(args, lambda: select_n_lam(
-            train, cands, validation, holdout=holdout, tolerance=tolerance,
+            trajectories if trajectories is not None else train, cands,
+            validation_runs if validation_runs is not None else validation, holdout=holdout, tolerance=tolerance,
             stiffness=args.stiffness, seed=seed, progress=True, test=test, **options))
         result, n_lam = selection.results[selection.n_lam], selection.n_lam
         print("\n".join(selection.summary().splitlines()[:-1]))
         where = (f"--validation {args.validation!r}" if validation is not None
+                 else f"{100 * holdout:g}% of --data's runs held out" if trajectories is not None
                  else f"{100 * holdout:g}% of --data held out")
         print(f"chosen n_lam: {n_lam} (the smallest within {100 * tolerance:g}% of the lowest "
               f"relative error on {where})")
