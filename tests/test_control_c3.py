@@ -164,6 +164,12 @@ def test_x_des_moves_the_target(cartpole):
     assert int(res.settled[0]) > 0
     with pytest.raises(lcs_cvx.LCSInputError, match="x_des: expected finite"):
         controller(P, "c3+", x_des=np.zeros(3))
+    # a target per call: the same first input as solve(x0, x_des=...) from the same warm start
+    moving = controller(P, "c3+")
+    x0, target = np.array([0.05, 0.1, 0.0, 0.0]), np.array([0.1, 0, 0, 0])
+    u = moving(x0, x_des=target)
+    want = controller(P, "c3+").solve(x0, x_des=target)
+    assert torch.equal(u, want.u[0]) and torch.equal(moving.last_plan.u, want.u)
 
 
 def test_the_torch_back_end_plans_as_numpy(cartpole):

@@ -277,11 +277,12 @@ class C3:
         F0 = xp.unwrap(mats["F"][0])
         return xp.wrap(solve_lcp_unchecked(F0, xp.unwrap(xp.contiguous(q))).lam)
 
-    def __call__(self, x0: Any) -> torch.Tensor:
+    def __call__(self, x0: Any, x_des: Any | None = None) -> torch.Tensor:
         """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),
-        warm-started from the previous call's plan when ``warm_start``."""
+        warm-started from the previous call's plan when ``warm_start``; ``x_des``: this call's
+        target (as :meth:`solve`'s; None: the controller's)."""
         prev = self.last_plan if self.warm_start else None
-        plan = self.solve(x0, warm_start=prev)
+        plan = self.solve(x0, x_des=x_des, warm_start=prev)
         self.last_plan = plan
         return plan.u[..., 0, :]
 
