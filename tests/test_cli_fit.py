@@ -288,6 +288,14 @@ def test_fit_passes_only_the_given_options(files, fake_fit, capsys, truth):
     assert facts["saved"] == str(out)
 
 
+def test_rollout_horizon_none_turns_the_phase_off(files, fake_fit, tmp_path):
+    out = tmp_path / "m.npz"
+    assert main(["fit", "--data", str(files["data"]), "--n-lam", "2", "--rollout-horizon", "none", "--out", str(out)]) == 0
+    assert fake_fit.calls[-1][2]["rollout_horizon"] is None
+    assert main(["fit", "--data", str(files["data"]), "--n-lam", "2", "--out", str(out)]) == 0
+    assert "rollout_horizon" not in fake_fit.calls[-1][2]  # not given: fit's default ("auto")
+
+
 def test_fit_passes_every_option(files, fake_fit, capsys, tmp_path):
     out, ckpt = tmp_path / "learned.npz", tmp_path / "ckpt.pt"
     argv = [

@@ -42,7 +42,7 @@ def data(truth):
 
 def fit(data, seed=3, **kw):
     model = lcs_cvx.LCS(2, 1, 2, seed=seed)
-    return model, lcs_cvx.fit(model, data, progress=False, **{"iterations": 200, **kw})
+    return model, lcs_cvx.fit(model, data, progress=False, **{"iterations": 200, "rollout_iterations": 30, **kw})
 
 
 def test_whole_trajectories_are_held_out(data):
@@ -112,6 +112,29 @@ def test_the_simulation_error_phase_runs_last_and_lowers_its_loss(truth):
     assert phases[-6:] == ["rollout"] * 6 and "rollout" not in phases[:-6]
     losses = [h["loss"] for h in result.history if h["phase"] == "rollout"]
     assert losses[-1] < losses[0]
+
+
+def test_the_phase_runs_by_default_on_trajectories_only(truth, data):
+    _, runs = fit(data, iterations=20, eval_every=10, rollout_iterations=20)
+    assert [h["phase"] for h in runs.history].count("rollout") == 2
+    assert runs.refinement_kept is not None  # decided on the held-out runs
+    _, transitions = fit(lcs_cvx.make_dataset(truth, 300, seed=1), iterations=20, eval_every=10)
+    assert "rollout" not in [h["phase"] for h in transitions.history] and transitions.refinement_kept is None
+    paper = lcs_cvx.RECIPES["paper"]
+    assert paper.rollout.horizon is None  # the paper's protocol has no such phase
+    with pytest.raises(lcs_cvx.LCSInputError, match="rollout_horizon: restarts trained together run the Adam phase only"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), data, progress=False, restarts=2, ensemble=True, iterations=10)
+
+
+def test_a_refinement_that_does_not_pay_is_undone(data):
+    """A learning rate that wrecks the model: the held-out score rises, the model before the
+    phase comes back, bit for bit the model of the same run without the phase."""
+    model, result = fit(data, iterations=60, rollout_horizon=5, rollout_iterations=5, rollout_lr=5.0)
+    assert result.refinement_kept is False
+    assert [h["phase"] for h in result.history].count("rollout") == 1
+    without, _ = fit(data, iterations=60, rollout_horizon=None)
+    for name, p in without.named_parameters():
+        assert torch.equal(p, getattr(model, name)), name
 
 
 def test_a_stopped_simulation_error_phase_resumes_exactly(data, tmp_path):

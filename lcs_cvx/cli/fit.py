@@ -74,9 +74,10 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--normalize", action=argparse.BooleanOptionalAction, default=None,
                    help="learn in normalised coordinates and fold the result back into the "
                    "data's units (default: the recipe's; on except with --recipe paper)")
-    p.add_argument("--rollout-horizon", type=positive_int, default=None, metavar="H",
-                   help="with a trajectory file: refine on the simulation error of H-step rollouts "
-                   "(lcs_cvx.fit's rollout_horizon)")
+    p.add_argument("--rollout-horizon", type=_horizon_or_none, default=None, metavar="H|none",
+                   help="with a trajectory file: the simulation-error phase's H-step rollouts "
+                   "(lcs_cvx.fit's rollout_horizon; default: 10 steps with a trajectory file, "
+                   "'none': no such phase)")
     p.add_argument("--rollout-iterations", type=positive_int, default=None,
                    help="steps of that refinement (default: 300)")
     p.add_argument("--holdout-horizon", type=positive_int, default=None, metavar="H",
@@ -89,6 +90,11 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", default=None,
                    help="continue from --checkpoint")
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+
+
+def _horizon_or_none(text: str) -> int | str:
+    """``--rollout-horizon``: an integer >= 1, or ``none`` (kept as the string until passed on)."""
+    return "none" if text.strip().lower() == "none" else positive_int(text)
 
 
 #: The options of lcs-cvx fit that only --n-lam auto uses.
@@ -147,6 +153,8 @@ def run_fit(args: argparse.Namespace) -> int:
               "seed", "init", "normalize", "checkpoint", "resume", "rollout_horizon",
               "rollout_iterations", "holdout_horizon", "affine_if_better")
     options = {k: getattr(args, k) for k in passed if getattr(args, k) is not None}
+    if options.get("rollout_horizon") == "none":
+        options["rollout_horizon"] = None
     print(
         f"data: {len(train)} samples (n_x={train.n_x}, n_u={train.n_u})"
         + (f", test {len(test)} samples" if test is not None else "")

@@ -120,6 +120,7 @@ def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] |
     model = state.model
     return {"score": holdout_score(model) if holdout_score is not None else math.nan,
             "history": state.history, "kept": kept_fit(state.history, r.restart_tolerance),
+            "refinement_kept": state.rollout_kept,
             "params": {k: v.detach().clone() for k, v in model.state_dict().items()}}
 
 
@@ -208,7 +209,7 @@ def fit(
     if isinstance(split.holdout, Dataset):
         split = dataclasses.replace(split, holdout=check_data("validation", split.holdout, model))
     holdout = split.holdout
-    windows = Windows(split.trajectories, opts.rollout.horizon) if opts.rollout.horizon is not None else None
+    windows = Windows(split.trajectories, split.rollout_horizon) if split.rollout_horizon is not None else None
     test = check_data("test", test, model) if test is not None else None
     store = _Checkpoint(os.fspath(checkpoint) if checkpoint is not None else None, opts)
     ckpt = store.load() if resume else None
@@ -244,7 +245,7 @@ def fit(
 
         total = r.restarts * (opts.adam.iterations + opts.polish.iterations
                               + (opts.refine.iterations if opts.refine.method else 0)
-                              + (opts.rollout.iterations if opts.rollout.horizon is not None else 0))
+                              + (opts.rollout.iterations if windows is not None else 0))
         bar = tqdm(total=total, desc="fit", unit="it", dynamic_ncols=True)
     t_start = time.perf_counter()
 
@@ -271,6 +272,10 @@ def fit(
     if ensemble and r.restart_tolerance is not None:
         raise LCSInputError("restart_tolerance: restarts trained together all run; expected None "
                             f"with ensemble=True, received {r.restart_tolerance!r}")
+    if ensemble and windows is not None:
+        raise LCSInputError("rollout_horizon: restarts trained together run the Adam phase only; expected "
+                            f"None with ensemble=True, received {opts.rollout.horizon!r} (a "
+                            f"{split.rollout_horizon}-step phase on these trajectories)")
     if ensemble and callbacks:
         raise LCSInputError("callbacks: expected none with ensemble=True (the restarts are "
                             f"trained together), received {len(callbacks)}")
@@ -285,7 +290,8 @@ def fit(
                 break
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
-                               windows=windows, scaling=scaling)
+                               windows=windows, scaling=scaling,
+                               validate=holdout_score if holdout is not None else None)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:
@@ -303,15 +309,17 @@ def fit(
         if bar is not None:
             bar.close()
     scores = [d["score"] for d in done] if r.restarts > 1 else []
+    refinement_kept = None
     if done:  # the chosen run (also when a resumed checkpoint had finished them all)
         best = lowest(scores) if r.restarts > 1 else -1
         if learner is None:  # every restart came from the checkpoint
             learner = learner_for(0)
         learner.load_state_dict(done[best]["params"])
+        refinement_kept = done[best].get("refinement_kept")
         fold_back(scaling, learner, model)
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
-    result = FitResult(model, history, opts, scores, elapsed(), scaling)
+    result = FitResult(model, history, opts, scores, elapsed(), scaling, refinement_kept=refinement_kept)
     return _against_affine(result, split, affine_score, r.affine_if_better) if holdout is not None else result
 
 

@@ -55,7 +55,7 @@ def check_supported(opts: FitOptions, restarts: bool = False) -> None:
     refused = {
         "extra_units": (a.extra_units, 0), "reinit_saturated": (a.reinit_saturated, False),
         "refine": (opts.refine.method, None), "polish_iterations": (opts.polish.iterations, 0),
-        "rollout_horizon": (opts.rollout.horizon, None),
+        "rollout_horizon": (None if opts.rollout.horizon == "auto" else opts.rollout.horizon, None),
     }
     if not restarts:
         refused["restarts"] = (opts.run.restarts, 1)

@@ -32,19 +32,24 @@ from ..system import LCS
 from ..trajectories import Trajectories, rollout_error
 from .phase_options import RunOptions
 
-__all__ = ["Split", "split_data", "affine_lcs"]
+__all__ = ["Split", "split_data", "affine_lcs", "AUTO_ROLLOUT_HORIZON"]
+
+#: The simulation-error phase's window with ``rollout_horizon="auto"`` and trajectories as data.
+AUTO_ROLLOUT_HORIZON = 10
 
 
 @dataclass(frozen=True)
 class Split:
     """``fit``: the training transitions; ``trajectories``: the training trajectories (None when
     the data were transitions); ``holdout``: the held-out transitions or trajectories (None: no
-    held-out part); ``horizon``: the rollout horizon of the held-out score."""
+    held-out part); ``horizon``: the rollout horizon of the held-out score; ``rollout_horizon``:
+    the simulation-error phase's window (None: no such phase)."""
 
     fit: Dataset
     trajectories: Trajectories | None
     holdout: Dataset | Trajectories | None
     horizon: int
+    rollout_horizon: int | None = None
 
     def score(self, model: Any) -> float:
         """The held-out score of ``model`` (in the user's units)."""
@@ -77,7 +82,7 @@ def _as_transitions(name: str, data: Any) -> Dataset:
     raise LCSInputError(f"{name}: expected an lcs_cvx.Dataset or lcs_cvx.Trajectories, received {type(data).__name__}")
 
 
-def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: int | None) -> Split:
+def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: int | str | None) -> Split:
     """The :class:`Split` of a run (module docstring); every inconsistency is an
     :class:`LCSInputError` naming its argument."""
     fit_all = _as_transitions("train", train)
@@ -87,6 +92,9 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
             raise LCSInputError(f"validation: expected n_x={fit_all.n_x}, n_u={fit_all.n_u} (train's), "
                                 f"received n_x={validation.n_x}, n_u={validation.n_u}")
     trajectories = train if isinstance(train, Trajectories) else None
+    auto = rollout_horizon == "auto"
+    if auto:
+        rollout_horizon = None
     if rollout_horizon is not None and trajectories is None:
         raise LCSInputError("rollout_horizon: the simulation-error phase rolls out windows of trajectories; "
                             f"expected train as an lcs_cvx.Trajectories, received {type(train).__name__}")
@@ -108,7 +116,9 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
     if trajectories is not None and rollout_horizon is not None and rollout_horizon > max(trajectories.lengths):
         raise LCSInputError(f"rollout_horizon: expected at most {max(trajectories.lengths)} steps (the longest "
                             f"training trajectory's), received {rollout_horizon}")
-    return Split(fit, trajectories, holdout, run.holdout_horizon)
+    if auto and trajectories is not None:
+        rollout_horizon = min(AUTO_ROLLOUT_HORIZON, max(trajectories.lengths))
+    return Split(fit, trajectories, holdout, run.holdout_horizon, rollout_horizon)
 
 
 def affine_lcs(affine: AffineMap, like: LCS) -> LCS:

@@ -213,22 +213,27 @@ class RolloutOptions:
     trajectories, the last phase of a run. Needs the training data as
     :class:`lcs_cvx.Trajectories`.
 
+    The phase keeps its result only where it pays: when a held-out part exists, the model after
+    the phase replaces the one before it only if its held-out score
+    (:meth:`lcs_cvx.train.holdout.Split.score`) is lower (:attr:`lcs_cvx.FitResult.refinement_kept`).
+
     Attributes:
-        horizon: ``H``, the steps of a window (None: no such phase). Flat keyword
-            ``rollout_horizon``.
+        horizon: ``H``, the steps of a window; ``"auto"`` (default): 10 steps (at most the longest
+            training trajectory) when the data are :class:`lcs_cvx.Trajectories`, no phase with
+            transitions; None: no phase. Flat keyword ``rollout_horizon``.
         iterations: Adam steps (``rollout_iterations``).
         lr: the learning rate, constant (``rollout_lr``).
         batch_size: windows per step, drawn at random from every window of every training
             trajectory (``rollout_batch``).
     """
 
-    horizon: int | None = None
+    horizon: int | str | None = "auto"
     iterations: int = 300
     lr: float = 1e-3
     batch_size: int = 64
 
     def __post_init__(self) -> None:
-        if self.horizon is not None:
+        if self.horizon is not None and self.horizon != "auto":
             _count(self, 1, "horizon")
         _count(self, 0, "iterations")
         _count(self, 1, "batch_size")

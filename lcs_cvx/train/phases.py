@@ -263,7 +263,9 @@ class PolishPhase(Phase):
 class RolloutPhase(Phase):
     """Adam on the simulation error (:func:`lcs_cvx.simulation_error.simulation_error`) of
     ``batch_size`` windows of ``H`` steps drawn at random from the training trajectories,
-    constant learning rate. Recorded and checkpointed as the polish."""
+    constant learning rate. Recorded and checkpointed as the polish. With a held-out part, the
+    model before the phase comes back at its end unless the held-out score fell
+    (``state.rollout_kept``)."""
 
     key = "rollout"
 
@@ -273,18 +275,30 @@ class RolloutPhase(Phase):
         self.checkpoint_every = options.run.checkpoint_every
 
     def length(self, state: TrainState) -> int:
-        ro = self.options.rollout
-        return ro.iterations if ro.horizon is not None else 0
+        return self.options.rollout.iterations if state.windows is not None else 0
 
     def step(self, state: TrainState) -> Outcome:
         ro, obj = self.options.rollout, self.options.objective
+        if state.steps["rollout"] == 0 and state.validate is not None:
+            state.rollout_start = (state.validate(state.model), _parameters(state.model))
         w = state.windows
         idx = torch.randint(len(w), (min(ro.batch_size, len(w)),), generator=state.generator)
         kw = {"dtype": state.model.dtype, "device": state.model.device}
         x0, us, xs = (t.to(**kw) for t in w.batch(idx))
         value = simulation_error(state.model, x0, us, xs, state.scaling) + regularizer(state.model, obj.reg)
         loss = _adam_step(state.rollout_adam, state.model, value, state.iteration + 1, ro.lr)
+        if state.steps["rollout"] + 1 == ro.iterations and state.rollout_start is not None:
+            before, params = state.rollout_start  # kept only where it pays on held-out data
+            state.rollout_kept = state.validate(state.model) < before
+            if not state.rollout_kept:
+                with torch.no_grad():
+                    for name, value in params.items():
+                        getattr(state.model, name).copy_(value)
         return Outcome(loss, obj.eps, ro.lr)
+
+
+def _parameters(model: LCS) -> dict[str, torch.Tensor]:
+    return {name: p.detach().clone() for name, p in model.named_parameters()}
 
 
 def phases(options: FitOptions) -> list[Phase]:

@@ -25,7 +25,7 @@ _RECIPE_KEYWORDS: dict[str, dict[str, Any]] = {
     # model, in the data's own coordinates
     "paper": {"optimizer": "adam", "lr": 1e-3, "lr_schedule": "constant", "eps_start": None,
               "refine": None, "restarts": 1, "reinit_saturated": False, "normalize": False,
-              "init": "model"},
+              "init": "model", "rollout_horizon": None},
     # cosine lr from 1e-2, eps continuation, saturated-unit re-initialisation, extra units then
     # pruning (a look-ahead of 3 repaired candidates per removal), a Gauss--Newton refinement:
     # 4,000 Adam steps instead of 10,000; a second run from another kind of start, the run of

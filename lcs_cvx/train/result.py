@@ -50,6 +50,11 @@ class FitResult:
         learned: with ``affine_if_better`` when the affine map scored at least as well, the
             learned LCS (:attr:`model` then holds the affine map, ``C = 0``); else None.
         returned_affine: whether :attr:`model` holds the affine map.
+        refinement_kept: whether the simulation-error phase's result was kept (its held-out score
+            lower than before the phase); None when the phase did not run or had no held-out
+            data to decide on. With ``keep_best`` or a phase that was kept, the held-out data
+            chose the model, so :attr:`heldout_error` is optimistic: score a separate test set
+            for an unbiased number.
     """
 
     model: LCS
@@ -63,6 +68,7 @@ class FitResult:
     heldout_growth: float | None = None
     learned: LCS | None = None
     returned_affine: bool = False
+    refinement_kept: bool | None = None
 
     @property
     def beats_affine(self) -> bool | None:

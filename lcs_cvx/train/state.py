@@ -50,12 +50,18 @@ class TrainState:
 
     def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
                  restart: int, score: Callable[[LCS], float] | None = None,
-                 windows: Windows | None = None, scaling: Scaling | None = None) -> None:
+                 windows: Windows | None = None, scaling: Scaling | None = None,
+                 validate: Callable[[LCS], float] | None = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
         # the simulation-error phase: windows of the training trajectories (user's units) and the
         # coordinates the model is learned in
         self.windows, self.scaling = windows, scaling
+        # the held-out score (None: no held-out part) that decides whether the simulation-error
+        # phase's result is kept; the model and score before that phase; whether it was kept
+        self.validate = validate
+        self.rollout_start: tuple[float, dict[str, torch.Tensor]] | None = None
+        self.rollout_kept: bool | None = None
         # e_test of a model being trained (default: its relative error on ``test``; under
         # normalisation, the error of the folded-back model in the user's units)
         self.score = score if score is not None else (lambda m: relative_error(m, test))
@@ -165,6 +171,9 @@ class TrainState:
             "best": None if self.best is None else {"score": self.best[0], "params": self.best[1]},
             "stretch": [self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual],
             "active": self.active, "seen": self.seen,
+            "rollout_start": None if self.rollout_start is None else {
+                "score": self.rollout_start[0], "params": self.rollout_start[1]},
+            "rollout_kept": self.rollout_kept,
         }
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
@@ -183,4 +192,7 @@ class TrainState:
         self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
         self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual = st["stretch"]
         self.active, self.seen = st["active"], st["seen"]
+        start = st["rollout_start"]
+        self.rollout_start = None if start is None else (start["score"], start["params"])
+        self.rollout_kept = st["rollout_kept"]
 
