@@ -6,6 +6,7 @@ errors of bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -66,6 +67,13 @@ def test_heldout_scores_of_the_lcs_and_of_the_affine_map(data):
     assert result.heldout_growth == pytest.approx(rollout_growth(model, split.holdout), rel=1e-12)
     assert result.beats_affine == (result.heldout_error < result.affine_heldout_error)
     assert "5-step rollout error" in result.verdict and f"{result.heldout_error:.4g}" in result.verdict
+
+
+def test_the_verdict_says_when_rollouts_diverge(data):
+    _, result = fit(data, iterations=20, rollout_horizon=None)
+    grown = dataclasses.replace(result, heldout_growth=math.inf)
+    assert "(its open-loop rollouts DIVERGE)" in grown.verdict
+    assert "DIVERGE" not in dataclasses.replace(result, heldout_growth=1.2).verdict
 
 
 def test_affine_if_better_returns_the_affine_map_and_keeps_the_learned_model(data):

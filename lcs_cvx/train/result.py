@@ -10,7 +10,11 @@ from ..scaling import Scaling
 from ..system import LCS
 from .options import FitOptions
 
-__all__ = ["FitResult", "lowest"]
+__all__ = ["FitResult", "lowest", "DIVERGING_GROWTH"]
+
+#: A held-out rollout that grows past this multiple of the largest recorded state is called
+#: diverging by :attr:`FitResult.verdict`.
+DIVERGING_GROWTH = 10.0
 
 
 def lowest(scores: list[float]) -> int:
@@ -89,6 +93,8 @@ class FitResult:
                 f"{self.affine_heldout_error:.4g}")
         if self.heldout_growth is not None:
             line += f"; largest held-out rollout growth {self.heldout_growth:.3g}"
+            if not self.heldout_growth <= DIVERGING_GROWTH:
+                line += " (its open-loop rollouts DIVERGE)"
         if self.beats_affine:
             return line + ": the LCS is better"
         return line + (": the LCS is NOT better than the affine map" +
