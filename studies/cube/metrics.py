@@ -1,0 +1,192 @@
+r"""Metrics of the cube study (:mod:`studies.cube.study`) on held-out tosses.
+
+Every model is a *stepper*: a function ``x (N, 13) float64 tensor -> x' (N, 13)`` (no input: the
+tosses have ``n_u = 0``). State columns: :data:`lcs_cvx.datasets.CUBE_COLUMNS`.
+
+- :func:`one_step`: per state group (:data:`GROUPS`), the relative error of the predicted change
+  ``Delta = x' - x`` with each coordinate scaled by the spread (standard deviation) of its change
+  on the evaluated set,
+
+      rel_g = sum_t sum_{j in g} ((Delta_hat_tj - Delta_tj) / s_j)^2 / sum_t sum_{j in g} (Delta_tj / s_j)^2,
+
+  (0: perfect, 1: as bad as predicting no change), and the plain RMS error of ``x'`` in the
+  group's units ``sqrt(mean_{t, j in g} (x_hat'_tj - x'_tj)^2)``.
+- :func:`rollouts`: open-loop rollouts (the model fed its own predictions) from the first state
+  of each toss to its end, and from every state ``s`` of each toss with ``s + H <= T`` over ``H``
+  steps (windows). Per rollout of ``L`` steps: the position error
+  ``sqrt(mean_{h=1..L} ||p_hat_h - p_h||^2)`` (m), the rotation error ``mean_{h=1..L}
+  angle(q_h, q_hat_h)`` (rad, :func:`geodesic_angle`) and the growth
+  ``max_h ||x_hat_h|| / max_t ||x_t||`` (the denominator over the whole recorded toss). A rollout
+  *diverges* when it produces NaN/inf or its growth exceeds :data:`DIVERGED_GROWTH`; a state
+  beyond :data:`CUTOFF_GROWTH` is replaced by NaN (so that no overflow or failed LCP solve
+  stops the evaluation) and its rollout counted as diverged. Diverged rollouts are never dropped:
+  the mean errors over all rollouts are then ``inf``, and the means over the rollouts that did
+  not diverge are reported beside the count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["GROUPS", "DIVERGED_GROWTH", "CUTOFF_GROWTH", "geodesic_angle", "one_step", "rollout",
+           "rollouts", "Stepper"]
+
+#: A model: next states of a batch of states (float64 tensors ``(N, 13)``).
+Stepper = Callable[[torch.Tensor], torch.Tensor]
+
+#: The state groups: name -> column indices of :data:`lcs_cvx.datasets.CUBE_COLUMNS`.
+GROUPS: dict[str, tuple[int, ...]] = {
+    "quaternion": (0, 1, 2, 3),
+    "position": (4, 5, 6),
+    "angular velocity": (7, 8, 9),
+    "linear velocity": (10, 11, 12),
+}
+#: Units of the plain RMS error of each group.
+UNITS = {"quaternion": "1", "position": "m", "angular velocity": "rad/s", "linear velocity": "m/s"}
+#: A rollout whose state norm exceeds this multiple of the toss's largest has diverged.
+DIVERGED_GROWTH = 10.0
+#: Beyond this multiple a predicted state is replaced by NaN (and the rollout has diverged).
+CUTOFF_GROWTH = 1e3
+Q, P = slice(0, 4), slice(4, 7)
+
+
+def geodesic_angle(q: Any, q_hat: Any) -> np.ndarray:
+    """The rotation angle (rad) between unit quaternions ``q`` and ``q_hat`` (``(..., 4)``,
+    ``w, x, y, z``): ``2 acos |<q, q_hat / ||q_hat||>|``, in ``[0, pi]``; the same for ``q`` and
+    ``-q`` (one rotation). ``q_hat`` is normalised here (a model's prediction need not be a unit
+    quaternion); a non-finite or zero ``q_hat`` gives NaN."""
+    q = np.asarray(q, dtype=np.float64)
+    q_hat = np.asarray(q_hat, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q_hat = q_hat / np.linalg.norm(q_hat, axis=-1, keepdims=True)
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        dot = np.abs(np.sum(q * q_hat, axis=-1))
+    return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0)) + np.where(np.isfinite(dot), 0.0, np.nan)
+
+
+def one_step(step: Stepper, xs: Sequence[torch.Tensor]) -> dict[str, float]:
+    """One-step errors of ``step`` on every transition of the tosses ``xs`` (float64 ``(T+1, 13)``
+    each): ``{"<group> rel": ..., "<group> rms": ...}`` for each of :data:`GROUPS` (see the module
+    docstring) and ``"all rel"`` over the 13 coordinates. A non-finite prediction makes its
+    groups' errors ``inf``."""
+    x = torch.cat([t[:-1] for t in xs])
+    x_next = torch.cat([t[1:] for t in xs])
+    with torch.no_grad():
+        pred = _safe_step(step, x)
+    delta, delta_hat = (x_next - x).numpy(), (pred - x).numpy()
+    s = delta.std(axis=0)
+    s = np.where(s > 0, s, 1.0)
+    err = (delta_hat - delta) / s
+    ref = delta / s
+    out: dict[str, float] = {}
+    for g, cols in {**GROUPS, "all": tuple(range(13))}.items():
+        c = list(cols)
+        e = err[:, c]
+        if not np.isfinite(e).all():
+            out[f"{g} rel"] = math.inf
+            out[f"{g} rms"] = math.inf
+            continue
+        out[f"{g} rel"] = float((e**2).sum() / (ref[:, c] ** 2).sum())
+        if g != "all":
+            out[f"{g} rms"] = float(np.sqrt(((pred.numpy()[:, c] - x_next.numpy()[:, c]) ** 2).mean()))
+    return out
+
+
+def _safe_step(step: Stepper, x: torch.Tensor) -> torch.Tensor:
+    """``step`` on the finite rows of ``x`` only; the other rows stay NaN. A step that raises
+    (e.g. an LCP solve that fails on a huge state) makes every row NaN."""
+    out = torch.full_like(x, math.nan)
+    ok = torch.isfinite(x).all(dim=1)
+    if bool(ok.any()):
+        try:
+            out[ok] = step(x[ok]).to(torch.float64)
+        except Exception:  # noqa: BLE001 - a failed step is a diverged rollout, counted
+            pass
+    return out
+
+
+def rollout(step: Stepper, x0: torch.Tensor, steps: int, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """``(N, steps + 1, 13)``: the open-loop rollouts of ``step`` from the states ``x0``
+    ``(N, 13)`` (row 0 is ``x0``). With ``scale`` ``(N,)`` (each rollout's largest true state
+    norm), a state beyond :data:`CUTOFF_GROWTH` times it is replaced by NaN."""
+    traj = [x0.to(torch.float64)]
+    x = traj[0]
+    with torch.no_grad():
+        for _ in range(steps):
+            x = _safe_step(step, x)
+            if scale is not None:
+                big = torch.linalg.vector_norm(x, dim=1) > CUTOFF_GROWTH * scale
+                x[big] = math.nan
+            traj.append(x)
+    return torch.stack(traj, dim=1)
+
+
+def _summary(pos: np.ndarray, rot: np.ndarray, growth: np.ndarray) -> dict[str, float]:
+    """Means over the rollouts of their errors; see the module docstring."""
+    diverged = ~np.isfinite(pos) | ~np.isfinite(rot) | ~np.isfinite(growth) | (growth > DIVERGED_GROWTH)
+    ok = ~diverged
+    nan = math.nan
+    return {
+        "rollouts": int(pos.size),
+        "diverged": int(diverged.sum()),
+        "pos": float(pos.mean()) if ok.all() else math.inf,
+        "rot": float(rot.mean()) if ok.all() else math.inf,
+        "pos_ok": float(pos[ok].mean()) if ok.any() else nan,
+        "rot_ok": float(rot[ok].mean()) if ok.any() else nan,
+        "pos_median": float(np.median(np.where(ok, pos, np.inf))),
+        "rot_median": float(np.median(np.where(ok, rot, np.inf))),
+        "growth_max": float(np.nanmax(np.where(np.isfinite(growth), growth, np.inf))) if growth.size else nan,
+        "growth_median": float(np.median(np.where(np.isfinite(growth), growth, np.inf))),
+    }
+
+
+def _errors(pred: np.ndarray, true: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per rollout (rows of ``pred``/``true`` ``(N, L + 1, 13)``, row 0 the start): position
+    RMS, mean rotation angle and growth over steps ``1..L``, NaN where non-finite."""
+    p, t = pred[:, 1:], true[:, 1:]
+    with np.errstate(invalid="ignore", over="ignore"):
+        pos = np.sqrt(np.mean(np.sum((p[..., P] - t[..., P]) ** 2, axis=-1), axis=1))
+        rot = np.mean(geodesic_angle(t[..., Q], p[..., Q]), axis=1)
+        norms = np.linalg.norm(p, axis=-1)
+        growth = np.max(np.where(np.isfinite(norms), norms, np.inf), axis=1) / scale
+    finite = np.isfinite(p).all(axis=(1, 2))
+    pos = np.where(finite, pos, np.nan)
+    rot = np.where(finite, rot, np.nan)
+    growth = np.where(finite, growth, np.inf)
+    return pos, rot, growth
+
+
+def rollouts(step: Stepper, xs: Sequence[torch.Tensor], horizons: Sequence[int] = (10, 30),
+             stride: int = 1) -> dict[str, dict[str, float]]:
+    """Open-loop rollout errors of ``step`` on the tosses ``xs``: ``{"H10": {...}, "H30": {...},
+    "end": {...}}`` (:func:`_summary`'s keys; module docstring). ``"end"``: one rollout per toss
+    from its first state to its last; ``"H<n>"``: every window of ``n`` steps starting at a
+    multiple of ``stride`` within a toss."""
+    out: dict[str, dict[str, float]] = {}
+    maxnorm = [float(torch.linalg.vector_norm(t, dim=1).max()) for t in xs]
+    # from the first state to the end: all tosses together, each cut at its own length
+    T = max(t.shape[0] for t in xs)
+    x0 = torch.stack([t[0] for t in xs])
+    scale = torch.tensor(maxnorm, dtype=torch.float64)
+    pred = rollout(step, x0, T - 1, scale).numpy()
+    pos, rot, growth = [], [], []
+    for i, t in enumerate(xs):
+        n = t.shape[0]
+        a, b, c = _errors(pred[i:i + 1, :n], t.numpy()[None], np.array([maxnorm[i]]))
+        pos.append(a[0]), rot.append(b[0]), growth.append(c[0])
+    out["end"] = _summary(np.array(pos), np.array(rot), np.array(growth))
+    for H in horizons:
+        starts = [(i, s) for i, t in enumerate(xs) for s in range(0, t.shape[0] - 1 - H + 1, stride)]
+        if not starts:
+            continue
+        x0 = torch.stack([xs[i][s] for i, s in starts])
+        sc = np.array([maxnorm[i] for i, _ in starts])
+        pred = rollout(step, x0, H, torch.from_numpy(sc)).numpy()
+        true = np.stack([xs[i][s:s + H + 1].numpy() for i, s in starts])
+        out[f"H{H}"] = _summary(*_errors(pred, true, sc))
+    return out

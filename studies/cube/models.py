@@ -1,0 +1,384 @@
+r"""The models of the cube study (:mod:`studies.cube.study`), each fitted on the training tosses of
+one size and chosen on the validation tosses.
+
+A model spec (:class:`Spec`) has a name, a ``fit(train, validation, budget, path)`` that returns a
+*stepper* (``x (N, 13) -> x'``, :data:`studies.cube.metrics.Stepper`) and a dict of what was chosen
+and how long it took, and a ``load(path)`` that rebuilds the stepper from the cached file. The
+specs, in the order of the tables (:func:`specs`):
+
+- ``affine LS``: ``x' = W [x; 1]``, least squares (:func:`lcs_cvx.metrics.affine_lstsq`);
+- ``MLP``: ``x' = x + s * MLP((x - mu) / sigma)`` (:class:`ResidualMLP`; ``mu``, ``sigma`` the
+  training states' mean and spread, ``s`` the spread of the training increments), trained with
+  AdamW on the mean squared normalised increment error, early stopping on the validation tosses'
+  one-step error; one fit per point of the grid :data:`MLP_GRID`, the one with the lowest
+  validation rollout error (:func:`validation_score`) kept;
+- ``LCS``: :func:`lcs_cvx.select_n_lam` over ``n_lam`` in :data:`N_LAMS` with the library's default
+  options (and ``iterations``), the candidates' one-step validation errors recorded, and the
+  ``n_lam`` chosen by :func:`lcs_cvx.selection.choose` on the validation rollout errors
+  (:func:`validation_score`), since what is evaluated is rollouts;
+- ``LCS, known structure``: the same with the structure a user knows of a tossed cube
+  (:func:`structured_lcs`);
+- ``LCS + rollout phase`` and ``LCS, known structure + rollout phase``: the same two, trained on
+  the tosses as :class:`lcs_cvx.Trajectories` with ``lcs_cvx.fit``'s simulation-error phase
+  (``rollout_horizon``) and the validation tosses passed as ``validation`` with a rollout
+  held-out score (``holdout_horizon``), at the ``n_lam`` its twin without the phase chose at the
+  same size (to save two thirds of the time; all of :data:`N_LAMS` when the twin has no record);
+  listed only when the installed ``lcs_cvx.fit`` has these options (:func:`has_rollout_options`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+import lcs_cvx
+from lcs_cvx.datasets import CUBE_DT
+from lcs_cvx.metrics import AffineMap, affine_lstsq
+from lcs_cvx.selection import choose
+
+from .metrics import Stepper
+
+__all__ = ["Spec", "specs", "structured_lcs", "ResidualMLP", "validation_score", "has_rollout_options",
+           "N_LAMS", "MLP_GRID", "GRAVITY", "VALIDATION_HORIZON", "Budget"]
+
+#: Candidates for ``n_lam``.
+N_LAMS = (2, 4, 8)
+#: The MLP grid: hidden layer widths and AdamW weight decay.
+MLP_GRID = tuple({"hidden": h, "weight_decay": wd} for h in ((64, 64), (128, 128, 128)) for wd in (0.0, 1e-4))
+#: Standard gravity (m/s^2): the known offset of the structured LCS.
+GRAVITY = 9.81
+#: The validation rollout horizon every model is chosen by (steps).
+VALIDATION_HORIZON = 30
+EMPTY_U = torch.zeros(0, 0, dtype=torch.float64)
+
+
+@dataclass(frozen=True)
+class Budget:
+    """How long each model trains: LCS Adam iterations per candidate (and of the simulation-error
+    phase), MLP steps and evaluation interval, the validation rollout's window stride."""
+
+    lcs_iterations: int = 10_000
+    rollout_iterations: int = 300
+    rollout_horizon: int = 10
+    mlp_steps: int = 8000
+    mlp_eval_every: int = 100
+    mlp_patience: int = 15
+    mlp_batch: int = 256
+    n_lams: tuple[int, ...] = N_LAMS
+    mlp_grid: tuple[dict[str, Any], ...] = MLP_GRID
+    val_stride: int = 2
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A model of the study: ``fit(train, validation, budget, path) -> (stepper, info)`` writes
+    the fitted model to ``path`` (its file, extension included); ``load(path) -> stepper``."""
+
+    name: str
+    key: str
+    ext: str
+    fit: Callable[..., tuple[Stepper, dict[str, Any]]]
+    load: Callable[[str], Stepper]
+    #: the key of the spec whose chosen ``n_lam`` this one reuses at the same size, if any
+    twin: str | None = None
+
+
+# ----------------------------------------------------------------------------- shared
+class _Wrapped:
+    """A stepper as a model :func:`lcs_cvx.rollout_error` accepts (``step(x, u)``, ``n_x``, ...)."""
+
+    n_x, n_u, dtype, device = 13, 0, torch.float64, torch.device("cpu")
+
+    def __init__(self, step: Stepper) -> None:
+        self._step = step
+
+    def step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return self._step(x)
+
+
+def validation_score(step: Stepper, val: lcs_cvx.Trajectories, stride: int = 1) -> float:
+    """The validation rollout error by which every model is chosen: :func:`lcs_cvx.rollout_error`
+    at :data:`VALIDATION_HORIZON` steps on the validation tosses (every ``stride``-th toss); inf
+    when the rollouts produce NaN/inf or the stepper raises."""
+    if stride > 1:
+        idx = range(0, len(val), stride)
+        val = lcs_cvx.Trajectories([val.xs[i] for i in idx], [val.us[i] for i in idx])
+    try:
+        with torch.no_grad():
+            e = lcs_cvx.rollout_error(_Wrapped(step), val, VALIDATION_HORIZON)[VALIDATION_HORIZON]
+    except Exception:  # noqa: BLE001 - a model whose rollout fails is never chosen
+        return math.inf
+    return e if math.isfinite(e) else math.inf
+
+
+def lcs_stepper(model: lcs_cvx.LCS) -> Stepper:
+    def step(x: torch.Tensor) -> torch.Tensor:
+        return model.step(x, EMPTY_U.new_zeros(x.shape[0], 0))
+    return step
+
+
+# ----------------------------------------------------------------------------- affine
+def _fit_affine(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str
+                ) -> tuple[Stepper, dict[str, Any]]:
+    t0 = time.perf_counter()
+    W = affine_lstsq(train.to_transitions()).W
+    np.savez(path, W=W.numpy())
+    step = _affine_step(W)
+    return step, {"wall": time.perf_counter() - t0, "val_rollout": validation_score(step, val, budget.val_stride)}
+
+
+def _affine_step(W: torch.Tensor) -> Stepper:
+    amap = AffineMap(W)
+    return lambda x: amap.step(x, x.new_zeros(x.shape[0], 0))
+
+
+def _load_affine(path: str) -> Stepper:
+    with np.load(path) as f:
+        return _affine_step(torch.from_numpy(f["W"]))
+
+
+# ----------------------------------------------------------------------------- MLP
+class ResidualMLP(nn.Module):
+    """``x' = x + s * net((x - mu) / sigma)`` with a tanh MLP ``net`` (float32 inside)."""
+
+    def __init__(self, mu: torch.Tensor, sigma: torch.Tensor, s: torch.Tensor, hidden: tuple[int, ...]) -> None:
+        super().__init__()
+        self.register_buffer("mu", mu.float())
+        self.register_buffer("sigma", sigma.float())
+        self.register_buffer("s", s.float())
+        dims = (13, *hidden)
+        layers: list[nn.Module] = []
+        for a, b in zip(dims[:-1], dims[1:], strict=True):
+            layers += [nn.Linear(a, b), nn.Tanh()]
+        layers.append(nn.Linear(dims[-1], 13))
+        self.net = nn.Sequential(*layers)
+        self.hidden = tuple(hidden)
+
+    def increment(self, x: torch.Tensor) -> torch.Tensor:
+        """The normalised increment ``(x' - x) / s``."""
+        return self.net((x.float() - self.mu) / self.sigma)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + (self.s * self.increment(x)).to(x.dtype)
+
+
+def _train_mlp(train: lcs_cvx.Dataset, val: lcs_cvx.Dataset, hidden: tuple[int, ...], weight_decay: float,
+               budget: Budget, seed: int = 0) -> tuple[ResidualMLP, dict[str, Any]]:
+    torch.manual_seed(seed)
+    x, y = train.x, train.x_next
+    mu, sigma = x.mean(0), x.std(0).clamp_min(1e-6)
+    s = (y - x).std(0).clamp_min(1e-6)
+    model = ResidualMLP(mu, sigma, s, hidden)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=weight_decay)
+    target = ((y - x) / s).float()
+    vx, vt = val.x, ((val.x_next - val.x) / s).float()
+    gen = torch.Generator().manual_seed(seed)
+    best, best_state, best_step, bad = math.inf, None, 0, 0
+    n = x.shape[0]
+    for it in range(1, budget.mlp_steps + 1):
+        idx = torch.randint(0, n, (min(budget.mlp_batch, n),), generator=gen)
+        loss = ((model.increment(x[idx]) - target[idx]) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it % budget.mlp_eval_every == 0 or it == budget.mlp_steps:
+            with torch.no_grad():
+                v = float(((model.increment(vx) - vt) ** 2).mean())
+            if v < best:
+                best, best_step, bad = v, it, 0
+                best_state = {k: t.clone() for k, t in model.state_dict().items()}
+            else:
+                bad += 1
+                if bad >= budget.mlp_patience:
+                    break
+    if best_state is not None:
+        model.load_state_dict(best_state)
+    return model, {"val_one_step_mse": best, "best_step": best_step, "steps": it}
+
+
+def _fit_mlp(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str
+             ) -> tuple[Stepper, dict[str, Any]]:
+    t0 = time.perf_counter()
+    tr, va = train.to_transitions(), val.to_transitions()
+    grid = []
+    best: tuple[float, ResidualMLP | None] = (math.inf, None)
+    for point in budget.mlp_grid:
+        model, info = _train_mlp(tr, va, tuple(point["hidden"]), float(point["weight_decay"]), budget)
+        score = validation_score(_mlp_step(model), val, budget.val_stride)
+        grid.append({**point, "hidden": list(point["hidden"]), **info, "val_rollout": score})
+        if score < best[0] or best[1] is None:
+            best = (score, model)
+    model = best[1]
+    assert model is not None
+    torch.save({"hidden": list(model.hidden), "state": model.state_dict()}, path)
+    chosen = next(g for g in grid if g["val_rollout"] == best[0])
+    return _mlp_step(model), {"wall": time.perf_counter() - t0, "grid": grid, "val_rollout": best[0],
+                              "chosen": {"hidden": chosen["hidden"], "weight_decay": chosen["weight_decay"],
+                                         "best_step": chosen["best_step"]}}
+
+
+def _mlp_step(model: ResidualMLP) -> Stepper:
+    model.eval()
+
+    def step(x: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return model(x)
+    return step
+
+
+def _load_mlp(path: str) -> Stepper:
+    blob = torch.load(path, weights_only=True)
+    z = torch.zeros(13)
+    model = ResidualMLP(z, z, z, tuple(blob["hidden"]))
+    model.load_state_dict(blob["state"])
+    return _mlp_step(model)
+
+
+# ----------------------------------------------------------------------------- LCS
+def structured_lcs(n_lam: int, seed: int = 0) -> lcs_cvx.LCS:
+    r"""An LCS with what a user knows of a tossed cube (state ``q, p, w, v``, semi-implicit Euler
+    ``p' = p + dt v'`` -- what the recorded positions and velocities satisfy):
+
+    - ``d`` fixed: in free flight only gravity offsets the step, ``v_z' = v_z - g dt`` and
+      ``p_z' = p_z - g dt^2``; every other entry 0;
+    - ``A`` masked to the free-flight pattern: ``p_i'`` from ``p_i`` and ``v_i``, ``w_i'`` from
+      ``w_i``, ``v_i'`` from ``v_i`` (the values of these entries are learned: the library fixes
+      whole parameters, not entries), ``q'`` from ``q`` and ``w`` (the quaternion kinematics
+      ``q' = q + dt/2 q (x) (0, w)`` is bilinear, so its linearisation is learned);
+    - ``C``, ``D``, ``c``, ``F`` learned (contact and friction).
+    """
+    mask = np.zeros((13, 13), dtype=bool)
+    mask[0:4, 0:4] = True
+    mask[0:4, 7:10] = True
+    for i in range(3):
+        mask[4 + i, 4 + i] = mask[4 + i, 10 + i] = True
+        mask[7 + i, 7 + i] = True
+        mask[10 + i, 10 + i] = True
+    d = np.zeros((13,))
+    d[6] = -GRAVITY * CUBE_DT**2
+    d[12] = -GRAVITY * CUBE_DT
+    model = lcs_cvx.LCS(13, 0, n_lam, seed=seed).mask(A=mask)
+    return model.fix(d=d.reshape(tuple(model.d.shape)))
+
+
+def has_rollout_options() -> bool:
+    """Whether the installed :func:`lcs_cvx.fit` takes ``Trajectories``, ``validation=``,
+    ``rollout_horizon`` and ``holdout_horizon`` and returns ``heldout_error``."""
+    try:
+        from lcs_cvx.train.options import FLAT_OPTIONS
+        from lcs_cvx.train.result import FitResult
+    except ImportError:
+        return False
+    fields = {f.name for f in dataclasses.fields(FitResult)}
+    return ({"rollout_horizon", "holdout_horizon"} <= set(FLAT_OPTIONS)
+            and "validation" in inspect.signature(lcs_cvx.fit).parameters
+            and {"heldout_error", "affine_heldout_error", "heldout_growth"} <= fields)
+
+
+def _num(v: Any) -> Any:
+    """A JSON-safe float (None for None; inf/NaN as strings)."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else str(v)
+
+
+def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, dict[str, Any]]]:
+    def fit(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str,
+            n_lams: tuple[int, ...] | None = None) -> tuple[Stepper, dict[str, Any]]:
+        t0 = time.perf_counter()
+        make = (lambda n: structured_lcs(n)) if structured else (lambda n: lcs_cvx.LCS(13, 0, n, seed=0))
+        models: dict[int, lcs_cvx.LCS] = {}
+        table: list[dict[str, Any]] = []
+        if rollout:
+            for n in n_lams or budget.n_lams:
+                t1 = time.perf_counter()
+                m = make(n)
+                res = lcs_cvx.fit(m, train, validation=val, iterations=budget.lcs_iterations,
+                                  rollout_horizon=budget.rollout_horizon,
+                                  rollout_iterations=budget.rollout_iterations,
+                                  holdout_horizon=VALIDATION_HORIZON, progress=False, seed=0)
+                models[n] = m
+                table.append({"n_lam": n, "val_one_step": lcs_cvx.relative_error(m, val.to_transitions()),
+                              "heldout_error": _num(res.heldout_error),
+                              "affine_heldout_error": _num(res.affine_heldout_error),
+                              "heldout_growth": _num(res.heldout_growth),
+                              "refinement_kept": res.refinement_kept,
+                              "wall": time.perf_counter() - t1})
+        else:
+            sel = lcs_cvx.select_n_lam(train.to_transitions(), list(budget.n_lams), validation=val.to_transitions(),
+                                       make_model=make, iterations=budget.lcs_iterations, progress=False, seed=0)
+            for row in sel.table:
+                n = row["n_lam"]
+                models[n] = sel.results[n].model
+                table.append({"n_lam": n, "val_one_step": row["validation_error"], "wall": row["wall_time"]})
+            one_step_choice = sel.n_lam
+        for row in table:
+            row["val_rollout"] = validation_score(lcs_stepper(models[row["n_lam"]]), val, budget.val_stride)
+        scores = {row["n_lam"]: row["val_rollout"] for row in table}
+        if any(math.isfinite(v) for v in scores.values()):
+            n_star = choose(scores)
+        else:  # every candidate's rollout diverged: the one-step choice
+            n_star = choose({row["n_lam"]: row["val_one_step"] for row in table})
+        model = models[n_star]
+        lcs_cvx.save_model(model, path, metadata={"n_lam": n_star, "structured": structured, "rollout": rollout})
+        info = {"wall": time.perf_counter() - t0, "n_lam": n_star, "candidates": table,
+                "val_rollout": scores[n_star]}
+        if not rollout:
+            info["n_lam_by_one_step"] = one_step_choice
+        for row in table:
+            for k, v in list(row.items()):
+                if isinstance(v, float):
+                    row[k] = _num(v)
+        return lcs_stepper(model), info
+    return fit
+
+
+def _load_lcs(path: str) -> Stepper:
+    return lcs_stepper(lcs_cvx.load_model(path))
+
+
+def specs(include_rollout: bool | None = None) -> list[Spec]:
+    """The model specs in table order; the two ``rollout`` LCSs only when
+    :func:`has_rollout_options` (or ``include_rollout``) says so."""
+    out = [
+        Spec("affine LS", "affine", "npz", _fit_affine, _load_affine),
+        Spec("MLP", "mlp", "pt", _fit_mlp, _load_mlp),
+        Spec("LCS", "lcs", "npz", _fit_lcs(False, False), _load_lcs),
+        Spec("LCS, known structure", "lcs_structured", "npz", _fit_lcs(True, False), _load_lcs),
+    ]
+    if include_rollout if include_rollout is not None else has_rollout_options():
+        out += [
+            Spec("LCS + rollout phase", "lcs_rollout", "npz", _fit_lcs(False, True), _load_lcs, twin="lcs"),
+            Spec("LCS, known structure + rollout phase", "lcs_structured_rollout", "npz",
+                 _fit_lcs(True, True), _load_lcs, twin="lcs_structured"),
+        ]
+    return out
+
+
+def to_json(obj: Any) -> str:
+    """One JSON line with inf/NaN written as strings."""
+    def clean(v: Any) -> Any:
+        if isinstance(v, float):
+            return _num(v)
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        return v
+    return json.dumps(clean(obj))
+
+
+def model_path(out: str, size: int, spec: Spec) -> str:
+    return os.path.join(out, "models", f"n{size:03d}_{spec.key}.{spec.ext}")

@@ -1,0 +1,314 @@
+r"""The report of the cube study (:mod:`studies.cube.study`): ``report.md`` (tables of every model
+x metric x training size, the split, the settings, the target check), ``learning_curve.png`` and
+``rollouts.png`` (true vs predicted height and horizontal position of a few test tosses)."""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any
+
+import numpy as np
+import torch
+
+from . import models as M
+from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout
+
+__all__ = ["write_report", "target_check", "ROLLOUT_METRICS"]
+
+#: The rollout metrics of the target check: (label, horizon key, field).
+ROLLOUT_METRICS = (("position H=10 (m)", "H10", "pos"), ("rotation H=10 (rad)", "H10", "rot"),
+                   ("position H=30 (m)", "H30", "pos"), ("rotation H=30 (rad)", "H30", "rot"),
+                   ("position to end (m)", "end", "pos"), ("rotation to end (rad)", "end", "rot"))
+BASELINES = ("affine LS", "MLP")
+
+
+def _f(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, str):
+        return v
+    if isinstance(v, float) and math.isinf(v):
+        return "∞"
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    return f"{v:.{digits}g}"
+
+
+def _val(v: Any) -> float:
+    return float(v) if not isinstance(v, str) else float(v.replace("Infinity", "inf"))
+
+
+def _chosen(rec: dict[str, Any]) -> str:
+    fit = rec["fit"]
+    if "n_lam" in fit:
+        s = f"n_λ = {fit['n_lam']}"
+        if "n_lam_by_one_step" in fit and fit["n_lam_by_one_step"] != fit["n_lam"]:
+            s += f" (one-step: {fit['n_lam_by_one_step']})"
+        return s
+    if "chosen" in fit:
+        c = fit["chosen"]
+        return f"{'×'.join(map(str, c['hidden']))}, wd {c['weight_decay']:g}, step {c['best_step']}"
+    return ""
+
+
+def target_check(records: list[dict[str, Any]]) -> list[str]:
+    """One line per (size, LCS model, rollout metric) where the LCS is worse than a baseline, and
+    per rollout set where a model diverged."""
+    lines = []
+    sizes = sorted({r["size"] for r in records})
+    by = {(r["size"], r["model"]): r for r in records}
+    for n in sizes:
+        for r in [r for r in records if r["size"] == n]:
+            for hk in ("H10", "H30", "end"):
+                d = r["rollout"][hk]["diverged"]
+                if d:
+                    lines.append(f"- {n} tosses, **{r['model']}**: {d} of {r['rollout'][hk]['rollouts']} "
+                                 f"rollouts ({hk}) diverged (NaN/inf or growth > {DIVERGED_GROWTH:g}).")
+            if not r["model"].startswith("LCS"):
+                continue
+            worse = []
+            for label, hk, field in ROLLOUT_METRICS:
+                ours = _val(r["rollout"][hk][field])
+                for b in BASELINES:
+                    if (n, b) in by:
+                        theirs = _val(by[(n, b)]["rollout"][hk][field])
+                        if not ours <= theirs:
+                            worse.append(f"{label}: {_f(ours)} vs {b} {_f(theirs)}")
+            if worse:
+                lines.append(f"- {n} tosses, **{r['model']}** worse than a baseline in " + "; ".join(worse) + ".")
+    return lines
+
+
+def _tables(records: list[dict[str, Any]]) -> list[str]:
+    lines = ["## Rollouts on the test tosses", "",
+             "Mean over the rollouts (∞ when any diverged; the count and the mean over the others "
+             "beside it). Position: RMS over the rollout's steps (m); rotation: mean geodesic angle "
+             "(rad). Windows start at every step of every test toss.", "",
+             "| tosses | model | chosen | pos H=10 | rot H=10 | pos H=30 | rot H=30 | pos to end | rot to end | "
+             "diverged H10 / H30 / end | largest growth (end) | fit (s) |",
+             "| ---: | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
+    for r in records:
+        ro = r["rollout"]
+        cells = []
+        for _, hk, field in ROLLOUT_METRICS:
+            v = _val(ro[hk][field])
+            cells.append(_f(v) if math.isfinite(v) else f"∞ ({_f(_val(ro[hk][field + '_ok']))})")
+        div = " / ".join(f"{ro[h]['diverged']}/{ro[h]['rollouts']}" for h in ("H10", "H30", "end"))
+        lines.append(f"| {r['size']} | {r['model']} | {_chosen(r)} | " + " | ".join(cells)
+                     + f" | {div} | {_f(_val(ro['end']['growth_max']), 3)} | {r['fit']['wall']:.0f} |")
+    lines += ["", "## One-step errors on the test tosses", "",
+              "Relative error of the predicted change x' − x per state group, each coordinate scaled by "
+              "the spread of its change over the test transitions (0: exact, 1: as bad as predicting no "
+              "change), and the plain RMS error of x' in units.", "",
+              "| tosses | model | " + " | ".join(f"{g} rel" for g in GROUPS) + " | all rel | "
+              + " | ".join(f"{g} RMS ({UNITS[g]})" for g in GROUPS) + " |",
+              "| ---: | --- | " + " | ".join("---:" for _ in range(2 * len(GROUPS) + 1)) + " |"]
+    for r in records:
+        o = r["one_step"]
+        lines.append(f"| {r['size']} | {r['model']} | " + " | ".join(_f(_val(o[f'{g} rel']), 3) for g in GROUPS)
+                     + f" | {_f(_val(o['all rel']), 3)} | " + " | ".join(_f(_val(o[f'{g} rms']), 3) for g in GROUPS) + " |")
+    return lines
+
+
+def _selection(records: list[dict[str, Any]]) -> list[str]:
+    lines = ["## Model selection on the validation tosses", "",
+             f"Validation rollout error: `lcs_cvx.rollout_error` at H = {M.VALIDATION_HORIZON} on the "
+             "validation tosses (relative squared state error; ∞: diverged).", "",
+             "| tosses | model | candidate | validation one-step | validation rollout H=30 | fit (s) |",
+             "| ---: | --- | --- | ---: | ---: | ---: |"]
+    for r in records:
+        fit = r["fit"]
+        if "candidates" in fit:
+            for c in fit["candidates"]:
+                mark = " ✓" if c["n_lam"] == fit["n_lam"] else ""
+                extra = ""
+                if c.get("heldout_error") is not None:
+                    extra = (f" (fit's held-out {_f(_val(c['heldout_error']), 3)}, affine "
+                             f"{_f(_val(c['affine_heldout_error']), 3)}, growth {_f(_val(c['heldout_growth']), 3)})")
+                lines.append(f"| {r['size']} | {r['model']} | n_λ = {c['n_lam']}{mark} | {_f(_val(c['val_one_step']), 3)} | "
+                             f"{_f(_val(c['val_rollout']), 3)}{extra} | {_val(c['wall']):.0f} |")
+        elif "grid" in fit:
+            for g in fit["grid"]:
+                mark = " ✓" if _val(g["val_rollout"]) == _val(fit["val_rollout"]) else ""
+                lines.append(f"| {r['size']} | MLP | {'×'.join(map(str, g['hidden']))}, wd {g['weight_decay']:g}, "
+                             f"best step {g['best_step']} of {g['steps']}{mark} | {_f(_val(g['val_one_step_mse']), 3)} (MSE, normalised) | "
+                             f"{_f(_val(g['val_rollout']), 3)} | – |")
+    return lines
+
+
+def _curve(records: list[dict[str, Any]], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(14, 7.5), sharex=True)
+    names = list(dict.fromkeys(r["model"] for r in records))
+    for k, (label, hk, field) in enumerate(ROLLOUT_METRICS):
+        ax = axes[k % 2, k // 2]
+        for name in names:
+            rs = sorted((r for r in records if r["model"] == name), key=lambda r: r["size"])
+            xs = [r["size"] for r in rs]
+            ys = [_val(r["rollout"][hk][field]) for r in rs]
+            ys_ok = [_val(r["rollout"][hk][field + "_ok"]) for r in rs]
+            line, = ax.plot(xs, [y if math.isfinite(y) else np.nan for y in ys], "o-", label=name, ms=4)
+            bad = [(x, y) for x, y, z in zip(xs, ys_ok, ys, strict=True) if not math.isfinite(z)]
+            if bad:  # diverged somewhere: the mean over the rest, hollow
+                ax.plot(*zip(*bad, strict=True), "x", color=line.get_color(), ms=9)
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_title(label, fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        if k % 2 == 1:
+            ax.set_xlabel("training tosses")
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle("Cube tosses: open-loop rollout errors on the test tosses (× : some rollouts diverged; "
+                 "mean over the others)", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _rollout_figure(out: str, records: list[dict[str, Any]], test_xs: list[torch.Tensor], path: str,
+                    dt: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    size = max(r["size"] for r in records)
+    rs = [r for r in records if r["size"] == size]
+    picks = [0, len(test_xs) // 2, len(test_xs) - 1][: len(test_xs)]
+    fig, axes = plt.subplots(2, len(picks), figsize=(5 * len(picks), 7), squeeze=False)
+    for j, i in enumerate(picks):
+        x = test_xs[i]
+        t = np.arange(x.shape[0]) * dt
+        axes[0, j].plot(t, x[:, 6].numpy(), "k-", lw=2.5, label="recorded")
+        axes[1, j].plot(t, x[:, 4].numpy(), "k-", lw=2.5, label="recorded")
+        for r in rs:
+            spec = next(s for s in M.specs(True) if s.name == r["model"])
+            step = spec.load(os.path.join(out, r["model_file"]))
+            maxnorm = torch.linalg.vector_norm(x, dim=1).max().reshape(1)
+            pred = rollout(step, x[:1], x.shape[0] - 1, maxnorm)[0].numpy()
+            axes[0, j].plot(t, pred[:, 6], "-", lw=1.2, label=r["model"])
+            axes[1, j].plot(t, pred[:, 4], "-", lw=1.2, label=r["model"])
+        lo, hi = float(x[:, 6].min()), float(x[:, 6].max())
+        axes[0, j].set_ylim(lo - 0.1, hi + 0.1)
+        lo, hi = float(x[:, 4].min()), float(x[:, 4].max())
+        axes[1, j].set_ylim(lo - 0.2, hi + 0.2)
+        axes[0, j].set_title(f"test toss {i}: height p_z (m)", fontsize=10)
+        axes[1, j].set_title(f"test toss {i}: horizontal p_x (m)", fontsize=10)
+        axes[1, j].set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(f"Open-loop rollouts from each toss's first state, models fitted on {size} tosses", fontsize=11)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bool = False,
+                 wall: float = 0.0) -> None:
+    from lcs_cvx.datasets import CUBE_DT, cube_tosses
+
+    from .study import DATE, MACHINE, SMOKE_BUDGET, SPLIT_SEED, split, subset
+
+    data = cube_tosses()
+    parts = split(len(data))
+    if smoke:
+        parts = {"train": parts["train"], "validation": parts["validation"][:20], "test": parts["test"][:20]}
+    test = subset(data, parts["test"])
+    budget = SMOKE_BUDGET if smoke else M.Budget()
+    sizes = sorted({r["size"] for r in records})
+    names = list(dict.fromkeys(r["model"] for r in records))
+    suffix = "_smoke" if smoke else ""
+    check = target_check(records)
+    L = [
+        "# Learning a tossed cube from real data: LCS vs affine and MLP",
+        "",
+        f"Written by `{cmd}` on {DATE} ({MACHINE}); the cells are kept in `cube{suffix}.jsonl`, the "
+        f"fitted models in `models{suffix}/`"
+        + (f" (this invocation ran {wall:.0f} s, skipping the cells already there)." if wall >= 1 else "."),
+        "",
+        "**Data.** The 550 ContactNets cube tosses (`lcs_cvx.datasets.cube_tosses()`, 148 Hz motion capture "
+        "of a 0.1048 m, 0.37 kg cube; state: quaternion, position, body angular velocity, linear "
+        "velocity; no input). **Split by toss**, 50 / 25 / 25 % as dair_pll splits real data: a fixed "
+        f"permutation (NumPy `default_rng({SPLIT_SEED})`) gives {len(parts['train'])} training, "
+        f"{len(parts['validation'])} validation and {len(parts['test'])} test tosses "
+        f"({sum(test.lengths)} test transitions)"
+        + (" (smoke: the first 20 validation and test tosses only)" if smoke else "")
+        + ". The training set of size n is the first n training tosses (nested); every size is "
+        "validated on the whole validation quarter (not scaled with the size) and tested on the whole "
+        "test quarter.",
+        "",
+        "**Models** (all fitted on the same training tosses, chosen on the validation tosses by the "
+        f"rollout error `lcs_cvx.rollout_error` at H = {M.VALIDATION_HORIZON}):",
+        "",
+        "- *affine LS*: x' = W [x; 1] by least squares;",
+        f"- *MLP*: x' = x + s·MLP((x − μ)/σ) (tanh; μ, σ, s from the training states and increments), "
+        f"AdamW lr 1e-3, batch {budget.mlp_batch}, at most {budget.mlp_steps} steps, early stopping on "
+        f"the validation one-step error (checked every {budget.mlp_eval_every} steps, patience "
+        f"{budget.mlp_patience}); grid: " + ", ".join(
+            f"{'×'.join(map(str, g['hidden']))} wd {g['weight_decay']:g}" for g in budget.mlp_grid) + ";",
+        f"- *LCS*: `lcs_cvx.select_n_lam(train, {list(budget.n_lams)}, validation=...)` with the "
+        f"library's default options" + (" (10,000 Adam iterations of batch 200, violation loss, normalised "
+        "coordinates)" if budget.lcs_iterations == 10_000 else f" but `iterations={budget.lcs_iterations}`")
+        + "; the candidates' one-step validation errors are recorded and n_λ is "
+        "chosen by `lcs_cvx.selection.choose` on their validation rollout errors;",
+        "- *LCS, known structure*: the same with `d` fixed to gravity (v_z' = v_z − g dt, p_z' = p_z − g dt², "
+        "g = 9.81 m/s²; the recorded positions follow p' = p + dt v') and `A` masked to the free-flight "
+        "pattern (p_i' from p_i, v_i; w_i' from w_i; v_i' from v_i; q' from q, w); the values of the "
+        "unmasked entries of A are learned, as `LCS.fix` fixes whole parameters, not entries "
+        "(`studies.cube.models.structured_lcs`);",
+    ]
+    if any("rollout phase" in n for n in names):
+        L.append(f"- *+ rollout phase*: the same, trained on the tosses as `lcs_cvx.Trajectories` with "
+                 f"`rollout_horizon={budget.rollout_horizon}`, `rollout_iterations={budget.rollout_iterations}` "
+                 f"(the simulation-error phase after the Adam phase), `validation=` the validation tosses "
+                 f"and `holdout_horizon={M.VALIDATION_HORIZON}`, at the n_λ its twin without the phase chose "
+                 "at the same size (one fit instead of one per candidate).")
+    else:
+        L.append("- the LCS trained with the library's simulation-error (rollout) phase is not in this run "
+                 "(the installed `lcs_cvx.fit` has no `rollout_horizon`).")
+    L += [
+        "",
+        "**Metrics** on the test tosses (`studies/cube/metrics.py`): one-step errors per state group; "
+        "open-loop rollouts over every window of H = 10 and 30 steps and from each toss's first state "
+        "to its end: position error (RMS over the rollout, m), rotation error (mean geodesic angle "
+        "2 acos|⟨q, q̂/‖q̂‖⟩| over the rollout, rad), and the growth max ‖x̂‖ / max ‖x‖ (the "
+        f"toss's largest recorded state). A rollout *diverges* when it produces NaN/inf or its growth "
+        f"exceeds {DIVERGED_GROWTH:g} (a state beyond {CUTOFF_GROWTH:g} times is set to NaN); diverged "
+        "rollouts are counted, never dropped.",
+        "",
+        "## Target check",
+        "",
+        "The target: every LCS at or below both baselines in every rollout metric at every size, and no "
+        "diverging rollout.",
+        "",
+    ]
+    L += check if check else ["Met: no LCS is worse than a baseline in any rollout metric and no rollout diverged."]
+    L += ["", "Two things no linear model here can do: the quaternion kinematics q' = q + (dt/2) q ⊗ (0, w) "
+          "is bilinear in q and w, so the affine map and every LCS (linear in x between mode switches) "
+          "predict the rotation with one linear map per mode, while the MLP can represent it; and an "
+          "LCS need not learn contact to fit these data: on the models fitted on all 275 tosses, the "
+          "learned LCS's v_z row is a damped spring on the height (A[v_z, p_z] ≈ −1.5, A[v_z, v_z] ≈ 0.84, "
+          "the affine map's way of stopping the fall), the known-structure LCS learned damping "
+          "A[v_z, v_z] ≈ 0.87 in free flight (its masked entries are learned, not fixed at 1), and both "
+          "have each λ active in about half of the flight and of the resting states alike: no contact "
+          "mode was found (diagnostic run by hand on the cached models, not by this script).", ""]
+    L += _tables(records)
+    L += [""]
+    L += _selection(records)
+    L += ["", "## Figures", "",
+          f"`learning_curve{suffix}.png`: the rollout errors against the training tosses per model. "
+          f"`rollouts{suffix}.png`: three test tosses, recorded vs predicted height p_z and horizontal "
+          f"position p_x, models fitted on {max(sizes)} tosses.", ""]
+    wall_rows = [f"| {n} | " + " | ".join(
+        f"{next((r['fit']['wall'] for r in records if r['size'] == n and r['model'] == m), float('nan')):.0f}"
+        for m in names) + " |" for n in sizes]
+    L += ["## Wall times (fit and selection, s)", "", "| tosses | " + " | ".join(names) + " |",
+          "| ---: | " + " | ".join("---:" for _ in names) + " |", *wall_rows, ""]
+    with open(os.path.join(out, f"report{suffix}.md"), "w") as f:
+        f.write("\n".join(L))
+    _curve(records, os.path.join(out, f"learning_curve{suffix}.png"))
+    _rollout_figure(out, records, list(test.xs), os.path.join(out, f"rollouts{suffix}.png"), CUBE_DT)
