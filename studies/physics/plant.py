@@ -42,6 +42,14 @@ or when ``|x_c| > 0.5`` m or ``|theta| > 0.8`` rad (that last transition is kept
 starts from a fresh random state. With these settings ~43 % of the samples have a wall contact.
 The second test set draws ``w`` from a range ``wide_factor = 1.5`` times wider.
 
+Measured data (``sensor``, :mod:`studies.physics.sensor`): by default the samples hold the
+simulator's states. ``sensor = "encoder"`` logs them as encoders would: the cart position read
+to 0.1 mm (10 counts per mm), the pole angle to 2π/4096 rad (12 bits), both by rounding to the
+nearest count, and the velocities as backward differences of those readings over the control
+period (a count is worth 2.5 mm/s and 0.038 rad/s); ``"differenced"`` differences exact
+positions. The first transition of each trajectory then only starts the differences and is
+dropped (:func:`sample_measured`); the inputs are those of the exact data.
+
 The study that learns an LCS of it is :mod:`studies.physics.study`.
 """
 
@@ -53,6 +61,8 @@ from typing import Any
 
 import numpy as np
 
+from .sensor import Sensor, difference, noise_rng
+from .sensor import sensor as get_sensor
 from .transitions import Transitions
 
 __all__ = [
@@ -62,6 +72,7 @@ __all__ = [
     "CartPoleWalls",
     "mjcf",
     "sample_transitions",
+    "sample_measured",
     "STATE_NAMES",
     "STATE_UNITS",
     "WALLS",
@@ -214,25 +225,58 @@ def sample_transitions(
     physics: Physics = Physics(),
     sampling: Sampling = Sampling(),
     wide_factor: float = 1.0,
+    sensor: str | Sensor = "exact",
 ) -> Transitions:
     """``n`` transitions of random trajectories (see the module docstring), reproducible in
-    ``seed``; ``wide_factor`` scales the range of the random input ``w``."""
+    ``seed``; ``wide_factor`` scales the range of the random input ``w``; ``sensor`` (a name of
+    :data:`studies.physics.sensor.SENSORS` ``["cartpole"]``) how the states are logged (see
+    :func:`sample_measured`)."""
+    return sample_measured(n, seed, physics, sampling, wide_factor, sensor)[0]
+
+
+def sample_measured(
+    n: int,
+    seed: int,
+    physics: Physics = Physics(),
+    sampling: Sampling = Sampling(),
+    wide_factor: float = 1.0,
+    sensor: str | Sensor = "exact",
+) -> tuple[Transitions, Transitions]:
+    """``(measured, true)``: ``n`` transitions as ``sensor`` logs them, and the same samples
+    with the simulator's states (the same ``u``, ``force``, ``contact``, ``traj``, ``step``).
+
+    ``"exact"``: both are the simulator's states, bit for bit the data of the plain generator.
+    A differencing sensor (:mod:`studies.physics.sensor`) reads ``(x_c, theta)`` at every
+    control instant and logs ``x_t = (x_c~_t, theta~_t, (x_c~_t - x_c~_{t-1}) / dt,
+    (theta~_t - theta~_{t-1}) / dt)``. A trajectory starts moving, so its first period only
+    starts the differences: its first transition is dropped (the trajectory keeps its index, its
+    samples their steps ``1 ..``), and trajectories are drawn until ``n`` measured transitions.
+    The trajectories are those of the exact data of the same seed; the jitter (if any) comes from
+    :func:`studies.physics.sensor.noise_rng`.
+    """
     if n < 1:
         raise ValueError(f"n: expected an integer >= 1, received {n!r}")
+    sens = get_sensor("cartpole", sensor)
+    drop = 0 if sens.exact else 1  # the first transition of a trajectory only starts the differences
+    noise = noise_rng(seed)
+    dt = physics.control_period
     sim = CartPoleWalls(physics)
     rng = np.random.default_rng(seed)
     high = np.asarray(sampling.x0_high, dtype=np.float64)
     inner = physics.wall_distance - physics.tip_radius
     w_max = sampling.u_max * wide_factor
-    cols: dict[str, list] = {k: [] for k in ("x", "u", "x_next", "force", "contact", "traj", "step")}
+    keys = ("x", "u", "x_next", "force", "contact", "traj", "step")
+    cols: dict[str, list] = {k: [] for k in keys}
+    meas: dict[str, list] = {k: [] for k in keys}
     traj = 0
-    while len(cols["x"]) < n:
+    while len(meas["x"] if drop else cols["x"]) < n:
         while True:  # rejection: the tip starts strictly between the walls
             x0 = rng.uniform(-high, high)
             if abs(sim.tip_x(x0)) < inner:
                 break
         sim.reset(x0)
         x = x0
+        start = len(cols["x"])
         for t in range(sampling.traj_len):
             u = -sampling.kp * x[0] - sampling.kd * x[2] + rng.uniform(-w_max, w_max)
             x_next, force, contact = sim.step(u)
@@ -240,9 +284,31 @@ def sample_transitions(
                          ("contact", contact), ("traj", traj), ("step", t)):
                 cols[k].append(v)
             x = x_next
-            if len(cols["x"]) >= n or abs(x[0]) > sampling.x_limit or abs(x[1]) > sampling.theta_limit:
+            logged = len(meas["x"]) + t if drop else len(cols["x"])  # t: the first one is dropped
+            if logged >= n or abs(x[0]) > sampling.x_limit or abs(x[1]) > sampling.theta_limit:
                 break
+        if drop:
+            _log_trajectory(cols, meas, start, sens, noise, dt)
         traj += 1
-    return Transitions.from_lists(cols)
+    true = Transitions.from_lists(cols)
+    if not drop:
+        return true, true
+    keep = np.ones(len(true), dtype=bool)
+    keep[np.flatnonzero(true.step == 0)] = False
+    return Transitions.from_lists(meas), true.select(keep)
 
 
+def _log_trajectory(cols: dict[str, list], meas: dict[str, list], start: int, sens: Sensor,
+                    noise: np.random.Generator, dt: float) -> None:
+    """Append to ``meas`` the logged transitions of the trajectory whose true samples are
+    ``cols[...][start:]``: readings of ``(x_c, theta)`` at every instant, velocities by backward
+    differences, the first transition dropped."""
+    X = np.vstack([cols["x"][start], *cols["x_next"][start:]])  # x_0 .. x_T
+    q = sens.read(X[:, :2], noise)
+    logged = np.hstack([q[1:], difference(q, dt)])  # x~_1 .. x~_T
+    for i in range(1, len(X) - 1):  # the transitions t = 1 .. T - 1
+        j = start + i
+        for k, v in (("x", logged[i - 1]), ("u", cols["u"][j]), ("x_next", logged[i]),
+                     ("force", cols["force"][j]), ("contact", cols["contact"][j]),
+                     ("traj", cols["traj"][j]), ("step", cols["step"][j])):
+            meas[k].append(v)

@@ -61,6 +61,14 @@ that the pusher stays on the face long enough for 20-step windows). A trajectory
 periods, or when the pusher leaves the back face (``|p_y| > 4.5`` cm) or is more than 3 cm
 behind it (that last transition is kept), and a new one starts. The wide-input test set draws
 both commands from ranges ``wide_factor = 1.5`` times wider about the same centres.
+
+Measured data (``sensor``, :mod:`studies.physics.sensor`): by default the samples hold the
+simulator's states. ``sensor = "mocap"`` logs them as a motion-capture system would: the
+slider's world pose and the pusher's world position read with Gaussian jitter (0.5 mm on each
+position coordinate, 0.005 rad on the heading), the state rebuilt from the readings with the
+slider's velocities as backward differences over the control period (noise of ~1.4 cm/s and
+~0.14 rad/s); ``"differenced"`` does the same without jitter (:func:`sample_measured`). The
+inputs are those of the exact data.
 """
 
 from __future__ import annotations
@@ -71,6 +79,8 @@ from typing import Any
 
 import numpy as np
 
+from .sensor import Sensor, difference, noise_rng
+from .sensor import sensor as get_sensor
 from .transitions import Transitions
 
 __all__ = [
@@ -80,6 +90,7 @@ __all__ = [
     "PusherSlider",
     "mjcf",
     "sample_transitions",
+    "sample_measured",
     "MODES",
     "STATE_NAMES",
     "STATE_UNITS",
@@ -301,12 +312,40 @@ def sample_transitions(
     physics: Physics = Physics(),
     sampling: Sampling = Sampling(),
     wide_factor: float = 1.0,
+    sensor: str | Sensor = "exact",
 ) -> PusherTransitions:
     """``n`` transitions of random pushing trajectories (see the module docstring),
     reproducible in ``seed``; ``wide_factor`` widens the ranges of both commands about their
-    centres."""
+    centres; ``sensor`` (a name of :data:`studies.physics.sensor.SENSORS` ``["pusher"]``) how the
+    states are logged (see :func:`sample_measured`)."""
+    return sample_measured(n, seed, physics, sampling, wide_factor, sensor)[0]
+
+
+def sample_measured(
+    n: int,
+    seed: int,
+    physics: Physics = Physics(),
+    sampling: Sampling = Sampling(),
+    wide_factor: float = 1.0,
+    sensor: str | Sensor = "exact",
+) -> tuple[PusherTransitions, PusherTransitions]:
+    """``(measured, true)``: ``n`` transitions as ``sensor`` logs them, and the same samples with
+    the simulator's states (the same ``u``, ``force``, ``contact``, ``traj``, ``step``).
+
+    ``"exact"``: both are the simulator's states, bit for bit the data of the plain generator.
+    A differencing sensor (:mod:`studies.physics.sensor`) reads, at every control instant, the
+    slider's world pose ``(X, Y, Theta)`` and the pusher's world position ``(X_p, Y_p)`` (cm,
+    rad) and logs ``p~ = R(-Theta~_t) (P~_t - S~_t)``, ``v~ = R(-Theta~_t) (S~_t - S~_{t-1}) / dt``
+    and ``omega~ = (Theta~_t - Theta~_{t-1}) / dt`` (``S = (X, Y)``, ``P = (X_p, Y_p)``); the
+    ``pose`` of a measured sample is the measured pose. Every trajectory starts at rest, so the
+    reading one period before its start is of the same positions (with its own jitter): no
+    transition is dropped, and the measured samples are the exact data's, one for one. The
+    jitter (if any) comes from :func:`studies.physics.sensor.noise_rng`.
+    """
     if n < 1:
         raise ValueError(f"n: expected an integer >= 1, received {n!r}")
+    sens = get_sensor("pusher", sensor)
+    noise = noise_rng(seed)
     sim = PusherSlider(physics)
     rng = np.random.default_rng(seed)
     s = sampling
@@ -314,10 +353,12 @@ def sample_transitions(
     wy = s.uy_noise * wide_factor
     touching = physics.touching_x
     rows: dict[str, list] = {k: [] for k in ("x", "u", "x_next", "force", "contact", "traj", "step", "pose")}
+    meas: dict[str, list] = {k: [] for k in rows}
     traj = 0
     while len(rows["x"]) < n:
         sim.reset(touching - rng.uniform(0.0, s.gap0_max), rng.uniform(-s.offset0_max, s.offset0_max))
         x = sim.state
+        start = len(rows["x"])
         for t in range(s.traj_len):
             u = np.array([ux_mid + rng.uniform(-ux_half, ux_half), -s.uy_gain * x[1] + rng.uniform(-wy, wy)])
             pose = sim.pose.copy()
@@ -327,5 +368,36 @@ def sample_transitions(
             x = x_next
             if len(rows["x"]) >= n or abs(x[1]) > s.face_limit or x[0] < touching - s.gap_limit:
                 break
+        if not sens.exact:
+            _log_trajectory(rows, meas, start, sim.pose.copy(), sens, noise, physics.control_period)
         traj += 1
-    return PusherTransitions.from_lists(rows)
+    true = PusherTransitions.from_lists(rows)
+    return (true if sens.exact else PusherTransitions.from_lists(meas)), true
+
+
+def _log_trajectory(rows: dict[str, list], meas: dict[str, list], start: int, last_pose: np.ndarray,
+                    sens: Sensor, noise: np.random.Generator, dt: float) -> None:
+    """Append to ``meas`` the logged transitions of the trajectory whose true samples are
+    ``rows[...][start:]`` (``last_pose``: the slider's pose at its end): readings of the world
+    positions at every instant and one period before the start (at rest: the same positions),
+    the states rebuilt from them (:func:`sample_measured`)."""
+    X = np.vstack([rows["x"][start], *rows["x_next"][start:]])  # x_0 .. x_T
+    pose = np.vstack([*rows["pose"][start:], last_pose])  # (X, Y, Theta) at 0 .. T
+    c, s_ = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    pusher = pose[:, :2] + np.stack([c * X[:, 0] - s_ * X[:, 1], s_ * X[:, 0] + c * X[:, 1]], axis=1)
+    q = np.hstack([pose, pusher])  # the positions read: X, Y, Theta, X_p, Y_p
+    r = sens.read(np.vstack([q[:1], q]), noise)  # readings at -1, 0 .. T
+    slider, theta, finger = r[:, :2], r[:, 2], r[:, 3:]
+    c, s_ = np.cos(theta[1:]), np.sin(theta[1:])
+
+    def body(v: np.ndarray) -> np.ndarray:  # world vectors (T + 1, 2) into the slider's frame at 0 .. T
+        return np.stack([c * v[:, 0] + s_ * v[:, 1], -s_ * v[:, 0] + c * v[:, 1]], axis=1)
+
+    vel = difference(r, dt)  # at 0 .. T
+    logged = np.hstack([body(finger[1:] - slider[1:]), body(vel[:, :2]), vel[:, 2:3]])
+    for i in range(len(X) - 1):  # the transitions t = 0 .. T - 1
+        j = start + i
+        for k, v in (("x", logged[i]), ("u", rows["u"][j]), ("x_next", logged[i + 1]),
+                     ("force", rows["force"][j]), ("contact", rows["contact"][j]), ("traj", rows["traj"][j]),
+                     ("step", rows["step"][j]), ("pose", r[i + 1, :3])):
+            meas[k].append(v)

@@ -235,3 +235,14 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any]) -> str:
             "`model.to_matrices()` or `model.to_c3()` for the matrices):", ""]
     out += [f"- {name}: `{path}`" for name, path in s["exported_models"].items()]
     return "\n".join(out) + "\n"
+
+
+def write_noisy_report(s: dict[str, Any]) -> str:
+    """``noisy.md`` of the pusher-slider (:mod:`studies.physics.noisy`): the "Measured with
+    noise" section of :func:`studies.physics.report.measured_with_noise`."""
+    from .report import measured_with_noise, noisy_header
+
+    name = s["config"]["name"]
+    return "\n".join(noisy_header(s, "Learning an LCS of a MuJoCo pusher-slider",
+                                  f"studies/configs/{name}.toml", "studies/results/pusher_slider")
+                     + measured_with_noise(s)) + "\n"

@@ -9,7 +9,10 @@ curve.
    its own seed; every ``val_every``-th trajectory of the stream is held out for validation. For a
    training size ``n`` of ``data.sizes`` the training set is the first ``n`` training samples and
    its validation set the held-out trajectories interleaved with them (:func:`split_sizes`; the
-   sets are nested: a larger size extends a smaller one);
+   sets are nested: a larger size extends a smaller one). By default the samples hold the
+   simulator's states; with ``[data] sensor = "mocap"`` every set is logged as motion capture
+   would log it (:mod:`studies.physics.sensor`: jittered positions, velocities by finite
+   differences);
 2. training: per size, one :func:`lcs_cvx.fit` per ``(loss, n_lam, seed)`` (the library normalises
    the data and starts the model itself; the model comes back in physical units), one MLP per
    point of the ``[mlp]`` grid and one PARC fit (``[parc]``: piecewise-affine regression and
@@ -61,6 +64,7 @@ from .pusher_plant import (
     Sampling,
     sample_transitions,
 )
+from .sensor import SENSORS
 
 __all__ = ["CONFIG_SECTIONS", "BASELINES", "PARC", "parse_config", "split_sizes", "run_study"]
 
@@ -71,7 +75,7 @@ PARC = "PARC (piecewise-affine regression)"
 BASELINES = ("affine (least squares)", "MLP", "affine per true mode (oracle)", PARC)
 
 _DATA_DEFAULTS = {"sizes": [500, 2000, 10000, 20000], "n_test": 5000, "n_wide": 5000, "seed_train": 0,
-                  "seed_test": 1, "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
+                  "seed_test": 1, "seed_wide": 2, "wide_factor": 1.5, "val_every": 10, "sensor": "exact"}
 _LCS_DEFAULTS = {"n_lam": [4, 8, 16, 24], "losses": ["violation", "prediction"], "seeds": [0, 1],
                  "tolerance": 0.1, "init": ["increment", "affine"], "stiffness": 1.0, "init_scale": 0.1,
                  "violation": {"recipe": "best", "iterations": 16000, "keep_best": True},
@@ -103,6 +107,9 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     check_sections(config, CONFIG_SECTIONS)
     data = section(config, "data", _DATA_DEFAULTS)
     data["sizes"] = sorted(_distinct_list("data.sizes", data["sizes"], True, 2))
+    if data["sensor"] not in SENSORS["pusher"]:
+        raise ValueError(f"config: data.sensor: expected one of {sorted(SENSORS['pusher'])}, "
+                         f"received {data['sensor']!r}")
     mlp = section(config, "mlp", _MLP_DEFAULTS)
     if not isinstance(mlp["hidden"], list) or not mlp["hidden"] or not all(
             isinstance(h, list) and h and all(isinstance(w, int) and w >= 1 for w in h) for h in mlp["hidden"]):
@@ -150,10 +157,11 @@ def _data(cfg: dict[str, Any]) -> tuple[dict[int, tuple[PusherTransitions, Pushe
     phys, samp, d = cfg["physics"], cfg["sampling"], cfg["data"]
     k = d["val_every"]
     n_stream = math.ceil(max(d["sizes"]) * k / (k - 1) * 1.05) + k * samp.traj_len  # a margin for short trajectories
-    stream = sample_transitions(n_stream, d["seed_train"], phys, samp)
-    tests = {"test": sample_transitions(d["n_test"], d["seed_test"], phys, samp),
+    sensor = d["sensor"]
+    stream = sample_transitions(n_stream, d["seed_train"], phys, samp, sensor=sensor)
+    tests = {"test": sample_transitions(d["n_test"], d["seed_test"], phys, samp, sensor=sensor),
              f"wide-input test ({d['wide_factor']:g}×)":
-                 sample_transitions(d["n_wide"], d["seed_wide"], phys, samp, d["wide_factor"])}
+                 sample_transitions(d["n_wide"], d["seed_wide"], phys, samp, d["wide_factor"], sensor=sensor)}
     return split_sizes(stream, d["sizes"], k), tests
 
 

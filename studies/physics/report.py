@@ -187,3 +187,119 @@ def write_report(s: dict[str, Any], cfg: dict[str, Any], horizons: list[int], be
             "or `model.to_c3()` for the matrices):", ""]
     out += [f"- {n}: `{path}`" for n, path in s["exported_models"].items()]
     return "\n".join(out) + "\n"
+
+
+# -- measured with noise (studies/physics/noisy.py) ---------------------------------------------
+def _fit_label(f: dict[str, Any]) -> str:
+    rh = f["rollout_horizon"]
+    if rh is None:
+        what = "LCS, one-step losses only"
+    else:
+        kept = f.get("refinement_kept")
+        what = (f"LCS + simulation error (rollout_horizon={rh}"
+                + ("" if kept is None else ", kept" if kept else ", undone: held-out score not lower") + ")")
+    return f"{what}, seed {f['seed']}"
+
+
+def measured_with_noise(s: dict[str, Any]) -> list[str]:
+    """The "Measured with noise" section from a summary of :mod:`studies.physics.noisy`
+    (``noisy.json``): per sensor one table of the LCS fits and the affine map, then the
+    comparison with the affine map and the effect of the simulation-error refinement."""
+    from .evaluation import fmt
+
+    cfg, H = s["config"], s["horizon"]
+    hs = cfg["eval"]["horizons"]
+    d, f = cfg["data"], cfg["fit"]
+    out = ["## Measured with noise", ""]
+    out += [f"- **{name}**: {sens['description']}." for name, sens in s["sensors"].items()]
+    opts = ", ".join(f"{k}={v}" for k, v in f["options"].items())
+    out += [
+        "",
+        f"Data per sensor: {d['n_train']} training transitions from seed {d['seed_train']} (every "
+        f"{d['val_every']}th trajectory held out for validation), {d['n_test']} test transitions from seed "
+        f"{d['seed_test']}, as `lcs_cvx.Trajectories`. Fits: `lcs_cvx.fit(LCS(n_x, n_u, {f['n_lam']}, seed), "
+        f"train, validation=val, holdout_horizon={H}, recipe=\"{f['recipe']}\"" + (f", {opts}" if opts else "")
+        + ", rollout_horizon=None)` (one-step losses only) and the same with the simulation-error phase "
+        f"(`rollout_horizon=` {', '.join(str(h) for h in f['rollout_horizons'])}; with `Trajectories` `fit` runs it "
+        "by default, 10 steps, and keeps its result only if the held-out score fell), seeds "
+        f"{f['seeds']}. The affine map: least squares "
+        "on the same training transitions (the map `fit` compares with).",
+        "",
+        f"Columns: **held-out** -- the {H}-step rollout error on the validation trajectories "
+        "(`FitResult.heldout_error` / `affine_heldout_error`, measured data: what a user sees); **test** -- "
+        "`lcs_cvx.rollout_error` on the test trajectories at each horizon, against the measured states; **test, "
+        f"noise-free** -- at H = {H} from and against the same test trajectories logged without noise "
+        "(exact positions, velocities by the same differences: the true value of what the sensor measures; "
+        "for the exact and differenced sensors the same as test); **growth** -- `FitResult.heldout_growth`; **< affine** -- "
+        "`FitResult.beats_affine`. A model of logged states predicts logged states (for a differencing "
+        "sensor, mean velocities over the last control period), so it is scored against logged states, "
+        "not against the simulator's instantaneous velocities.",
+    ]
+    head = (["sensor", "model", f"held-out H={H}"] + [f"test H={h}" for h in hs]
+            + [f"test H={H}, noise-free", "growth", "< affine", "fit (s)"])
+    for sensor, r in s["results"].items():
+        c = r["counts"]
+        out += ["", f"### Sensor `{sensor}`", "",
+                f"{c['train']['transitions']} training transitions ({c['train']['trajectories']} trajectories), "
+                f"{c['validation']['transitions']} validation ({c['validation']['trajectories']}), "
+                f"{c['test']['transitions']} test ({c['test']['trajectories']}).", "",
+                "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for fr in r["fits"]:
+            if fr["error"] is not None:
+                out.append(f"| {sensor} | {_fit_label(fr)} | failed: {fr['error']} |" + " |" * (len(head) - 3))
+                continue
+            sc = fr["scores"]
+            cells = ([sensor, _fit_label(fr), fmt(fr["heldout_error"])] + [fmt(sc["test"][str(h)]) for h in hs]
+                     + [fmt(sc["test_clean"][str(H)]), f"{fr['heldout_growth']:.3g}",
+                        "yes" if fr["beats_affine"] else "**no**", f"{fr['wall_time']:.0f}"])
+            out.append("| " + " | ".join(cells) + " |")
+        a = r["affine"]
+        out.append("| " + " | ".join([sensor, "affine (least squares)", fmt(a["validation"][str(H)])]
+                                     + [fmt(a["test"][str(h)]) for h in hs]
+                                     + [fmt(a["test_clean"][str(H)]), "–", "–", "0"]) + " |")
+    out += ["", "### The LCS against the affine map, and the refinement (computed)", ""]
+    for sensor, r in s["results"].items():
+        a = r["affine"]
+        ok = [fr for fr in r["fits"] if fr["error"] is None]
+        default = [fr for fr in ok if fr["rollout_horizon"] is None]
+        won = sum(bool(fr["beats_affine"]) for fr in default)
+        won_test = sum(fr["scores"]["test"][str(H)] < a["test"][str(H)] for fr in default)
+        out.append(f"- `{sensor}`: the one-step fit beats the affine map on the held-out {H}-step rollouts in "
+                   f"{won} of {len(default)} fits and on the test rollouts in {won_test} of {len(default)} "
+                   f"(affine: held-out {a['validation'][str(H)]:.3g}, test {a['test'][str(H)]:.3g}).")
+        for rh in f["rollout_horizons"]:
+            refined = [fr for fr in ok if fr["rollout_horizon"] == rh]
+            out.append(f"  - with the simulation-error phase (rollout_horizon={rh}): beats it on the held-out "
+                       f"rollouts in {sum(bool(fr['beats_affine']) for fr in refined)} of {len(refined)} and on the "
+                       f"test rollouts in {sum(fr['scores']['test'][str(H)] < a['test'][str(H)] for fr in refined)} "
+                       f"of {len(refined)}.")
+        for rh in f["rollout_horizons"]:
+            pairs = [(d0, d1) for d0 in default for d1 in ok
+                     if d1["rollout_horizon"] == rh and d1["seed"] == d0["seed"]]
+            for d0, d1 in pairs:
+                out.append(f"  - seed {d0['seed']}, rollout_horizon={rh}: held-out {d0['heldout_error']:.3g} → "
+                           f"{d1['heldout_error']:.3g}, test H={H} {d0['scores']['test'][str(H)]:.3g} → "
+                           f"{d1['scores']['test'][str(H)]:.3g}, noise-free {d0['scores']['test_clean'][str(H)]:.3g} → "
+                           f"{d1['scores']['test_clean'][str(H)]:.3g}, fit time {d0['wall_time']:.0f} s → "
+                           f"{d1['wall_time']:.0f} s.")
+    return out
+
+
+def noisy_header(s: dict[str, Any], title: str, config_path: str, out_dir: str) -> list[str]:
+    """The title and provenance lines of ``noisy.md``."""
+    run = s["config"]["run"]
+    command = run.get("command") or (f"python -m studies.physics.noisy --config {config_path} --out {out_dir}")
+    return [f"# {title}: measured with noise", "",
+            f"Written by `studies/physics/noisy.py`: `{command}` "
+            f"(`--report-only` rewrites this file from `noisy.json`).",
+            f"Date: {run.get('date') or 'not recorded'}. Machine: {run.get('machine') or s['machine']} "
+            f"({s['machine']}). Wall time {s['wall_time_s']:.0f} s, of which the fits "
+            f"{s['fits_wall_time_s']:.0f} s (one after the other, one torch thread).", ""]
+
+
+def write_noisy_report(s: dict[str, Any]) -> str:
+    """``noisy.md`` of the cart-pole (:mod:`studies.physics.noisy`)."""
+    name = s["config"]["name"]
+    return "\n".join(noisy_header(s, "Learning an LCS of a MuJoCo cart-pole with two soft walls",
+                                  f"studies/configs/{name}.toml", "studies/results/physics")
+                     + measured_with_noise(s)) + "\n"

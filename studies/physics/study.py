@@ -4,8 +4,11 @@ r"""The physics study: learn LCSs of the MuJoCo cart-pole with soft walls
 :func:`run_study` (config ``studies/configs/physics_cartpole.toml``, the ``lcs-cvx study``
 runner's ``kind = "module"`` protocol):
 
-1. data: training, test and wide-input test transitions (:func:`~studies.physics.plant.sample_transitions`);
-   every ``val_every``-th training trajectory is held out for validation;
+1. data: training, test and wide-input test transitions (:func:`~studies.physics.plant.sample_transitions`),
+   as the simulator's states or, with ``[data] sensor = "encoder"``, as encoders log them
+   (:mod:`studies.physics.sensor`: quantised positions, velocities by finite differences; every
+   set, the test sets too, is then measured); every ``val_every``-th training trajectory is held
+   out for validation;
 2. training: the jobs of :mod:`studies.physics.jobs` -- per ``(loss, n_lam, seed)`` one
    :func:`lcs_cvx.fit` in normalised coordinates, and the MLP baseline -- on an
    :mod:`lcs_cvx.study.executors` executor, each result stored in ``<out>/studies.sqlite`` as it
@@ -34,6 +37,7 @@ from .config import check_sections, from_table, lcs_section, section
 from .jobs import make_job, run_jobs
 from .plant import STATE_NAMES, STATE_UNITS, Physics, Sampling, Transitions, sample_transitions
 from .provenance import code_version, json_default, machine
+from .sensor import SENSORS
 
 __all__ = ["CONFIG_SECTIONS", "parse_config", "training_jobs", "run_study"]
 
@@ -42,7 +46,7 @@ __all__ = ["CONFIG_SECTIONS", "parse_config", "training_jobs", "run_study"]
 CONFIG_SECTIONS = ("physics", "sampling", "data", "lcs", "mlp", "eval")
 
 _DATA_DEFAULTS = {"n_train": 20000, "n_test": 5000, "n_wide": 5000, "seed_train": 0, "seed_test": 1,
-                  "seed_wide": 2, "wide_factor": 1.5, "val_every": 10}
+                  "seed_wide": 2, "wide_factor": 1.5, "val_every": 10, "sensor": "exact"}
 _LCS_DEFAULTS = {"n_lam": [2, 4, 8], "losses": ["violation", "prediction"], "seeds": [0, 1, 2, 3],
                  "init": ["increment"], "stiffness": 1.0, "init_scale": 0.1,
                  "violation": {"recipe": "best", "iterations": 12000},
@@ -56,11 +60,15 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     """Check a study config (a dict as TOML reads it) and fill in the defaults."""
     check_sections(config, CONFIG_SECTIONS)
     lcs = lcs_section(config, _LCS_DEFAULTS)
+    data = section(config, "data", _DATA_DEFAULTS)
+    if data["sensor"] not in SENSORS["cartpole"]:
+        raise ValueError(f"config: data.sensor: expected one of {sorted(SENSORS['cartpole'])}, "
+                         f"received {data['sensor']!r}")
     return {
         "name": config.get("name", "physics_cartpole"),
         "physics": from_table(Physics, config.get("physics"), "config: [physics]"),
         "sampling": from_table(Sampling, config.get("sampling"), "config: [sampling]"),
-        "data": section(config, "data", _DATA_DEFAULTS),
+        "data": data,
         "lcs": lcs,
         "mlp": section(config, "mlp", _MLP_DEFAULTS),
         "eval": section(config, "eval", _EVAL_DEFAULTS),
@@ -73,11 +81,13 @@ def _log(msg: str) -> None:
 
 # -- the study ---------------------------------------------------------------------------------
 def _data(cfg: dict[str, Any]) -> dict[str, Transitions]:
-    """``train``, ``validation``, ``test`` and ``wide`` transitions of the config."""
+    """``train``, ``validation``, ``test`` and ``wide`` transitions of the config, logged by its
+    ``data.sensor`` (:mod:`studies.physics.sensor`; ``"exact"``: the simulator's states)."""
     phys, samp, dcfg = cfg["physics"], cfg["sampling"], cfg["data"]
-    train_all = sample_transitions(dcfg["n_train"], dcfg["seed_train"], phys, samp)
-    test = sample_transitions(dcfg["n_test"], dcfg["seed_test"], phys, samp)
-    wide = sample_transitions(dcfg["n_wide"], dcfg["seed_wide"], phys, samp, dcfg["wide_factor"])
+    sensor = dcfg["sensor"]
+    train_all = sample_transitions(dcfg["n_train"], dcfg["seed_train"], phys, samp, sensor=sensor)
+    test = sample_transitions(dcfg["n_test"], dcfg["seed_test"], phys, samp, sensor=sensor)
+    wide = sample_transitions(dcfg["n_wide"], dcfg["seed_wide"], phys, samp, dcfg["wide_factor"], sensor=sensor)
     is_val = train_all.traj % dcfg["val_every"] == dcfg["val_every"] - 1
     return {"train": train_all.select(~is_val), "validation": train_all.select(is_val),
             "test": test, "wide": wide}
