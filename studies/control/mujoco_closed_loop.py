@@ -146,12 +146,14 @@ def affine_lcs_matrices(W: np.ndarray) -> dict[str, np.ndarray]:
 
 
 class MLPDynamics(torch.nn.Module):
-    """``x' = x + s_y f((x - m_x) / s_x, u / s_u)`` with ``f`` a tanh MLP (float32)."""
+    """``x' = x + s_y f((x - m_x) / s_x, u / s_u) + m_y`` with ``f`` a tanh MLP (float32); the
+    sizes ``n_x``, ``n_u`` are those of ``stats`` (``mx``, ``su``)."""
 
     def __init__(self, stats: dict[str, np.ndarray], hidden: int = 64) -> None:
         super().__init__()
-        self.net = torch.nn.Sequential(torch.nn.Linear(5, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, hidden),
-                                       torch.nn.Tanh(), torch.nn.Linear(hidden, 4))
+        n_x, n_u = len(stats["mx"]), len(stats["su"])
+        self.net = torch.nn.Sequential(torch.nn.Linear(n_x + n_u, hidden), torch.nn.Tanh(),
+                                       torch.nn.Linear(hidden, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, n_x))
         for k, v in stats.items():
             self.register_buffer(k, torch.as_tensor(np.asarray(v), dtype=torch.float32))
 
