@@ -27,18 +27,8 @@ from ._kernels.arrays import TORCH
 from .lcp import LCPSolution, active_set_solve, solve_lcp_unchecked
 from .problems import sym_min_eig
 
-__all__ = [
-    "LCS",
-    "PARAMETER_NAMES",
-    "MATRIX_NAMES",
-    "ACTIVE_TOL",
-    "DEFAULT_STIFFNESS",
-    "MASKABLE",
-    "parameter_shapes",
-    "F_matrix",
-    "F_adjoint",
-    "split_F",
-]
+__all__ = ["LCS", "PARAMETER_NAMES", "MATRIX_NAMES", "ACTIVE_TOL", "DEFAULT_STIFFNESS", "MASKABLE",
+           "C3_NAMES", "parameter_shapes", "F_matrix", "F_adjoint", "split_F"]
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
@@ -97,6 +87,11 @@ def split_F(F: torch.Tensor, stiffness: float) -> tuple[torch.Tensor, torch.Tens
     sym = 0.5 * (F + F.mT) - float(stiffness) * torch.eye(n, dtype=F.dtype, device=F.device)
     vals, vecs = torch.linalg.eigh(sym)
     return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
+
+
+#: C3's name of each matrix -> ours (C3 writes ``x' = A x + B u + D lam + d``,
+#: ``0 <= lam _|_ E x + F lam + H u + c >= 0``).
+C3_NAMES = {"A": "A", "B": "B", "D": "C", "d": "d", "E": "D", "F": "F", "H": "E", "c": "c"}
 
 
 class LCS(nn.Module):
@@ -296,17 +291,14 @@ class LCS(nn.Module):
         ``G G^T + H - H^T + s I`` with ``s = sigma_min(F + F^T) / 4``, ``H = (F - F^T) / 4`` and
         ``G`` the Cholesky factor of the rest, so ``model.F`` reproduces ``F`` to round-off.
         """
-        A_t = torch.as_tensor(np.asarray(A, dtype=np.float64)) if not isinstance(A, torch.Tensor) else A
-        if A_t.dim() != 2 or A_t.shape[0] != A_t.shape[1]:
-            raise LCSInputError(f"A: expected a square (n_x, n_x) matrix, received shape {tuple(A_t.shape)}")
-        n_x = A_t.shape[0]
-        C_arr = np.asarray(C.detach().cpu() if isinstance(C, torch.Tensor) else C, dtype=np.float64)
-        B_arr = np.asarray(B.detach().cpu() if isinstance(B, torch.Tensor) else B, dtype=np.float64)
-        if C_arr.ndim != 2:
-            raise LCSInputError(f"C: expected shape (n_x, n_lam), received shape {C_arr.shape}")
-        if B_arr.ndim != 2:
-            raise LCSInputError(f"B: expected shape (n_x, n_u), received shape {B_arr.shape}")
-        n_lam, n_u = C_arr.shape[1], B_arr.shape[1]
+        dims = {k: tuple(np.shape(v.detach().cpu() if isinstance(v, torch.Tensor) else np.asarray(v, dtype=np.float64)))
+                for k, v in (("A", A), ("C", C), ("B", B))}
+        if len(dims["A"]) != 2 or dims["A"][0] != dims["A"][1]:
+            raise LCSInputError(f"A: expected a square (n_x, n_x) matrix, received shape {dims['A']}")
+        for k, want in (("C", "(n_x, n_lam)"), ("B", "(n_x, n_u)")):
+            if len(dims[k]) != 2:
+                raise LCSInputError(f"{k}: expected shape {want}, received shape {dims[k]}")
+        n_x, n_lam, n_u = dims["A"][0], dims["C"][1], dims["B"][1]
         shapes = parameter_shapes(n_x, n_u, n_lam)
         given = {"A": A, "B": B, "C": C, "d": d, "D": D, "E": E, "F": F, "c": c}
         mats = {k: as_matrix(k, v, shapes[k], dtype=torch.float64) for k, v in given.items()}
@@ -432,39 +424,19 @@ class LCS(nn.Module):
         )
 
     def to_c3(self) -> dict[str, np.ndarray]:
-        """The LCS in the convention of the C3 MPC code, as numpy arrays.
-
-        C3 writes ``x' = A x + B u + D lam + d``, ``0 <= lam _|_ E x + F lam + H u + c >= 0``;
-        the same system as eq. (1) with the letters renamed::
-
-            C3 key:   A  B  D  d  E  F  H  c
-            ours:     A  B  C  d  D  F  E  c      (C -> D, D -> E, E -> H)
-
-        Keys ``"A", "B", "D", "d", "E", "F", "H", "c"``; shapes ``A (n_x, n_x)``,
-        ``B (n_x, n_u)``, ``D (n_x, n_lam)``, ``d (n_x,)``, ``E (n_lam, n_x)``,
-        ``F (n_lam, n_lam)``, ``H (n_lam, n_u)``, ``c (n_lam,)``.
-        """
+        """The LCS in the convention of the C3 MPC code, as numpy arrays: C3 writes
+        ``x' = A x + B u + D lam + d``, ``0 <= lam _|_ E x + F lam + H u + c >= 0``, eq. (1) with
+        our ``C, D, E`` renamed ``D, E, H`` (:data:`C3_NAMES`). Keys ``"A", "B", "D", "d", "E",
+        "F", "H", "c"``; shapes ``A (n_x, n_x)``, ``B (n_x, n_u)``, ``D (n_x, n_lam)``, ``d (n_x,)``,
+        ``E (n_lam, n_x)``, ``F (n_lam, n_lam)``, ``H (n_lam, n_u)``, ``c (n_lam,)``."""
         m = self.to_matrices()
-        return {
-            "A": m["A"],
-            "B": m["B"],
-            "D": m["C"],
-            "d": m["d"],
-            "E": m["D"],
-            "F": m["F"],
-            "H": m["E"],
-            "c": m["c"],
-        }
-
+        return {c3: m[ours] for c3, ours in C3_NAMES.items()}
 
     @classmethod
     def from_c3(cls, matrices: dict[str, Any], dtype: torch.dtype = torch.float64) -> LCS:
         """The inverse of :meth:`to_c3`: a system from matrices in C3's naming (keys ``"A", "B",
         "D", "d", "E", "F", "H", "c"``; C3's ``D, E, H`` are our ``C, D, E``)."""
-        need = ("A", "B", "D", "d", "E", "F", "H", "c")
-        missing = [k for k in need if k not in matrices]
+        missing = [k for k in C3_NAMES if k not in matrices]
         if missing:
-            raise LCSInputError(f"matrices: expected C3's keys {need}, missing {missing}")
-        m = matrices
-        return cls.from_matrices(A=m["A"], B=m["B"], C=m["D"], d=m["d"], D=m["E"], E=m["H"], F=m["F"],
-                                 c=m["c"], dtype=dtype)
+            raise LCSInputError(f"matrices: expected C3's keys {tuple(C3_NAMES)}, missing {missing}")
+        return cls.from_matrices(**{ours: matrices[c3] for c3, ours in C3_NAMES.items()}, dtype=dtype)
