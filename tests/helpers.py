@@ -234,3 +234,17 @@ def violation_values(n_lam: int, setting: str, batch: int = 200, perturb: float 
         q = truth.lcp_offset(data.x, data.u)
         r = data.x @ truth.A.mT + data.u @ truth.B.mT + truth.d - data.x_next
         return violation_problem(n_lam).parameter_values(truth.C, truth.F, q, r, gamma, eps)
+
+
+def simulated_runs(truth, lengths, seed=0, noise=0.0, x_range=2.0, u_range=1.0):
+    """``lcs_cvx.Trajectories`` of ``truth`` from starts ``U[-x_range, x_range]`` under inputs
+    ``U[-u_range, u_range]``, one run per entry of ``lengths`` (steps), states with Gaussian
+    ``noise``."""
+    rng = np.random.default_rng(seed)
+    xs, us = [], []
+    for T in lengths:
+        u = rng.uniform(-u_range, u_range, (T, truth.n_u))
+        x = truth.rollout(rng.uniform(-x_range, x_range, truth.n_x), u).detach().numpy()
+        xs.append(x + noise * rng.standard_normal(x.shape))
+        us.append(u)
+    return lcs_cvx.Trajectories(xs, us)

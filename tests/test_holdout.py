@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from helpers import simulated_runs
 
 import lcs_cvx
 from lcs_cvx.metrics import affine_lstsq
@@ -21,14 +22,7 @@ from lcs_cvx.train.phase_options import RunOptions
 
 
 def make_trajectories(truth, K, T, seed=0, noise=0.0):
-    rng = np.random.default_rng(seed)
-    xs, us = [], []
-    for _ in range(K):
-        u = rng.uniform(-3, 3, (T, truth.n_u))
-        x = truth.rollout(rng.uniform(-5, 5, truth.n_x), u).detach().numpy()
-        xs.append(x + noise * rng.standard_normal(x.shape))
-        us.append(u)
-    return lcs_cvx.Trajectories(xs, us)
+    return simulated_runs(truth, [T] * K, seed=seed, noise=noise, x_range=5.0, u_range=3.0)
 
 
 @pytest.fixture(scope="module")

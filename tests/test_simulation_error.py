@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from helpers import simulated_runs
 
 import lcs_cvx
 from lcs_cvx.metrics import affine_lstsq
@@ -16,15 +17,8 @@ from lcs_cvx.simulation_error import Windows, affine_rollout_error, rollout_grow
 from lcs_cvx.train.holdout import affine_lcs
 
 
-def trajectories(truth, lengths, seed=0, noise=0.0):
-    rng = np.random.default_rng(seed)
-    xs, us = [], []
-    for T in lengths:
-        u = rng.uniform(-1, 1, (T, truth.n_u))
-        x = truth.rollout(rng.uniform(-2, 2, truth.n_x), u).detach().numpy()
-        xs.append(x + noise * rng.standard_normal(x.shape))
-        us.append(u)
-    return lcs_cvx.Trajectories(xs, us)
+def trajectories(truth, lengths, seed=0):
+    return simulated_runs(truth, lengths, seed=seed)
 
 
 @pytest.fixture(scope="module")
