@@ -108,25 +108,16 @@ def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.T
     return total / us.shape[1]
 
 
-def _rollouts(step: Any, trajectories: Trajectories, horizon: int | None) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """``(predicted, recorded)`` states of every window of ``horizon`` steps (None: each whole
-    trajectory from its first state), stacked by step ``h = 1 .. H``: ``(H, W, n_x)`` each."""
-    out = []
-    if horizon is None:
-        for x, u in zip(trajectories.xs, trajectories.us, strict=True):
-            xh, pred = x[:1], []
-            for t in range(u.shape[0]):
-                xh = step(xh, u[t:t + 1])
-                pred.append(xh)
-            out.append((torch.stack(pred), x[1:, None]))
-        return out
+def _window_rollouts(step: Any, trajectories: Trajectories, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(predicted, recorded)`` states of every window of ``horizon`` steps, stacked by step
+    ``h = 1 .. H``: ``(H, W, n_x)`` each."""
     w = Windows(trajectories, horizon)
     x0, us, xs = w.batch(torch.arange(len(w)))
     xh, pred = x0, []
     for h in range(horizon):
         xh = step(xh, us[:, h])
         pred.append(xh)
-    return [(torch.stack(pred), xs.transpose(0, 1))]
+    return torch.stack(pred), xs.transpose(0, 1)
 
 
 def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon: int) -> float:
@@ -134,19 +125,29 @@ def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon:
     (:func:`lcs_cvx.metrics.affine_lstsq`): ``sum ||x_hat_{s+H} - x_{s+H}||^2 / sum
     ||x_{s+H}||^2`` over the windows."""
     with torch.no_grad():
-        (pred, rec), = _rollouts(lambda x, u: affine.step(x, u), trajectories, horizon)
+        pred, rec = _window_rollouts(affine.step, trajectories, horizon)
     return float((pred[-1] - rec[-1]).pow(2).sum() / rec[-1].pow(2).sum())
 
 
 def rollout_growth(model: Any, trajectories: Trajectories) -> float:
     """The largest ``max_t ||x_hat_t|| / max_t ||x_t||`` over ``trajectories``, each rolled out
     open loop from its first state to its end (inf when a rollout leaves the finite numbers): a
-    stable model stays near 1, a diverging one grows without bound."""
-    worst = 0.0
+    stable model stays near 1, a diverging one grows without bound. All trajectories are stepped
+    together, the longest first (those still running at step ``t`` are a prefix)."""
+    kw = {"dtype": model.dtype, "device": model.device}
+    order = sorted(range(len(trajectories)), key=lambda i: -trajectories.lengths[i])
+    lengths = torch.tensor([trajectories.lengths[i] for i in order])
+    top = torch.stack([trajectories.xs[i].norm(dim=-1).max() for i in order]).to(**kw)
+    x = torch.stack([trajectories.xs[i][0] for i in order]).to(**kw)
+    U = torch.zeros(len(order), int(lengths[0]), trajectories.n_u, **kw)  # inputs, padded
+    for row, i in enumerate(order):
+        U[row, : lengths[row]] = trajectories.us[i]
+    reached = x.norm(dim=-1)
     with torch.no_grad():
-        for pred, rec in _rollouts(lambda x, u: model.step(x, u), trajectories, None):
-            top = float(rec.norm(dim=-1).max())
-            if not bool(torch.isfinite(pred).all()):
+        for t in range(int(lengths[0])):
+            n = int((lengths > t).sum())
+            x = model.step(x[:n], U[:n, t])
+            if not bool(torch.isfinite(x).all()):
                 return float("inf")
-            worst = max(worst, float(pred.norm(dim=-1).max()) / max(top, 1e-300))
-    return worst
+            reached[:n] = torch.maximum(reached[:n], x.norm(dim=-1))
+    return float((reached / top.clamp_min(1e-300)).max())
