@@ -1,14 +1,18 @@
 # Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
-# package and every extra (studies, physics, docs, dev, baselines, control) installed at the versions of
+# package and every extra (studies, physics, docs, dev, baselines, control, solvers) installed at the versions of
 # constraints.txt (the versions the suite last passed with); `make lock` refreshes that file.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS := studies,physics,docs,dev,baselines,control
+EXTRAS := studies,physics,docs,dev,baselines,control,solvers
 # torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
 # `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
 TORCH  := torch==2.13.0
+# qpth (a differentiable QP layer of the solver study) declares numpy<2, which the rest of the
+# stack cannot meet; it runs on numpy 2, so it is installed without its declared dependencies
+# (torch and numpy, both already here).
+QPTH   := qpth==0.0.18
 
 .PHONY: demo test docs lint bench lock clean
 
@@ -17,6 +21,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt $(TORCH)
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[$(EXTRAS)]'
+	$(PY) -m pip install --quiet -c constraints.txt --no-deps $(QPTH)
 	touch $(STAMP)
 
 # constraints.txt anew: a throw-away environment with the newest versions pyproject.toml allows,
@@ -27,6 +32,7 @@ lock:
 	.lock-venv/bin/python -m pip install --quiet --upgrade pip
 	.lock-venv/bin/python -m pip install --quiet $(TORCH)
 	.lock-venv/bin/python -m pip install --quiet -e '.[$(EXTRAS)]'
+	.lock-venv/bin/python -m pip install --quiet --no-deps $(QPTH)
 	{ echo "# The versions the test suite passes with; written by 'make lock' (pip freeze)."; \
 	  .lock-venv/bin/python -m pip freeze --exclude-editable; } > constraints.txt
 	rm -rf .lock-venv

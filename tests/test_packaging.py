@@ -1,8 +1,9 @@
 """The package's declared dependencies, and that importing it needs none of the extras.
 
-The core dependencies are the solver stack; Dask, matplotlib, MuJoCo and PARC (pyparc) come with
-the extras ``studies``, ``physics`` and ``baselines`` and are imported only by the functions that
-need them, which name the extra when it is missing.
+The core dependencies are the solver stack (numba for the compiled loss kernels); Dask,
+matplotlib, MuJoCo, PARC (pyparc) and the solver study's extra solvers come with the extras
+``studies``, ``physics``, ``baselines`` and ``solvers`` and are imported only by the functions
+that need them, which name the extra when it is missing.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 
 CORE = {"torch", "numpy", "scipy", "cvxpy", "cvxpylayers", "clarabel", "diffcp", "threadpoolctl",
-        "tqdm"}
+        "tqdm", "numba"}
 EXTRAS = {
     "studies": {"dask", "matplotlib"},
     "physics": {"mujoco"},
@@ -29,10 +30,11 @@ EXTRAS = {
     "dev": {"pytest", "hypothesis", "ruff", "pytest-timeout"},
     "baselines": {"pyparc", "pypoman", "pycddlib", "mip", "faiss-cpu", "scikit-learn"},
     "control": {"pyscipopt"},
+    "solvers": {"piqp", "proxsuite", "daqp", "ecos", "casadi"},
 }
 # (not pyscipopt, the control extra's SCIP: CVXPY itself imports every solver it finds installed)
 OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib", "pyparc", "sklearn", "faiss",
-                    "mip", "pypoman", "cdd")
+                    "mip", "pypoman", "cdd", "casadi", "qpth")
 
 
 def _name(requirement: str) -> str:
