@@ -18,9 +18,11 @@ from .lcp import solve_lcp as solve_lcp
 from .losses import LossInfo as LossInfo
 from .losses import prediction_loss as prediction_loss
 from .losses import prediction_loss_info as prediction_loss_info
+from .losses import prediction_value_and_grad as prediction_value_and_grad
 from .losses import regularizer as regularizer
 from .losses import violation_loss as violation_loss
 from .losses import violation_loss_info as violation_loss_info
+from .losses import violation_value_and_grad as violation_value_and_grad
 from .metrics import affine_error as affine_error
 from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
@@ -69,6 +71,7 @@ __all__ = [
     "RolloutOptions",
     "prediction_loss",
     "prediction_loss_info",
+    "prediction_value_and_grad",
     "PruneOptions",
     "random_lcs",
     "RECIPES",
@@ -89,4 +92,5 @@ __all__ = [
     "violation_loss",
     "violation_loss_info",
     "violation_problem",
+    "violation_value_and_grad",
 ]

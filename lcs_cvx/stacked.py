@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -33,8 +34,11 @@ from ._kernels import lcp as kernel_lcp
 from ._kernels import losses as kernel
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH, array_ops
+from ._kernels.lcp import PIVOT_TOL as LCP_TOL
+from ._kernels.pivoting import STALL
+from ._kernels.violation import PIVOT_TOL as VIOLATION_TOL
 from .lcp import finish as finish_lcp
-from .losses import EnvelopeLoss, ImplicitLoss
+from .losses import CompiledLoss, EnvelopeLoss, ImplicitLoss
 from .problems import check_gamma, violation_problem
 from .system import LCS, PARAMETER_NAMES
 from .violation import finish as finish_violation
@@ -160,6 +164,39 @@ def _model_rows(unconverged: torch.Tensor | None, K: int, B: int) -> dict[int, t
     return {k: unconverged[model == k] - k * B for k in torch.unique(model).tolist()}
 
 
+def _compiled(fn_name: str, ens: StackedLCS, x: torch.Tensor, u: torch.Tensor,
+              x_next: torch.Tensor, warm_start: torch.Tensor | None, warm: torch.Tensor | None,
+              arrays: str, width: int, *options: Any) -> tuple[torch.Tensor, list[tuple]] | None:
+    """Each model's compiled call (:func:`lcs_cvx.losses.compiled_call`) on its own rows, for
+    float64 CPU tensors (the default there): model ``k`` gets the numbers of its own call, bit
+    for bit. Returns the ``(K,)`` loss (its gradients the models' own, stacked) and each model's
+    outputs; None where the array kernels run the stack (other dtypes and devices, or a sample
+    that did not converge: they end it with the reference solvers)."""
+    if arrays not in ("auto", "compiled"):
+        return None
+    if x.device.type != "cpu" or x.dtype != torch.float64:
+        if arrays == "compiled":
+            raise LCSInputError(f"arrays: 'compiled' runs float64 CPU tensors, received {x.dtype} "
+                                f"on {x.device}")
+        return None
+    from ._kernels import compiled
+
+    fn = getattr(compiled, fn_name)
+    params = [getattr(ens, k) for k in PARAMETER_NAMES]
+    stacked = _losses.as_arrays(*params)
+    outs = []
+    for k, s in enumerate(ens.stiffness.tolist()):
+        own_warm = None if warm_start is None or (warm is not None and not bool(warm[k])) else warm_start[k]
+        status, out = _losses.compiled_call(fn, [a[k] for a in stacked], s, x[k], u[k], x_next[k],
+                                            own_warm, width, *options)
+        if status:
+            return None
+        outs.append(out)
+    grads = tuple(torch.stack([out[1][i] for out in outs]) for i in range(len(params)))
+    values = torch.tensor([out[0] for out in outs], dtype=torch.float64)
+    return CompiledLoss.apply(values, grads, *params), outs
+
+
 def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
                      gamma: float, eps: float, warm_start: torch.Tensor | None = None,
                      warm: torch.Tensor | None = None, arrays: str = "auto") -> StackedInfo:
@@ -179,7 +216,13 @@ def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: 
             check_gamma(ens.F[k], gamma)
     K, B = x.shape[:2]
     n = ens.n_lam
-    xp = array_ops(x, arrays)
+    done = _compiled("violation", ens, x, u, x_next, warm_start, warm, arrays, 2 * n, gamma, eps,
+                     VIOLATION_TOL, _losses.MAX_ITER, STALL)
+    if done is not None:
+        loss, outs = done
+        return StackedInfo(loss, torch.stack([torch.from_numpy(out[4]) for out in outs]), [0] * K,
+                           [0.0] * K)
+    xp = array_ops(x, "auto" if arrays == "compiled" else arrays)
     params = [getattr(ens, k) for k in PARAMETER_NAMES]
     with xp.threads():
         b = kernel.batch(xp, params, x, u, x_next, xp.wrap(ens.stiffness)[:, None, None])
@@ -215,6 +258,13 @@ def prediction_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next:
     :func:`violation_losses`); ``warm_start`` ``(K, B, n_lam)``: the free sets."""
     K, B = x.shape[:2]
     n = ens.n_lam
+    done = _compiled("prediction", ens, x, u, x_next, warm_start, warm, arrays, n, LCP_TOL,
+                     _losses.MAX_ITER, STALL, _losses.DEGENERATE_TOL)
+    if done is not None:
+        loss, outs = done
+        return StackedInfo(loss, torch.stack([torch.from_numpy(out[4]) for out in outs]), [0] * K,
+                           [0.0] * K)
+    arrays = "auto" if arrays == "compiled" else arrays
     xp = array_ops(x, arrays)
     params = [getattr(ens, k) for k in PARAMETER_NAMES]
     with xp.threads():

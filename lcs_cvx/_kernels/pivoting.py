@@ -27,7 +27,26 @@ import torch
 from .._checks import LCSInputError
 from .arrays import ArrayOps
 
-__all__ = ["PivotResult", "SolveFn", "block_pivoting", "initial_state", "unconverged"]
+__all__ = ["STALL", "PivotResult", "SolveFn", "block_pivoting", "check_warm_start", "initial_state",
+           "unconverged"]
+
+
+#: Sweeps without a new lowest infeasibility count before a sample switches to Murty's single
+#: pivot (:func:`block_pivoting`'s ``stall``; also the compiled kernels', :mod:`.compiled`).
+STALL = 3
+
+
+def check_warm_start(warm_start: Any, shape: tuple[int, ...]) -> None:
+    """A clear error unless ``warm_start`` is a bool tensor of ``shape`` (the active sets of an
+    earlier solve of the same samples, ``LossInfo.active``)."""
+    if not isinstance(warm_start, torch.Tensor) or warm_start.dtype != torch.bool \
+            or tuple(warm_start.shape) != tuple(shape):
+        got = (f"{warm_start.dtype} tensor of shape {tuple(warm_start.shape)}"
+               if isinstance(warm_start, torch.Tensor) else type(warm_start).__name__)
+        raise LCSInputError(
+            f"warm_start: expected a bool tensor of shape {tuple(shape)} (the active sets of "
+            f"an earlier solve of these samples, LossInfo.active), received {got}"
+        )
 
 
 def initial_state(xp: ArrayOps, guess: Any, warm_start: torch.Tensor | None, device: torch.device) -> Any:
@@ -35,14 +54,7 @@ def initial_state(xp: ArrayOps, guess: Any, warm_start: torch.Tensor | None, dev
     (checked to be a bool tensor of ``guess``'s shape), else the cold ``guess``."""
     if warm_start is None:
         return guess
-    if not isinstance(warm_start, torch.Tensor) or warm_start.dtype != torch.bool \
-            or tuple(warm_start.shape) != tuple(guess.shape):
-        got = (f"{warm_start.dtype} tensor of shape {tuple(warm_start.shape)}"
-               if isinstance(warm_start, torch.Tensor) else type(warm_start).__name__)
-        raise LCSInputError(
-            f"warm_start: expected a bool tensor of shape {tuple(guess.shape)} (the active sets of "
-            f"an earlier solve of these samples, LossInfo.active), received {got}"
-        )
+    check_warm_start(warm_start, tuple(guess.shape))
     return xp.wrap(warm_start.to(device))
 
 
@@ -73,7 +85,7 @@ def block_pivoting(
     free0: Any,
     *,
     max_iter: int = 100,
-    stall: int = 3,
+    stall: int = STALL,
     subset_fraction: float | None = None,
     subset_min_work: int | None = None,
 ) -> PivotResult:

@@ -1,0 +1,477 @@
+r"""The two fast losses compiled (numba): solution, loss and gradient of a batch in one call.
+
+A call of the array kernels (:mod:`.violation`, :mod:`.lcp`, :mod:`.losses`) is a few hundred
+NumPy operations on arrays of a few hundred numbers: at the paper's sizes (``n <= 20``, batches
+of 200) its cost is the per-operation overhead, not arithmetic. Here the same computation is
+one compiled function per loss, which loops over the samples and pivots each one on its own
+(``n x n`` factorisations written out: Cholesky for (V)'s positive definite systems, LU with
+partial pivoting for the LCP's ``F_II``), then forms the batch's loss and its closed-form
+gradients with a few matrix products:
+
+- :func:`violation` -- (V), eq. (9b), in the normal-equation form of :mod:`.violation`
+  (``LtL = eps C^T C + F + F^T - gamma I``, ``Ltb = eps C^T r + q``, ``K = (gamma I - F) /
+  sqrt(gamma)``, ``h = q / sqrt(gamma)``), then Lemma 3's envelope gradients
+  (:func:`.losses.envelope_backward`);
+- :func:`prediction` -- the LCP of eq. (2), then Lemma 1's implicit gradient
+  (:func:`.losses.implicit_backward`), whose adjoint solve ``F_II^T mu_I = (C^T g_e)_I`` reuses
+  the LU factors of the last pivoting sweep.
+
+Both follow :func:`.pivoting.block_pivoting` sample by sample: the same cold guess, the same
+feasibility tests and tolerances, every infeasible index flipped, Murty's single pivot (largest
+infeasible index) once a sample has gone ``stall`` sweeps without a new lowest count. A sample
+that has not converged after ``max_iter`` sweeps, or whose factorisation failed, is reported
+(``converged`` False) and the caller hands the batch to the array kernels, which end it with the
+reference solvers. Inputs are C-contiguous float64 arrays: parameters ``A (n_x, n_x)``,
+``B (n_x, n_u)``, ``C (n_x, n)``, ``d (n_x,)``, ``D (n, n_x)``, ``E (n, n_u)``, ``c (n,)``,
+``F (n, n)``, ``G (n, n)``; data ``x (N, n_x)``, ``u (N, n_u)``, ``x_next (N, n_x)``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = ["prediction", "violation"]
+
+_JIT = {"cache": True, "nogil": True}
+
+
+@numba.njit(inline="always", **_JIT)
+def _cholesky_solve(M, rhs, m):  # pragma: no cover - compiled
+    """Solve ``M[:m, :m] z = rhs[:m]`` in place (lower triangle of ``M`` read and overwritten by
+    its Cholesky factor); False if ``M`` is not positive definite to working precision."""
+    for j in range(m):
+        s = M[j, j]
+        for k in range(j):
+            s -= M[j, k] * M[j, k]
+        if not s > 0.0:
+            return False
+        s = math.sqrt(s)
+        M[j, j] = s
+        for i in range(j + 1, m):
+            t = M[i, j]
+            for k in range(j):
+                t -= M[i, k] * M[j, k]
+            M[i, j] = t / s
+    for i in range(m):
+        t = rhs[i]
+        for k in range(i):
+            t -= M[i, k] * rhs[k]
+        rhs[i] = t / M[i, i]
+    for i in range(m - 1, -1, -1):
+        t = rhs[i]
+        for k in range(i + 1, m):
+            t -= M[k, i] * rhs[k]
+        rhs[i] = t / M[i, i]
+    return True
+
+
+@numba.njit(inline="always", **_JIT)
+def _lu_factor(M, piv, m):  # pragma: no cover - compiled
+    """LU with partial pivoting of ``M[:m, :m]`` in place (``piv``: the row swaps); False on an
+    exactly zero pivot (a singular matrix, as LAPACK's ``getrf`` reports it)."""
+    for k in range(m):
+        p, big = k, abs(M[k, k])
+        for i in range(k + 1, m):
+            if abs(M[i, k]) > big:
+                p, big = i, abs(M[i, k])
+        piv[k] = p
+        if big == 0.0:
+            return False
+        if p != k:
+            for j in range(m):
+                M[k, j], M[p, j] = M[p, j], M[k, j]
+        for i in range(k + 1, m):
+            f = M[i, k] / M[k, k]
+            M[i, k] = f
+            for j in range(k + 1, m):
+                M[i, j] -= f * M[k, j]
+    return True
+
+
+@numba.njit(inline="always", **_JIT)
+def _lu_solve(M, piv, b, m):  # pragma: no cover - compiled
+    """``M z = b`` in place with :func:`_lu_factor`'s factors."""
+    for k in range(m):
+        p = piv[k]
+        if p != k:
+            b[k], b[p] = b[p], b[k]
+    for i in range(m):
+        for k in range(i):
+            b[i] -= M[i, k] * b[k]
+    for i in range(m - 1, -1, -1):
+        t = b[i]
+        for k in range(i + 1, m):
+            t -= M[i, k] * b[k]
+        b[i] = t / M[i, i]
+
+
+@numba.njit(inline="always", **_JIT)
+def _lu_solve_transposed(M, piv, b, m):  # pragma: no cover - compiled
+    """``M^T z = b`` in place with :func:`_lu_factor`'s factors (``P M = L U``)."""
+    for i in range(m):
+        t = b[i]
+        for k in range(i):
+            t -= M[k, i] * b[k]
+        b[i] = t / M[i, i]
+    for i in range(m - 1, -1, -1):
+        for k in range(i + 1, m):
+            b[i] -= M[k, i] * b[k]
+    for k in range(m - 1, -1, -1):
+        p = piv[k]
+        if p != k:
+            b[k], b[p] = b[p], b[k]
+
+
+@numba.njit(**_JIT)
+def _inputs(A, B, C, d, D, E, c, x, u, x_next):  # pragma: no cover - compiled
+    """``Z = [x, u, 1, lam]`` ``(N, n_x + n_u + 1 + n)`` (its ``lam`` columns left for the caller),
+    ``QR = [q, r]`` ``(N, n + n_x)``, ``q = D x + E u + c``, ``r = A x + B u + d - x'`` (one
+    product ``[x, u, 1] [[D, E, c], [A, B, d]]^T``), and whether the data are finite (the sum of
+    their entries is)."""
+    N, n_x = x.shape
+    n_u, n = u.shape[1], C.shape[1]
+    p = n_x + n_u + 1
+    Z = np.empty((N, p + n))
+    total = 0.0
+    for s in range(N):
+        for j in range(n_x):
+            Z[s, j] = x[s, j]
+            total += x[s, j] + x_next[s, j]
+        for j in range(n_u):
+            Z[s, n_x + j] = u[s, j]
+            total += u[s, j]
+        Z[s, n_x + n_u] = 1.0
+    W = np.empty((p, n + n_x))  # [[D, E, c], [A, B, d]]^T
+    for i in range(n):
+        for j in range(n_x):
+            W[j, i] = D[i, j]
+        for j in range(n_u):
+            W[n_x + j, i] = E[i, j]
+        W[p - 1, i] = c[i]
+    for i in range(n_x):
+        for j in range(n_x):
+            W[j, n + i] = A[i, j]
+        for j in range(n_u):
+            W[n_x + j, n + i] = B[i, j]
+        W[p - 1, n + i] = d[i]
+    QR = np.ascontiguousarray(Z[:, :p]) @ W
+    for s in range(N):
+        for i in range(n_x):
+            QR[s, n + i] -= x_next[s, i]
+    return Z, QR, np.isfinite(total)
+
+
+@numba.njit(**_JIT)
+def _gradients(Z, Y, G, n_x, n_u, n):  # pragma: no cover - compiled
+    """The nine parameter gradients from one product ``Y^T Z`` (``Y = [g_r, g_q]`` ``(N, n_x +
+    n)``, the loss's sensitivities to ``r`` and ``q``; ``Z = [x, u, 1, lam]``): ``dA = g_r^T x``,
+    ``dB = g_r^T u``, ``dd = sum g_r``, ``dC = g_r^T lam``, the same with ``g_q`` for ``D, E, c, F``,
+    and ``dG = (dF + dF^T) G``, ``dH = dF - dF^T`` (:func:`.losses.parameter_gradients`)."""
+    P = np.ascontiguousarray(Y.T) @ Z
+    p = n_x + n_u + 1
+    dF = np.ascontiguousarray(P[n_x:, p:])
+    return (np.ascontiguousarray(P[:n_x, :n_x]), np.ascontiguousarray(P[:n_x, n_x:n_x + n_u]),
+            np.ascontiguousarray(P[:n_x, p:]), P[:n_x, p - 1].copy(),
+            np.ascontiguousarray(P[n_x:, :n_x]), np.ascontiguousarray(P[n_x:, n_x:n_x + n_u]),
+            (dF + dF.T) @ G, dF - dF.T, P[n_x:, p - 1].copy())
+
+
+@numba.njit(**_JIT)
+def _F(G, H, stiffness):  # pragma: no cover - compiled
+    """``F = G G^T + H - H^T + s I``."""
+    F = G @ G.T + H - H.T
+    for i in range(F.shape[0]):
+        F[i, i] += stiffness
+    return F
+
+
+@numba.njit(inline="always", **_JIT)
+def _violation_solve(data, state):  # pragma: no cover - compiled
+    """One candidate of (V) on the pieces ``state = [free, pos]`` of one sample: ``lam`` (zero
+    off the free set) from ``(LtL + K_P^T K_P)_II lam_I = (-Ltb + K_P^T h_P)_I`` (``P`` the pos
+    set), ``t = K lam - h``, the gradient ``g = LtL lam + Ltb + K_P^T t_P``, and the ``2 n``
+    infeasible flags of :func:`.violation.pivot_violation` (``tol``: ``[gradient, lam, t]``
+    scales; ``tol[1]`` is set from the first candidate's ``|lam|``)."""
+    LtL, K, KT, Ltb, h, tol, lam, t, g, bad, M, idx, pidx = data
+    n = lam.shape[0]
+    m, mp = 0, 0
+    for i in range(n):
+        if state[i]:
+            idx[m] = i
+            m += 1
+        if state[n + i]:
+            pidx[mp] = i
+            mp += 1
+    for a in range(m):
+        ia = idx[a]
+        for b in range(a + 1):
+            ib = idx[b]
+            v = LtL[ia, ib]
+            for c in range(mp):
+                k = pidx[c]
+                v += K[k, ia] * K[k, ib]
+            M[a, b] = v
+        v = -Ltb[ia]
+        for c in range(mp):
+            k = pidx[c]
+            v += K[k, ia] * h[k]
+        g[a] = v
+    ok = _cholesky_solve(M, g, m)
+    lam[:] = 0.0
+    if ok:
+        for a in range(m):
+            lam[idx[a]] = g[a]
+    for i in range(n):
+        t[i] = -h[i]
+        g[i] = Ltb[i]
+    for a in range(m):  # t = K lam - h and LtL lam: over the free columns only
+        j = idx[a]
+        la = lam[j]
+        for i in range(n):
+            t[i] += KT[j, i] * la
+            g[i] += LtL[j, i] * la
+    for c in range(mp):  # + K_P^T t_P
+        k = pidx[c]
+        tk = t[k]
+        for i in range(n):
+            g[i] += K[k, i] * tk
+    if tol[1] > 0.0:  # the first candidate: the lower bound of a free lam, -tol (1 + |lam|_inf)
+        big = 0.0
+        for i in range(n):
+            big = max(big, abs(lam[i]))
+        tol[1] = -tol[1] * (1.0 + big)
+    for i in range(n):
+        bad[i] = (not ok) or ((lam[i] < tol[1]) if state[i] else (g[i] < -tol[0]))
+        bad[n + i] = (not ok) or ((t[i] < -tol[2]) if state[n + i] else (t[i] > tol[2]))
+    return bad
+
+
+@numba.njit(inline="always", **_JIT)
+def _move(bad, state, k, murty):  # pragma: no cover - compiled
+    """One pivoting move (:func:`.pivoting.block_pivoting`'s rule): flip every infeasible flag
+    of ``state`` (``k`` flags), or only the largest one (Murty's rule)."""
+    for i in range(k - 1, -1, -1) if murty else range(k):
+        if bad[i]:
+            state[i] = not state[i]
+            if murty:
+                return
+
+
+@numba.njit(inline="always", **_JIT)
+def _progress(n_bad, best, stalled):  # pragma: no cover - compiled
+    """The lowest infeasible count so far and the sweeps since it fell."""
+    return (n_bad, 0) if n_bad < best else (best, stalled + 1)
+
+
+
+
+@numba.njit(**_JIT)
+def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, tol, max_iter,
+              stall, warm):  # pragma: no cover - compiled
+    """(V) for every sample, its batch-mean value and Lemma 3's gradients.
+
+    ``warm``: ``(N, 2 n)`` bool first guess of ``[free, pos]`` (an empty ``(0, 0)`` array: the
+    cold guess ``h < 0``). Returns ``(value, (dA, dB, dC, dd, dD, dE, dG, dH, dc), lam, phi,
+    active, n_unconverged, sweeps)``; ``active = [lam > 0, K lam - h > 0]`` ``(N, 2 n)``, the
+    gradients those of the mean value; ``n_unconverged = -1`` (and nothing else computed) if the
+    data are not finite."""
+    N, n_x = x.shape
+    n_u, n = u.shape[1], C.shape[1]
+    p = n_x + n_u + 1
+    F = _F(G, H, stiffness)
+    Z, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    scale = 1.0 / math.sqrt(gamma)
+    LtL = eps * (C.T @ C) + F + F.T
+    K = -F * scale
+    for i in range(n):
+        LtL[i, i] -= gamma
+        K[i, i] += gamma * scale
+    Y = np.empty((N, n_x + n))
+    lam_all, phi = np.empty((N, n)), np.empty((N, n))
+    active = np.zeros((N, 2 * n), dtype=np.bool_)
+    state = np.zeros(2 * n, dtype=np.bool_)
+    Ltb, h, lam, t, g = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    tols = np.empty(3)
+    data = (LtL, K, np.ascontiguousarray(K.T), Ltb, h, tols, lam, t, g,
+            np.zeros(2 * n, dtype=np.bool_), np.empty((n, n)), np.empty(n, dtype=np.int64),
+            np.empty(n, dtype=np.int64))
+    use_warm = warm.shape[0] == N
+    n_unconverged, sweeps_max, total = 0 if finite else -1, 0, 0.0
+    for s in range(N if finite else 0):
+        # Ltb = eps C^T r + q, h = q / sqrt(gamma), the tolerances of pivot_violation
+        b1, b2, b3 = 0.0, 0.0, 0.0
+        for i in range(n):
+            v = 0.0
+            for k in range(n_x):
+                v += C[k, i] * QR[s, n + k]
+            Ltb[i] = eps * v + QR[s, i]
+            h[i] = QR[s, i] * scale
+            b1, b3 = max(b1, abs(Ltb[i])), max(b3, abs(h[i]))
+        for j in range(n):
+            v = 0.0
+            for i in range(n):
+                v += h[i] * K[i, j]
+            b2 = max(b2, abs(v))
+        tols[0], tols[1], tols[2] = tol * (1.0 + b1 + b2), tol, tol * (1.0 + b3)
+        for i in range(n):
+            state[i] = warm[s, i] if use_warm else h[i] < 0.0
+            state[n + i] = warm[s, n + i] if use_warm else h[i] < 0.0
+        bad = _violation_solve(data, state)
+        n_bad, sweeps = bad.sum(), 0
+        best, stalled = n_bad, 0
+        while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
+            _move(bad, state, 2 * n, sweeps >= stall and stalled >= stall)
+            bad = _violation_solve(data, state)
+            n_bad, sweeps = bad.sum(), sweeps + 1
+            best, stalled = _progress(n_bad, best, stalled)
+        converged = n_bad == 0
+        sweeps_max = max(sweeps_max, sweeps)
+        n_unconverged += not converged
+        # phi = max(0, F lam + q - gamma lam), e = C lam + r, w = F lam + q - phi; the value
+        for i in range(n):
+            lam[i] = max(lam[i], 0.0)
+            lam_all[s, i] = lam[i]
+            Z[s, p + i] = lam[i]
+            active[s, i] = lam[i] > 0.0
+        for i in range(n):
+            v, tk = QR[s, i], -h[i]
+            for j in range(n):
+                v += F[i, j] * lam[j]
+                tk += K[i, j] * lam[j]
+            active[s, n + i] = tk > 0.0
+            ph = max(v - gamma * lam[i], 0.0)
+            phi[s, i] = ph
+            w = v - ph
+            total += (lam[i] * ph + 0.5 / gamma * w * w) / eps
+            Y[s, n_x + i] = w / (gamma * eps * N)
+        for k in range(n_x):
+            v = QR[s, n + k]
+            for j in range(n):
+                v += C[k, j] * lam[j]
+            total += 0.5 * v * v
+            Y[s, k] = v / N
+    grads = _gradients(Z, Y, G, n_x, n_u, n)
+    return total / N, grads, lam_all, phi, active, n_unconverged, sweeps_max
+
+
+@numba.njit(inline="always", **_JIT)
+def _lcp_solve(data, free):  # pragma: no cover - compiled
+    """One candidate of the LCP on the free set ``free`` of one sample: ``F_II lam_I = -q_I``
+    (``M``, ``piv``: its LU factors; ``idx[:m]`` the free indices, ``m = idx[n]``), ``w = F lam +
+    q``, and the infeasible flags of :func:`.lcp.pivot_lcp` (``at``: ``-tol (1 + |q|_inf)``)."""
+    F, q, at, lam, w, bad, M, piv, idx = data
+    n = lam.shape[0]
+    m = 0
+    for i in range(n):
+        if free[i]:
+            idx[m] = i
+            m += 1
+    idx[n] = m
+    for a in range(m):
+        for b in range(m):
+            M[a, b] = F[idx[a], idx[b]]
+        w[a] = -q[idx[a]]
+    ok = _lu_factor(M, piv, m)
+    lam[:] = 0.0
+    if ok:
+        _lu_solve(M, piv, w, m)
+        for a in range(m):
+            lam[idx[a]] = w[a]
+    for i in range(n):
+        v = q[i]
+        for j in range(n):
+            v += F[i, j] * lam[j]
+        w[i] = v
+        bad[i] = (not ok) or ((lam[i] < at[0]) if free[i] else (v < at[0]))
+    return bad
+
+
+@numba.njit(**_JIT)
+def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter, stall,
+               degenerate_tol, warm):  # pragma: no cover - compiled
+    """The LCP of every sample, the batch mean of ``1/2 ||C lam + r||^2`` and Lemma 1's gradients.
+
+    ``warm``: ``(N, n)`` bool first guess of the free sets (empty ``(0, 0)``: the cold guess
+    ``q < 0``). Returns ``(value, grads, lam, w, free, n_unconverged, sweeps, n_degenerate)``,
+    ``free`` the final free sets (``lam > 0``), ``w = F lam + q``, ``n_degenerate`` the samples
+    with some ``lam_i = w_i = 0`` (both below ``degenerate_tol (1 + |q|_inf)``);
+    ``n_unconverged = -1`` if the data are not finite."""
+    N, n_x = x.shape
+    n_u, n = u.shape[1], C.shape[1]
+    p = n_x + n_u + 1
+    F = _F(G, H, stiffness)
+    Z, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    Y = np.empty((N, n_x + n))
+    lam_all, w_all = np.empty((N, n)), np.empty((N, n))
+    free_all = np.zeros((N, n), dtype=np.bool_)
+    free = np.zeros(n, dtype=np.bool_)
+    lam, w, mu = np.empty(n), np.empty(n), np.empty(n)
+    at = np.empty(1)
+    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=np.int64), np.empty(n + 1, dtype=np.int64)
+    bad = np.empty(n, dtype=np.bool_)
+    use_warm = warm.shape[0] == N
+    n_unconverged, sweeps_max, n_deg, total = 0 if finite else -1, 0, 0, 0.0
+    for s in range(N if finite else 0):
+        q = QR[s, :n]
+        big = 0.0
+        for i in range(n):
+            free[i] = warm[s, i] if use_warm else q[i] < 0.0
+            big = max(big, abs(q[i]))
+        at[0] = -tol * (1.0 + big)
+        data = (F, q, at, lam, w, bad, M, piv, idx)
+        bad = _lcp_solve(data, free)
+        n_bad, sweeps = bad.sum(), 0
+        best, stalled = n_bad, 0
+        while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
+            _move(bad, free, n, sweeps >= stall and stalled >= stall)
+            bad = _lcp_solve(data, free)
+            n_bad, sweeps = bad.sum(), sweeps + 1
+            best, stalled = _progress(n_bad, best, stalled)
+        converged = n_bad == 0
+        sweeps_max = max(sweeps_max, sweeps)
+        n_unconverged += not converged
+        # the final free set: free and lam > 0 (an index at zero is held there: one-sided)
+        refactor = False
+        for i in range(n):
+            refactor = refactor or (free[i] and not lam[i] > 0.0)
+            free[i] = free[i] and lam[i] > 0.0
+            free_all[s, i] = free[i]
+            lam[i] = max(lam[i], 0.0)
+            lam_all[s, i] = lam[i]
+            Z[s, p + i] = lam[i]
+        if refactor:
+            _lcp_solve(data, free)  # F_II's factors on the final free set (lam unchanged)
+            for i in range(n):
+                lam[i] = lam_all[s, i]
+        m = idx[n]
+        # e = C lam + r; the adjoint F_II^T mu_I = (C^T e / N)_I, mu_J = 0; g_q = -mu
+        for k in range(n_x):
+            v = QR[s, n + k]
+            for j in range(n):
+                v += C[k, j] * lam[j]
+            total += 0.5 * v * v
+            Y[s, k] = v / N
+        for a in range(m):
+            v = 0.0
+            for k in range(n_x):
+                v += C[k, idx[a]] * Y[s, k]
+            mu[a] = v
+        _lu_solve_transposed(M, piv, mu, m)
+        for i in range(n):
+            Y[s, n_x + i] = 0.0
+        for a in range(m):
+            Y[s, n_x + idx[a]] = -mu[a]
+        deg = False
+        atd = degenerate_tol * (1.0 + big)
+        for i in range(n):
+            v = q[i]
+            for j in range(n):
+                v += F[i, j] * lam[j]
+            w_all[s, i] = v
+            deg = deg or (lam[i] <= atd and abs(v) <= atd)
+        n_deg += deg
+    grads = _gradients(Z, Y, G, n_x, n_u, n)
+    return total / N, grads, lam_all, w_all, free_all, n_unconverged, sweeps_max, n_deg

@@ -1,0 +1,261 @@
+"""Loss + gradient throughput against the paper's authors' learners, side by side in one process.
+
+The authors' learners (DAIRLab/Learning-LCS, ``lcs/lcs_learning.py``: ``LCS_VN`` for the violation
+loss, ``LCS_PN`` for the prediction loss; CasADi with qpOASES, one QP per sample) are imported from
+a checkout the user names (``--authors``: the folder that holds their ``lcs`` package; nothing of
+theirs is in this repository) and called exactly as their training loops call them:
+``learner.step(x, u, x_next, theta)`` returns the mean loss and the mean gradient in ``theta``.
+Beside it, lcs_cvx's two ways to the same numbers: ``violation_value_and_grad`` /
+``prediction_value_and_grad`` (the loss and its gradient in one call, as the authors' ``step``
+returns them) and ``violation_loss`` / ``prediction_loss`` followed by ``.backward()`` (through
+torch's autograd, as a user composing losses runs them; the engine's own cost is then part of the
+time).
+
+Both sides get the same model and the same batch. The model is a random ground truth
+(:func:`lcs_cvx.random_lcs`, stiffness 0.5) with every parameter perturbed by ``0.05 N(0, 1)``
+(a mid-training model, as in :mod:`lcs_cvx.bench`), its ``G`` made upper triangular (the authors'
+``G`` is); ``theta`` is its parameters in the authors' layout (``vec`` is column-major). Their
+objectives differ from the package's by constant factors: their (V) objective with ``(gamma,
+eps)`` is twice the package's with ``(gamma / 2, 2 eps)``, and their prediction loss twice the
+package's. So the package runs at ``(gamma / 2, 2 eps)`` and each row checks that ``lam``, the loss
+and the gradient agree (``lam`` to the QP solver's accuracy): the two sides compute the same thing.
+
+Timing: one torch thread, both sides interleaved (one authors' call, then the package's calls for
+as long, per repeat), ``repeats`` repeats after a warm-up, median; samples/s = batch / median.
+
+    python -m studies.solvers.authors_speed --authors /path/to/Learning-LCS \
+        --out studies/results/solvers [--sizes fig1|paper|N_X,N_U,N_LAM ...] [--batch 200]
+
+Sizes: ``fig1`` (default) every ``(n_x, n_u, n_lam)`` of the paper's Fig. 1 -- panel (a)
+``(10, 4, {1, 4, 8, 12, 16, 20})``, (b) ``({2, 8, 16, 32, 64, 128}, 4, 10)``, (c) ``(8, 4, 10)``,
+(d, e) ``(4, 4, 4)``. Writes ``OUT/authors_speed.jsonl`` (one line per (size, loss); a rerun
+skips finished rows) and ``OUT/authors_speed.md``.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import lcs_cvx  # noqa: E402
+from lcs_cvx.data import make_dataset, random_lcs  # noqa: E402
+from lcs_cvx.losses import (  # noqa: E402
+    prediction_loss,
+    prediction_value_and_grad,
+    violation_loss,
+    violation_value_and_grad,
+)
+
+FIG1_SIZES = (
+    [(10, 4, n) for n in (1, 4, 8, 12, 16, 20)]
+    + [(n, 4, 10) for n in (2, 8, 16, 32, 64, 128)]
+    + [(8, 4, 10), (4, 4, 4)]
+)
+PAPER_SIZES = [(10, 4, 4), (10, 4, 10), (10, 4, 20), (128, 4, 10)]
+LOSSES = ("violation", "prediction")
+GAMMA, EPS = 1e-2, 1e-4  # the authors' (gamma, eps) of Fig. 1(a), (b)
+
+
+def model_for(n_x: int, n_u: int, n_lam: int, seed: int = 0) -> tuple[lcs_cvx.LCS, lcs_cvx.Transitions]:
+    """A mid-training model (truth + 0.05 N(0, 1), ``G`` upper triangular) and a batch of 50,000."""
+    truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
+    data = make_dataset(truth, 50_000, noise=1e-2, seed=seed + 1)
+    model = truth  # a fresh object: perturbed in place
+    gen = torch.Generator().manual_seed(seed + 2)
+    with torch.no_grad():
+        for _, p in model.named_parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=gen, dtype=p.dtype))
+        model.G.copy_(torch.triu(model.G))
+    model.requires_grad_(True)
+    return model, data
+
+
+def authors_theta(model: lcs_cvx.LCS) -> np.ndarray:
+    """The model's parameters in the authors' ``theta`` layout: ``vec`` (column-major) of ``A, B,
+    C, d, D, E``, then ``G``'s upper triangle column by column, ``vec(H)``, ``c``."""
+    def vec(t):
+        return t.detach().numpy().reshape(-1, order="F") if t.dim() == 2 else t.detach().numpy()
+
+    G = model.G.detach().numpy()
+    g_para = np.concatenate([G[: j + 1, j] for j in range(G.shape[0])])
+    return np.concatenate([vec(model.A), vec(model.B), vec(model.C), vec(model.d), vec(model.D),
+                           vec(model.E), g_para, vec(model.H), vec(model.c)])
+
+
+def package_gradient(model: lcs_cvx.LCS) -> np.ndarray:
+    """The package's gradient in the authors' layout (as :func:`authors_theta`)."""
+    grads = {k: p.grad for k, p in model.named_parameters()}
+
+    class _G:  # the gradients, shaped as the parameters, for authors_theta
+        pass
+
+    g = _G()
+    for k, v in grads.items():
+        setattr(g, k, v)
+    # d/dG_para is dG restricted to the upper triangle (G's strict lower part is held at 0)
+    g.G = torch.triu(grads["G"])
+    return authors_theta(g)
+
+
+def learners(lcs_learning, n_x: int, n_u: int, n_lam: int, stiffness: float):
+    """The authors' two learners, set up as their Fig. 1 scripts do (no regulariser here)."""
+    vn = lcs_learning.LCS_VN(n_state=n_x, n_control=n_u, n_lam=n_lam, F_stiffness=stiffness)
+    vn.diff(gamma=GAMMA, epsilon=EPS, w_C=0.0, C_ref=0, w_F=0.0, F_ref=0)
+    pn = lcs_learning.LCS_PN(n_state=n_x, n_control=n_u, n_lam=n_lam, F_stiffness=stiffness)
+    pn.diff(w_C=0.0, C_ref=0, w_F=0.0, F_ref=0)
+    return {"violation": vn, "prediction": pn}
+
+
+def run_row(lcs_learning, size, loss: str, batch: int, repeats: int, seed: int = 0) -> dict:
+    n_x, n_u, n_lam = size
+    model, data = model_for(n_x, n_u, n_lam, seed)
+    x, u, xn = data.x[:batch], data.u[:batch], data.x_next[:batch]
+    learner = learners(lcs_learning, n_x, n_u, n_lam, float(model.stiffness))[loss]
+    theta = authors_theta(model)
+    xa, ua, xna = x.numpy(), u.numpy(), xn.numpy()
+
+    def theirs():
+        return learner.step(xa, ua, xna, theta)
+
+    def ours():  # what a user's training step runs: the loss, then autograd
+        model.zero_grad(set_to_none=True)
+        if loss == "violation":
+            value = violation_loss(model, x, u, xn, gamma=GAMMA / 2, eps=2 * EPS)
+        else:
+            value = prediction_loss(model, x, u, xn)
+        value.backward()
+        return value
+
+    def ours_vg():  # the loss and its gradient in one call (the authors' step returns both)
+        if loss == "violation":
+            return violation_value_and_grad(model, x, u, xn, gamma=GAMMA / 2, eps=2 * EPS)
+        return prediction_value_and_grad(model, x, u, xn)
+
+    # the same computation: lam, loss and gradient
+    out = theirs()
+    their_loss, their_grad, their_lam = out[0], out[1], out[-1]
+    value = ours()
+    info = (lcs_cvx.violation_loss_info(model, x, u, xn, gamma=GAMMA / 2, eps=2 * EPS)
+            if loss == "violation" else lcs_cvx.prediction_loss_info(model, x, u, xn))
+    our_grad = 2.0 * package_gradient(model)
+    vg_value, vg_grads = ours_vg()
+    agreement = {
+        "lam_err": float(np.abs(info.lam.numpy() - their_lam).max()),
+        "loss_rel_err": abs(2.0 * float(value) - their_loss) / (1.0 + abs(their_loss)),
+        "grad_rel_err": float(np.abs(our_grad - their_grad).max() / (1.0 + np.abs(their_grad).max())),
+        "value_and_grad_equal": float(vg_value) == float(value) and all(
+            bool(torch.equal(vg_grads[k], p.grad)) for k, p in model.named_parameters()),
+    }
+
+    # interleaved timing: per repeat one authors' call, then each package call for as long
+    for _ in range(3):
+        theirs(), ours(), ours_vg()
+    t_theirs, t_ours, t_vg = [], [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        theirs()
+        dt = time.perf_counter() - t0
+        t_theirs.append(dt)
+        for fn, times in ((ours, t_ours), (ours_vg, t_vg)):
+            n, t0 = 0, time.perf_counter()
+            while True:
+                fn()
+                n += 1
+                el = time.perf_counter() - t0
+                if el >= max(dt, 0.02):
+                    break
+            times.append(el / n)
+    authors = batch / statistics.median(t_theirs)
+    package, package_vg = batch / statistics.median(t_ours), batch / statistics.median(t_vg)
+    return {"n_x": n_x, "n_u": n_u, "n_lam": n_lam, "loss": loss, "batch": batch,
+            "authors_samples_per_s": authors, "package_samples_per_s": package,
+            "ratio": package / authors, "value_and_grad_samples_per_s": package_vg,
+            "value_and_grad_ratio": package_vg / authors, **agreement}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| (n_x, n_u, n_λ) | loss | authors (`step`) | lcs_cvx `*_value_and_grad` | ratio | "
+             "lcs_cvx loss + `backward()` | ratio | max Δλ | rel. Δloss | rel. Δgradient |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| ({r['n_x']}, {r['n_u']}, {r['n_lam']}) | {r['loss']} | "
+                     f"{r['authors_samples_per_s']:,.0f} | {r['value_and_grad_samples_per_s']:,.0f} | "
+                     f"{r['value_and_grad_ratio']:,.0f}× | {r['package_samples_per_s']:,.0f} | "
+                     f"{r['ratio']:,.0f}× | {r['lam_err']:.1e} | {r['loss_rel_err']:.1e} | "
+                     f"{r['grad_rel_err']:.1e} |")
+    return "\n".join(lines)
+
+
+def parse_sizes(items: list[str]) -> list[tuple[int, int, int]]:
+    sizes: list[tuple[int, int, int]] = []
+    for item in items:
+        if item == "fig1":
+            sizes += FIG1_SIZES
+        elif item == "paper":
+            sizes += PAPER_SIZES
+        else:
+            parts = item.split(",")
+            if len(parts) != 3 or not all(p.strip().isdigit() for p in parts):
+                raise SystemExit(f"--sizes: expected fig1, paper or N_X,N_U,N_LAM, received {item!r}")
+            sizes.append(tuple(int(p) for p in parts))
+    return list(dict.fromkeys(sizes))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--authors", required=True, type=Path,
+                    help="folder holding the authors' 'lcs' package (a DAIRLab/Learning-LCS checkout)")
+    ap.add_argument("--out", type=Path, default=Path("studies/results/solvers"))
+    ap.add_argument("--sizes", nargs="+", default=["fig1"])
+    ap.add_argument("--losses", nargs="+", default=list(LOSSES), choices=LOSSES)
+    ap.add_argument("--batch", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--name", default="authors_speed")
+    args = ap.parse_args(argv)
+    if not (args.authors / "lcs" / "lcs_learning.py").is_file():
+        raise SystemExit(f"--authors: expected a folder with lcs/lcs_learning.py, received {args.authors}")
+    sys.path.insert(0, str(args.authors))
+    from lcs import lcs_learning  # the authors' code, from the user's checkout
+
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    jsonl = args.out / f"{args.name}.jsonl"
+    done = {}
+    if jsonl.exists():
+        for line in jsonl.read_text().splitlines():
+            r = json.loads(line)
+            done[(r["n_x"], r["n_u"], r["n_lam"], r["loss"], r["batch"])] = r
+    for size in parse_sizes(args.sizes):
+        for loss in args.losses:
+            key = (*size, loss, args.batch)
+            if key in done:
+                continue
+            row = run_row(lcs_learning, size, loss, args.batch, args.repeats)
+            done[key] = row
+            with jsonl.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(table([row]).splitlines()[-1], flush=True)
+    rows = sorted(done.values(), key=lambda r: (r["loss"], r["n_lam"] if r["n_x"] == 10 else 99, r["n_x"]))
+    head = (f"`python -m studies.solvers.authors_speed --authors PATH --out {args.out}`, "
+            f"{datetime.date.today()}, {platform.machine()} {os.cpu_count()}-core machine, one torch "
+            f"thread, batch {args.batch}, median of {args.repeats} interleaved repeats; casadi "
+            f"{__import__('casadi').__version__}, lcs_cvx {lcs_cvx.__version__}.\n\n")
+    (args.out / f"{args.name}.md").write_text(head + table(rows) + "\n")
+
+
+if __name__ == "__main__":
+    main()
