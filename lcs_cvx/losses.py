@@ -194,7 +194,13 @@ def _compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
 
 def as_arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
     """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous)."""
-    return [np.ascontiguousarray(t.detach().numpy()) for t in tensors]
+    return [np.ascontiguousarray(t.detach().numpy() if t.requires_grad else t.numpy())
+            for t in tensors]
+
+
+def _scalar(value: float) -> torch.Tensor:
+    """A 0-dim float64 tensor of ``value`` (through NumPy: a third of ``torch.tensor``'s cost)."""
+    return torch.from_numpy(np.array(value))
 
 
 #: Per model: its parameters when last seen, their storage addresses and arrays on their memory
@@ -250,12 +256,15 @@ def _compiled_call(fn: Any, model: Any, x: torch.Tensor, u: torch.Tensor, x_next
 
 def _ready(model: Any, x: Any, u: Any, x_next: Any) -> bool:
     """Whether ``(x, u, x_next)`` are already what :func:`lcs_cvx._checks.as_transitions` returns
-    for the compiled kernels: float64 CPU tensors of the model's dtype and the right shapes
+    for the compiled kernels: float64 CPU tensors of the right shapes for a float64 model
     (their finiteness is then the kernel's check)."""
-    ok = all(isinstance(t, torch.Tensor) and t.dtype == torch.float64 and t.device.type == "cpu"
-             and t.dim() == 2 for t in (x, u, x_next)) and model.dtype == torch.float64
-    return ok and x.shape[1] == model.n_x and x_next.shape == x.shape \
-        and u.shape == (x.shape[0], model.n_u)
+    try:
+        return (x.dtype is u.dtype is x_next.dtype is model.A.dtype is torch.float64
+                and x.is_cpu and u.is_cpu and x_next.is_cpu and x.dim() == 2
+                and x.shape == x_next.shape and x.shape[1] == model.n_x
+                and u.shape == (x.shape[0], model.n_u))
+    except AttributeError:  # not tensors
+        return False
 
 
 def _normal_equations(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
@@ -290,7 +299,7 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
                              VIOLATION_TOL, MAX_ITER, STALL)
         if out is not None:
             value, grads, lam, phi, active, _, sweeps = out
-            loss = CompiledLoss.apply(torch.tensor(value, dtype=torch.float64), grads,
+            loss = CompiledLoss.apply(_scalar(value), grads,
                                       *[getattr(model, k) for k in PARAMETER_NAMES])
             lam = torch.from_numpy(lam)
             worst = None
@@ -331,7 +340,7 @@ def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.
                              LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL)
         if out is not None:
             value, grads, lam, w, free, _, sweeps, n_deg = out
-            loss = CompiledLoss.apply(torch.tensor(value, dtype=torch.float64), grads,
+            loss = CompiledLoss.apply(_scalar(value), grads,
                                       *[getattr(model, k) for k in PARAMETER_NAMES])
             lam, w = torch.from_numpy(lam), torch.from_numpy(w)
             worst = None
@@ -504,11 +513,11 @@ def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, wid
                     options: tuple, loss_fn: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The compiled kernel's value and gradients where it runs, else autograd through ``loss_fn``
     (the same numbers to round-off)."""
-    if _ready(model, x, u, x_next) and _compiled(model, x, "auto"):
+    if _ready(model, x, u, x_next) and model.A.dim() == 2:
         from ._kernels import compiled
         out = _compiled_call(getattr(compiled, kernel_fn), model, x, u, x_next, None, width, *options)
         if out is not None:
-            return torch.tensor(out[0], dtype=torch.float64), dict(zip(PARAMETER_NAMES, out[1], strict=True))
+            return _scalar(out[0]), dict(zip(PARAMETER_NAMES, out[1], strict=True))
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     with torch.enable_grad():
         value = loss_fn()

@@ -37,34 +37,39 @@ __all__ = ["prediction", "violation"]
 
 _JIT = {"cache": True, "nogil": True}
 
+#: Index arrays are unsigned: an index read from one then needs no wrap-around test for a
+#: negative value (numba's Python semantics), which costs a third of a small solve.
+_INDEX = np.uint64
+
 
 @numba.njit(inline="always", **_JIT)
 def _cholesky_solve(M, rhs, m):  # pragma: no cover - compiled
     """Solve ``M[:m, :m] z = rhs[:m]`` in place (lower triangle of ``M`` read and overwritten by
-    its Cholesky factor); False if ``M`` is not positive definite to working precision."""
+    its Cholesky factor, the diagonal by its reciprocal); False if ``M`` is not positive definite
+    to working precision."""
     for j in range(m):
         s = M[j, j]
         for k in range(j):
             s -= M[j, k] * M[j, k]
         if not s > 0.0:
             return False
-        s = math.sqrt(s)
-        M[j, j] = s
+        r = 1.0 / math.sqrt(s)
+        M[j, j] = r
         for i in range(j + 1, m):
             t = M[i, j]
             for k in range(j):
                 t -= M[i, k] * M[j, k]
-            M[i, j] = t / s
+            M[i, j] = t * r
     for i in range(m):
         t = rhs[i]
         for k in range(i):
             t -= M[i, k] * rhs[k]
-        rhs[i] = t / M[i, i]
+        rhs[i] = t * M[i, i]
     for i in range(m - 1, -1, -1):
         t = rhs[i]
         for k in range(i + 1, m):
             t -= M[k, i] * rhs[k]
-        rhs[i] = t / M[i, i]
+        rhs[i] = t * M[i, i]
     return True
 
 
@@ -127,23 +132,22 @@ def _lu_solve_transposed(M, piv, b, m):  # pragma: no cover - compiled
 
 @numba.njit(**_JIT)
 def _inputs(A, B, C, d, D, E, c, x, u, x_next):  # pragma: no cover - compiled
-    """``Z = [x, u, 1, lam]`` ``(N, n_x + n_u + 1 + n)`` (its ``lam`` columns left for the caller),
-    ``QR = [q, r]`` ``(N, n + n_x)``, ``q = D x + E u + c``, ``r = A x + B u + d - x'`` (one
-    product ``[x, u, 1] [[D, E, c], [A, B, d]]^T``), and whether the data are finite (the sum of
-    their entries is)."""
+    """``X = [x, u, 1]`` ``(N, n_x + n_u + 1)``, ``QR = [q, r]`` ``(N, n + n_x)``, ``q = D x + E u +
+    c``, ``r = A x + B u + d - x'`` (one product ``X [[D, E, c], [A, B, d]]^T``), and whether the
+    data are finite (the sum of their entries is)."""
     N, n_x = x.shape
     n_u, n = u.shape[1], C.shape[1]
     p = n_x + n_u + 1
-    Z = np.empty((N, p + n))
+    X = np.empty((N, p))
     total = 0.0
     for s in range(N):
         for j in range(n_x):
-            Z[s, j] = x[s, j]
+            X[s, j] = x[s, j]
             total += x[s, j] + x_next[s, j]
         for j in range(n_u):
-            Z[s, n_x + j] = u[s, j]
+            X[s, n_x + j] = u[s, j]
             total += u[s, j]
-        Z[s, n_x + n_u] = 1.0
+        X[s, n_x + n_u] = 1.0
     W = np.empty((p, n + n_x))  # [[D, E, c], [A, B, d]]^T
     for i in range(n):
         for j in range(n_x):
@@ -157,24 +161,25 @@ def _inputs(A, B, C, d, D, E, c, x, u, x_next):  # pragma: no cover - compiled
         for j in range(n_u):
             W[n_x + j, n + i] = B[i, j]
         W[p - 1, n + i] = d[i]
-    QR = np.ascontiguousarray(Z[:, :p]) @ W
+    QR = X @ W
     for s in range(N):
         for i in range(n_x):
             QR[s, n + i] -= x_next[s, i]
-    return Z, QR, np.isfinite(total)
+    return X, QR, np.isfinite(total)
 
 
 @numba.njit(**_JIT)
-def _gradients(Z, Y, G, n_x, n_u, n):  # pragma: no cover - compiled
-    """The nine parameter gradients from one product ``Y^T Z`` (``Y = [g_r, g_q]`` ``(N, n_x +
-    n)``, the loss's sensitivities to ``r`` and ``q``; ``Z = [x, u, 1, lam]``): ``dA = g_r^T x``,
-    ``dB = g_r^T u``, ``dd = sum g_r``, ``dC = g_r^T lam``, the same with ``g_q`` for ``D, E, c, F``,
-    and ``dG = (dF + dF^T) G``, ``dH = dF - dF^T`` (:func:`.losses.parameter_gradients`)."""
-    P = np.ascontiguousarray(Y.T) @ Z
+def _gradients(X, lam, Y, G, n_x, n_u):  # pragma: no cover - compiled
+    """The nine parameter gradients from ``Y^T [X, lam]`` (``Y = [g_r, g_q]`` ``(N, n_x + n)``,
+    the loss's sensitivities to ``r`` and ``q``; ``X = [x, u, 1]``): ``dA = g_r^T x``, ``dB =
+    g_r^T u``, ``dd = sum g_r``, ``dC = g_r^T lam``, the same with ``g_q`` for ``D, E, c, F``, and
+    ``dG = (dF + dF^T) G``, ``dH = dF - dF^T`` (:func:`.losses.parameter_gradients`)."""
+    P = Y.T @ X
+    L = Y.T @ lam
     p = n_x + n_u + 1
-    dF = np.ascontiguousarray(P[n_x:, p:])
+    dF = np.ascontiguousarray(L[n_x:])
     return (np.ascontiguousarray(P[:n_x, :n_x]), np.ascontiguousarray(P[:n_x, n_x:n_x + n_u]),
-            np.ascontiguousarray(P[:n_x, p:]), P[:n_x, p - 1].copy(),
+            np.ascontiguousarray(L[:n_x]), P[:n_x, p - 1].copy(),
             np.ascontiguousarray(P[n_x:, :n_x]), np.ascontiguousarray(P[n_x:, n_x:n_x + n_u]),
             (dF + dF.T) @ G, dF - dF.T, P[n_x:, p - 1].copy())
 
@@ -189,13 +194,12 @@ def _F(G, H, stiffness):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always", **_JIT)
-def _violation_solve(data, state):  # pragma: no cover - compiled
+def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, M, idx, pidx, KIP):  # pragma: no cover
     """One candidate of (V) on the pieces ``state = [free, pos]`` of one sample: ``lam`` (zero
     off the free set) from ``(LtL + K_P^T K_P)_II lam_I = (-Ltb + K_P^T h_P)_I`` (``P`` the pos
     set), ``t = K lam - h``, the gradient ``g = LtL lam + Ltb + K_P^T t_P``, and the ``2 n``
     infeasible flags of :func:`.violation.pivot_violation` (``tol``: ``[gradient, lam, t]``
     scales; ``tol[1]`` is set from the first candidate's ``|lam|``)."""
-    LtL, K, KT, Ltb, h, tol, lam, t, g, bad, M, idx, pidx = data
     n = lam.shape[0]
     m, mp = 0, 0
     for i in range(n):
@@ -205,19 +209,20 @@ def _violation_solve(data, state):  # pragma: no cover - compiled
         if state[n + i]:
             pidx[mp] = i
             mp += 1
+    # KIP = (K_PI)^T, compact: M = LtL_II + KIP KIP^T, rhs = -Ltb_I + KIP h_P
+    for a in range(m):
+        for c in range(mp):
+            KIP[a, c] = KT[idx[a], pidx[c]]
     for a in range(m):
         ia = idx[a]
         for b in range(a + 1):
-            ib = idx[b]
-            v = LtL[ia, ib]
+            v = LtL[ia, idx[b]]
             for c in range(mp):
-                k = pidx[c]
-                v += K[k, ia] * K[k, ib]
+                v += KIP[a, c] * KIP[b, c]
             M[a, b] = v
-        v = -Ltb[ia]
+        v = -Ltb_all[s, ia]
         for c in range(mp):
-            k = pidx[c]
-            v += K[k, ia] * h[k]
+            v += KIP[a, c] * h_all[s, pidx[c]]
         g[a] = v
     ok = _cholesky_solve(M, g, m)
     lam[:] = 0.0
@@ -225,8 +230,8 @@ def _violation_solve(data, state):  # pragma: no cover - compiled
         for a in range(m):
             lam[idx[a]] = g[a]
     for i in range(n):
-        t[i] = -h[i]
-        g[i] = Ltb[i]
+        t[i] = -h_all[s, i]
+        g[i] = Ltb_all[s, i]
     for a in range(m):  # t = K lam - h and LtL lam: over the free columns only
         j = idx[a]
         la = lam[j]
@@ -280,80 +285,69 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
     data are not finite."""
     N, n_x = x.shape
     n_u, n = u.shape[1], C.shape[1]
-    p = n_x + n_u + 1
     F = _F(G, H, stiffness)
-    Z, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    X, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
     scale = 1.0 / math.sqrt(gamma)
     LtL = eps * (C.T @ C) + F + F.T
     K = -F * scale
     for i in range(n):
         LtL[i, i] -= gamma
         K[i, i] += gamma * scale
-    Y = np.empty((N, n_x + n))
-    lam_all, phi = np.empty((N, n)), np.empty((N, n))
-    active = np.zeros((N, 2 * n), dtype=np.bool_)
+    # per sample: Ltb = eps C^T r + q, h = q / sqrt(gamma), and K^T h for the tolerances
+    Q, R = np.ascontiguousarray(QR[:, :n]), np.ascontiguousarray(QR[:, n:])
+    Ltb_all = eps * (R @ C) + Q
+    h_all = Q * scale
+    KTh_all = h_all @ K
+    lam_all = np.empty((N, n))
     state = np.zeros(2 * n, dtype=np.bool_)
-    Ltb, h, lam, t, g = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    tols = np.empty(3)
-    data = (LtL, K, np.ascontiguousarray(K.T), Ltb, h, tols, lam, t, g,
-            np.zeros(2 * n, dtype=np.bool_), np.empty((n, n)), np.empty(n, dtype=np.int64),
-            np.empty(n, dtype=np.int64))
+    lam, t, g, tols = np.empty(n), np.empty(n), np.empty(n), np.empty(3)
+    KT, bad, M, KIP = np.ascontiguousarray(K.T), np.zeros(2 * n, dtype=np.bool_), np.empty((n, n)), np.empty((n, n))
+    idx, pidx = np.empty(n, dtype=_INDEX), np.empty(n, dtype=_INDEX)
     use_warm = warm.shape[0] == N
-    n_unconverged, sweeps_max, total = 0 if finite else -1, 0, 0.0
+    n_unconverged, sweeps_max = 0 if finite else -1, 0
     for s in range(N if finite else 0):
-        # Ltb = eps C^T r + q, h = q / sqrt(gamma), the tolerances of pivot_violation
         b1, b2, b3 = 0.0, 0.0, 0.0
-        for i in range(n):
-            v = 0.0
-            for k in range(n_x):
-                v += C[k, i] * QR[s, n + k]
-            Ltb[i] = eps * v + QR[s, i]
-            h[i] = QR[s, i] * scale
-            b1, b3 = max(b1, abs(Ltb[i])), max(b3, abs(h[i]))
-        for j in range(n):
-            v = 0.0
-            for i in range(n):
-                v += h[i] * K[i, j]
-            b2 = max(b2, abs(v))
+        for i in range(n):  # the tolerances of pivot_violation
+            hi = h_all[s, i]
+            b1, b2, b3 = max(b1, abs(Ltb_all[s, i])), max(b2, abs(KTh_all[s, i])), max(b3, abs(hi))
+            state[i] = warm[s, i] if use_warm else hi < 0.0
+            state[n + i] = warm[s, n + i] if use_warm else hi < 0.0
         tols[0], tols[1], tols[2] = tol * (1.0 + b1 + b2), tol, tol * (1.0 + b3)
-        for i in range(n):
-            state[i] = warm[s, i] if use_warm else h[i] < 0.0
-            state[n + i] = warm[s, n + i] if use_warm else h[i] < 0.0
-        bad = _violation_solve(data, state)
+        bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, M, idx, pidx, KIP)
         n_bad, sweeps = bad.sum(), 0
         best, stalled = n_bad, 0
         while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
             _move(bad, state, 2 * n, sweeps >= stall and stalled >= stall)
-            bad = _violation_solve(data, state)
+            bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, M, idx, pidx, KIP)
             n_bad, sweeps = bad.sum(), sweeps + 1
             best, stalled = _progress(n_bad, best, stalled)
-        converged = n_bad == 0
         sweeps_max = max(sweeps_max, sweeps)
-        n_unconverged += not converged
-        # phi = max(0, F lam + q - gamma lam), e = C lam + r, w = F lam + q - phi; the value
+        n_unconverged += n_bad > 0
         for i in range(n):
-            lam[i] = max(lam[i], 0.0)
-            lam_all[s, i] = lam[i]
-            Z[s, p + i] = lam[i]
-            active[s, i] = lam[i] > 0.0
+            lam_all[s, i] = max(lam[i], 0.0)
+    # phi = max(0, F lam + q - gamma lam), e = C lam + r, w = F lam + q - phi; the value; the
+    # pieces K lam - h = (gamma lam - (F lam + q)) / sqrt(gamma) > 0
+    Flq = lam_all @ F.T + Q
+    Y = np.empty((N, n_x + n))
+    Y[:, :n_x] = R + lam_all @ C.T
+    phi = np.empty((N, n))
+    active = np.empty((N, 2 * n), dtype=np.bool_)
+    total = 0.0
+    for s in range(N if finite else 0):
         for i in range(n):
-            v, tk = QR[s, i], -h[i]
-            for j in range(n):
-                v += F[i, j] * lam[j]
-                tk += K[i, j] * lam[j]
-            active[s, n + i] = tk > 0.0
-            ph = max(v - gamma * lam[i], 0.0)
+            la, v = lam_all[s, i], Flq[s, i]
+            active[s, i] = la > 0.0
+            active[s, n + i] = gamma * la - v > 0.0
+            ph = max(v - gamma * la, 0.0)
             phi[s, i] = ph
             w = v - ph
-            total += (lam[i] * ph + 0.5 / gamma * w * w) / eps
+            total += (la * ph + 0.5 / gamma * w * w) / eps
             Y[s, n_x + i] = w / (gamma * eps * N)
         for k in range(n_x):
-            v = QR[s, n + k]
-            for j in range(n):
-                v += C[k, j] * lam[j]
+            v = Y[s, k]
             total += 0.5 * v * v
             Y[s, k] = v / N
-    grads = _gradients(Z, Y, G, n_x, n_u, n)
+    grads = _gradients(X, lam_all, Y, G, n_x, n_u)
     return total / N, grads, lam_all, phi, active, n_unconverged, sweeps_max
 
 
@@ -401,16 +395,15 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
     ``n_unconverged = -1`` if the data are not finite."""
     N, n_x = x.shape
     n_u, n = u.shape[1], C.shape[1]
-    p = n_x + n_u + 1
     F = _F(G, H, stiffness)
-    Z, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    X, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
     Y = np.empty((N, n_x + n))
     lam_all, w_all = np.empty((N, n)), np.empty((N, n))
     free_all = np.zeros((N, n), dtype=np.bool_)
     free = np.zeros(n, dtype=np.bool_)
     lam, w, mu = np.empty(n), np.empty(n), np.empty(n)
     at = np.empty(1)
-    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=np.int64), np.empty(n + 1, dtype=np.int64)
+    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=_INDEX), np.empty(n + 1, dtype=_INDEX)
     bad = np.empty(n, dtype=np.bool_)
     use_warm = warm.shape[0] == N
     n_unconverged, sweeps_max, n_deg, total = 0 if finite else -1, 0, 0, 0.0
@@ -441,12 +434,11 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             free_all[s, i] = free[i]
             lam[i] = max(lam[i], 0.0)
             lam_all[s, i] = lam[i]
-            Z[s, p + i] = lam[i]
         if refactor:
             _lcp_solve(data, free)  # F_II's factors on the final free set (lam unchanged)
             for i in range(n):
                 lam[i] = lam_all[s, i]
-        m = idx[n]
+        m = int(idx[n])
         # e = C lam + r; the adjoint F_II^T mu_I = (C^T e / N)_I, mu_J = 0; g_q = -mu
         for k in range(n_x):
             v = QR[s, n + k]
@@ -466,12 +458,14 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             Y[s, n_x + idx[a]] = -mu[a]
         deg = False
         atd = degenerate_tol * (1.0 + big)
-        for i in range(n):
-            v = q[i]
-            for j in range(n):
-                v += F[i, j] * lam[j]
+        for i in range(n):  # w = F lam + q: the last sweep's, unless lam was clamped there
+            v = w[i]
+            if refactor:
+                v = q[i]
+                for j in range(n):
+                    v += F[i, j] * lam[j]
             w_all[s, i] = v
             deg = deg or (lam[i] <= atd and abs(v) <= atd)
         n_deg += deg
-    grads = _gradients(Z, Y, G, n_x, n_u, n)
+    grads = _gradients(X, lam_all, Y, G, n_x, n_u)
     return total / N, grads, lam_all, w_all, free_all, n_unconverged, sweeps_max, n_deg
