@@ -129,8 +129,9 @@ def solve_lcp_fast(
         warm_start: ``(B, n)`` bool first guess of the free sets, e.g. ``free`` of an earlier
             solve of the same samples (default: ``q < 0``, the guess of ``lam = 0``). The
             solution is unique (Assumption 1) and does not depend on it; the sweeps do.
-        arrays: the kernel's array library: ``"auto"`` (NumPy for CPU tensors, torch
-            otherwise), ``"numpy"`` or ``"torch"``.
+        arrays: ``"auto"`` (a float64 CPU ``F``: the compiled kernel, each sample pivoted on its
+            own; else the array kernel in NumPy for CPU tensors, torch otherwise), ``"compiled"``,
+            or the array kernel's library, ``"numpy"`` or ``"torch"``.
 
     Returns:
         :class:`LCPSolution` (no autograd graph; see :func:`active_set_solve`).

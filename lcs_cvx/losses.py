@@ -173,10 +173,6 @@ class ImplicitLoss(torch.autograd.Function):
         return (None,) * 3 + kernel.implicit_backward(ctx.saved, grad, ctx.needs_input_grad[3:])
 
 
-#: The cold start of the compiled kernels (an empty warm start).
-_COLD = np.zeros((0, 0), dtype=np.bool_)
-
-
 def _compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
     """Whether the fast losses run compiled (:mod:`lcs_cvx._kernels.compiled`): one model's
     float64 tensors on the CPU, the default there (``arrays="auto"``); ``arrays="compiled"``
@@ -231,7 +227,9 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     the reference solvers; -1: the data are not finite) and its outputs, the gradients as
     tensors."""
     A, B, C, d, D, E, G, H, c = params
-    warm = _COLD
+    from ._kernels.compiled import COLD
+
+    warm = COLD
     if warm_start is not None:
         check_warm_start(warm_start, (x.shape[0], width))
         warm = np.ascontiguousarray(warm_start.numpy())
@@ -308,7 +306,7 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
                 worst = float(violation_kkt_residual(values, lam).max())
             return LossInfo(loss, lam, phi=torch.from_numpy(phi), iterations=sweeps,
                             max_residual=worst, active=torch.from_numpy(active))
-    xp = array_ops(x, "auto" if arrays == "compiled" else arrays)
+    xp = array_ops(x, arrays)
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     with xp.threads():
         b = kernel.batch(xp, params, x, u, x_next, stiffness)
@@ -350,7 +348,6 @@ def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.
                     worst = float(lcp_residual(model.F, q, lam, w).max())
             return LossInfo(loss, lam, w=w, iterations=sweeps, n_degenerate=n_deg,
                             max_residual=worst, active=torch.from_numpy(free))
-    arrays = "auto" if arrays == "compiled" else arrays
     xp = array_ops(x, arrays)
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     with xp.threads():

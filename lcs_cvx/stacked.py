@@ -222,7 +222,7 @@ def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: 
         loss, outs = done
         return StackedInfo(loss, torch.stack([torch.from_numpy(out[4]) for out in outs]), [0] * K,
                            [0.0] * K)
-    xp = array_ops(x, "auto" if arrays == "compiled" else arrays)
+    xp = array_ops(x, arrays)
     params = [getattr(ens, k) for k in PARAMETER_NAMES]
     with xp.threads():
         b = kernel.batch(xp, params, x, u, x_next, xp.wrap(ens.stiffness)[:, None, None])
@@ -264,7 +264,6 @@ def prediction_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next:
         loss, outs = done
         return StackedInfo(loss, torch.stack([torch.from_numpy(out[4]) for out in outs]), [0] * K,
                            [0.0] * K)
-    arrays = "auto" if arrays == "compiled" else arrays
     xp = array_ops(x, arrays)
     params = [getattr(ens, k) for k in PARAMETER_NAMES]
     with xp.threads():

@@ -190,3 +190,30 @@ def test_compiled_kernel_reports_non_finite_data_without_work():
                               P["H"], 1.0, x, data.u.numpy(), data.x_next.numpy(), 1e-11, 100, 3,
                               1e-9, np.zeros((0, 0), dtype=np.bool_))
     assert out[5] == -1 and out[6] == 0
+
+
+@pytest.mark.parametrize("n", [1, 4, 12])
+def test_compiled_lcp_is_the_array_kernel(n):
+    """``solve_lcp_fast`` compiled (one float64 CPU ``F``, the default there) and in NumPy
+    arrays: the same solutions, slacks, free sets and sweeps; a warm start from its own free sets
+    makes no sweep; unconverged samples reach the same reference (FallbackWarning)."""
+    from lcs_cvx.lcp import solve_lcp_fast
+
+    truth = lcs_cvx.random_lcs(6, 2, n, stiffness=0.5, seed=n)
+    data = lcs_cvx.make_dataset(truth, 300, seed=1)
+    with torch.no_grad():
+        F, q = truth.F, truth.lcp_offset(data.x, data.u)
+    c, a = solve_lcp_fast(F, q, arrays="compiled"), solve_lcp_fast(F, q, arrays="numpy")
+    assert float((c.lam - a.lam).abs().max()) <= 1e-12 * (1.0 + float(a.lam.abs().max()))
+    assert float((c.w - a.w).abs().max()) <= 1e-12 * (1.0 + float(a.w.abs().max()))
+    assert torch.equal(c.free, a.free) and c.iterations == a.iterations and c.n_fallback == 0
+    assert float(c.residual.max()) <= 1e-13
+    warm = solve_lcp_fast(F, q, warm_start=c.free)
+    assert warm.iterations == 0 and torch.equal(warm.lam, c.lam)
+    if n > 1:
+        with pytest.warns(FallbackWarning):
+            c0 = solve_lcp_fast(F, q, max_iter=0, arrays="compiled")
+        with pytest.warns(FallbackWarning):
+            a0 = solve_lcp_fast(F, q, max_iter=0, arrays="numpy")
+        assert c0.n_fallback == a0.n_fallback > 0
+        assert float((c0.lam - a0.lam).abs().max()) <= 1e-12 * (1.0 + float(a0.lam.abs().max()))

@@ -31,7 +31,8 @@ def test_array_ops_choice_and_errors():
     t = torch.zeros(3, 2, dtype=F64)
     assert array_ops(t).name == "numpy"  # CPU tensors run in NumPy by default
     assert array_ops(t, "torch").name == "torch"
-    assert set(ARRAYS) == {"auto", "numpy", "torch"}
+    assert set(ARRAYS) == {"auto", "numpy", "torch", "compiled"}
+    assert array_ops(t, "compiled").name == "numpy"  # what the compiled kernels leave to arrays
     with pytest.raises(LCSInputError, match=r"arrays: expected one of .*received 'jax'"):
         array_ops(t, "jax")
     with pytest.raises(LCSInputError, match="arrays"):

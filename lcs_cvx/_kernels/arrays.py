@@ -331,8 +331,10 @@ class _BlasThreads:
 
 _BLAS_THREADS = _BlasThreads()
 
-#: The kernels' array libraries: ``"auto"`` picks NumPy for CPU tensors and torch otherwise.
-ARRAYS = ("auto", "numpy", "torch")
+#: The kernels' array libraries: ``"auto"`` picks NumPy for CPU tensors and torch otherwise;
+#: ``"compiled"`` asks for the compiled kernels (:mod:`.compiled`: the fast losses, the LCP) and
+#: is ``"auto"`` for the array kernels (what the compiled ones do not cover).
+ARRAYS = ("auto", "numpy", "torch", "compiled")
 _OPS = {"numpy": ArrayOps("numpy"), "torch": ArrayOps("torch")}
 #: The torch instance, for kernels called on tensors with autograd (e.g. the normal equations
 #: of :meth:`lcs_cvx.problems.ViolationProblem.normal_equations`).
@@ -342,12 +344,12 @@ TORCH = _OPS["torch"]
 def array_ops(t: torch.Tensor, arrays: str = "auto") -> ArrayOps:
     """The :class:`ArrayOps` that runs the kernels on ``t``'s device.
 
-    ``arrays``: ``"auto"`` (NumPy for CPU tensors, torch otherwise), ``"numpy"`` (CPU tensors
-    only) or ``"torch"``.
+    ``arrays``: ``"auto"`` or ``"compiled"`` (NumPy for CPU tensors, torch otherwise),
+    ``"numpy"`` (CPU tensors only) or ``"torch"``.
     """
     if arrays not in ARRAYS:
         raise LCSInputError(f"arrays: expected one of {ARRAYS}, received {arrays!r}")
     cpu = t.device.type == "cpu"
     if arrays == "numpy" and not cpu:
         raise LCSInputError(f"arrays: 'numpy' runs on CPU tensors only, received a tensor on {t.device}")
-    return _OPS["numpy" if (arrays == "auto" and cpu) or arrays == "numpy" else "torch"]
+    return _OPS["numpy" if (arrays in ("auto", "compiled") and cpu) or arrays == "numpy" else "torch"]

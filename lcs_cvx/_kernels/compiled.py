@@ -33,13 +33,16 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["prediction", "violation"]
+__all__ = ["COLD", "lcp", "prediction", "violation"]
 
 _JIT = {"cache": True, "nogil": True}
 
 #: Index arrays are unsigned: an index read from one then needs no wrap-around test for a
 #: negative value (numba's Python semantics), which costs a third of a small solve.
 _INDEX = np.uint64
+
+#: The cold start (an empty warm start) of every kernel here.
+COLD = np.zeros((0, 0), dtype=np.bool_)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -383,6 +386,54 @@ def _lcp_solve(data, free):  # pragma: no cover - compiled
     return bad
 
 
+@numba.njit(inline="always", **_JIT)
+def _lcp_pivot(data, free, max_iter, stall):  # pragma: no cover - compiled
+    """Block pivoting on one sample's LCP from the free set ``free`` (:func:`_lcp_solve`'s
+    ``data``): (infeasible count at the end, sweeps), the last candidate in ``data``."""
+    bad = _lcp_solve(data, free)
+    n = free.shape[0]
+    n_bad, sweeps = bad.sum(), 0
+    best, stalled = n_bad, 0
+    while sweeps < max_iter and n_bad > 0:  # Murty's rule once stalled
+        _move(bad, free, n, sweeps >= stall and stalled >= stall)
+        bad = _lcp_solve(data, free)
+        n_bad, sweeps = bad.sum(), sweeps + 1
+        best, stalled = _progress(n_bad, best, stalled)
+    return n_bad, sweeps
+
+
+@numba.njit(**_JIT)
+def lcp(F, q_all, tol, max_iter, stall, warm):  # pragma: no cover - compiled
+    """The LCP ``0 <= lam _|_ F lam + q >= 0`` for every row of ``q_all`` ``(N, n)``
+    (:func:`.lcp.pivot_lcp`'s algorithm, sample by sample). ``warm``: ``(N, n)`` bool first guess
+    of the free sets (empty ``(0, 0)``: the cold guess ``q < 0``). Returns ``(lam, w, free,
+    unconverged, sweeps)``: ``lam`` clamped at 0, ``w = F lam + q``, ``free`` the final free sets
+    where ``lam > 0``, ``unconverged`` the indices of the samples still infeasible."""
+    N, n = q_all.shape
+    lam_all, free_all = np.empty((N, n)), np.zeros((N, n), dtype=np.bool_)
+    free, bad = np.zeros(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
+    lam, w, at = np.empty(n), np.empty(n), np.empty(1)
+    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=_INDEX), np.empty(n + 1, dtype=_INDEX)
+    use_warm = warm.shape[0] == N
+    failed = np.zeros(N, dtype=np.bool_)
+    sweeps_max = 0
+    for s in range(N):
+        q = q_all[s]
+        big = 0.0
+        for i in range(n):
+            free[i] = warm[s, i] if use_warm else q[i] < 0.0
+            big = max(big, abs(q[i]))
+        at[0] = -tol * (1.0 + big)
+        n_bad, sweeps = _lcp_pivot((F, q, at, lam, w, bad, M, piv, idx), free, max_iter, stall)
+        sweeps_max = max(sweeps_max, sweeps)
+        failed[s] = n_bad > 0
+        for i in range(n):
+            free_all[s, i] = free[i] and lam[i] > 0.0
+            lam_all[s, i] = max(lam[i], 0.0)
+    w_all = lam_all @ F.T + q_all
+    return lam_all, w_all, free_all, np.flatnonzero(failed), sweeps_max
+
+
 @numba.njit(**_JIT)
 def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter, stall,
                degenerate_tol, warm):  # pragma: no cover - compiled
@@ -415,17 +466,9 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             big = max(big, abs(q[i]))
         at[0] = -tol * (1.0 + big)
         data = (F, q, at, lam, w, bad, M, piv, idx)
-        bad = _lcp_solve(data, free)
-        n_bad, sweeps = bad.sum(), 0
-        best, stalled = n_bad, 0
-        while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
-            _move(bad, free, n, sweeps >= stall and stalled >= stall)
-            bad = _lcp_solve(data, free)
-            n_bad, sweeps = bad.sum(), sweeps + 1
-            best, stalled = _progress(n_bad, best, stalled)
-        converged = n_bad == 0
+        n_bad, sweeps = _lcp_pivot(data, free, max_iter, stall)
         sweeps_max = max(sweeps_max, sweeps)
-        n_unconverged += not converged
+        n_unconverged += n_bad > 0
         # the final free set: free and lam > 0 (an index at zero is held there: one-sided)
         refactor = False
         for i in range(n):

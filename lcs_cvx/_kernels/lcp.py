@@ -10,10 +10,18 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 
 from .arrays import ArrayOps, array_ops
-from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
+from .pivoting import (
+    STALL,
+    PivotResult,
+    block_pivoting,
+    check_warm_start,
+    initial_state,
+    unconverged,
+)
 from .stacks import matrices
 
 __all__ = ["PIVOT_TOL", "Pivoted", "pivot_lcp", "solve"]
@@ -71,7 +79,21 @@ def solve(F: torch.Tensor, q: torch.Tensor, *, tol: float = PIVOT_TOL, max_iter:
           warm_start: torch.Tensor | None = None, arrays: str = "auto") -> Pivoted:
     """Pivot the LCPs ``(F, q_t)`` for the rows of ``q`` ``(B, n)`` (``F`` ``(n, n)``, or a stack
     ``(K, n, n)`` whose models own ``B / K`` rows each, model-major; detached tensors) in the
-    ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`)."""
+    ``arrays`` back-end (:func:`lcs_cvx._kernels.arrays.array_ops`; one float64 CPU ``F`` runs
+    the compiled kernel, :func:`lcs_cvx._kernels.compiled.lcp`, unless ``arrays`` names an array
+    library)."""
+    if arrays in ("auto", "compiled") and F.dim() == 2 and q.dtype == torch.float64 and q.is_cpu:
+        from . import compiled
+
+        warm = compiled.COLD
+        if warm_start is not None:
+            check_warm_start(warm_start, tuple(q.shape))
+            warm = np.ascontiguousarray(warm_start.numpy())
+        lam, w, free, bad, sweeps = compiled.lcp(np.ascontiguousarray(F.numpy()),
+                                                 np.ascontiguousarray(q.numpy()), tol, max_iter,
+                                                 STALL, warm)
+        idx = torch.from_numpy(bad.astype(np.int64)) if len(bad) else None
+        return Pivoted(torch.from_numpy(lam), torch.from_numpy(w), torch.from_numpy(free), idx, sweeps)
     xp = array_ops(q, arrays)
     with xp.threads():
         Fa, qa = xp.wrap(F), xp.wrap(q)
