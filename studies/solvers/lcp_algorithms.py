@@ -4,7 +4,8 @@ Compares, on ``0 <= lam _|_ F lam + q >= 0`` with ``F + F^T > 0`` (one ``F``, a 
 ``q``, as an LCS poses them): Lemke's method, projected Gauss--Seidel, semismooth
 Fischer--Burmeister Newton, the convex problem (P) with OSQP (through CVXPY and directly) and
 with Clarabel (``lcs_cvx.solve_lcp(..., method="cvxpy")``), and the package's batched block
-principal pivoting (``lcs_cvx.solve_lcp(..., method="fast")``). The algorithms other than the
+principal pivoting (``lcs_cvx.solve_lcp(..., method="fast")``, compiled; and its array kernel,
+``solve_lcp_fast(..., arrays="numpy")``). The algorithms other than the
 package's are in :mod:`studies.solvers.lcp_algos`.
 
 Problems (seeded; ``q`` uniform in ``[-1, 1]^n`` unless said):
@@ -53,11 +54,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import lcs_cvx  # noqa: E402
-from lcs_cvx.lcp import lcp_residual, solve_lcp_brute  # noqa: E402
+from lcs_cvx.lcp import lcp_residual, solve_lcp_brute, solve_lcp_fast  # noqa: E402
 
 from . import lcp_algos  # noqa: E402
 
-DATE = "2026-11-25"
+DATE = "2026-11-25 (the two `pivoting` rows: 2026-11-26)"
 MACHINE = "2-core x86-64 VM, 1 torch thread"
 FAIL_RESIDUAL = 1e-6
 ACC_BATCH = 200
@@ -81,6 +82,13 @@ def _pivoting(F: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, dic
     return sol.lam.numpy(), np.ones(q.shape[0], dtype=bool), {"n_fallback": sol.n_fallback}
 
 
+def _pivoting_arrays(F: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", lcs_cvx.FallbackWarning)
+        sol = solve_lcp_fast(torch.from_numpy(F), torch.from_numpy(q), arrays="numpy")
+    return sol.lam.numpy(), np.ones(q.shape[0], dtype=bool), {"n_fallback": sol.n_fallback}
+
+
 def _clarabel(F: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
     try:
         sol = lcs_cvx.solve_lcp(torch.from_numpy(F), torch.from_numpy(q), method="cvxpy")
@@ -91,7 +99,10 @@ def _clarabel(F: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, dic
 
 #: name -> (solver, description)
 METHODS: dict[str, tuple[Solver, str]] = {
-    "pivoting": (_pivoting, "lcs_cvx.solve_lcp(method='fast'): batched block principal pivoting"),
+    "pivoting": (_pivoting, "lcs_cvx.solve_lcp(method='fast'): block principal pivoting, compiled "
+                 "(one float64 CPU F: each sample pivoted on its own)"),
+    "pivoting_arrays": (_pivoting_arrays, "the same pivoting in the array kernel "
+                        "(solve_lcp_fast(arrays='numpy')): the whole batch per NumPy operation"),
     "lemke": (_wrap(lcp_algos.lemke), "Lemke, covering vector 1, lexicographic ratio test; "
               "Python loop over samples"),
     "pgs": (_wrap(lcp_algos.pgs), "projected Gauss-Seidel, batched; tol 1e-12, 1000 sweeps"),

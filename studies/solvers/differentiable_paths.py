@@ -1,0 +1,661 @@
+"""Differentiable solver paths: loss + gradient of both losses through every installed path.
+
+For the violation loss (``lcs_cvx.violation_loss``, eq. (9): the batch mean of the optimal value
+of (V)) and the prediction loss (``lcs_cvx.prediction_loss``, eq. (6): the LCP solved, then
+``1/2 ||x'_theta - x'||^2``), one timed call is the loss on a batch followed by ``.backward()``
+to the model's parameters ``A, B, C, d, D, E, G, H, c`` (``F = G G^T + H - H^T + s I``), as in
+a training step. The paths:
+
+- ``fast``: the package's kernels (``solver="fast"``, the default; compiled for float64 CPU
+  tensors, as a training step runs them, without the diagnostics of ``*_loss_info``): exact pivoting,
+  the envelope gradient of Lemma 3 for (V), the implicit function theorem on the active set
+  (Lemma 1) for (P);
+- ``cvxpylayers`` / ``cvxpylayers-scs``: the package's ``solver=`` paths, diffcp with Clarabel
+  / SCS over the declared CVXPY problems (:func:`lcs_cvx.violation_problem`,
+  :func:`lcs_cvx.convex_lcp_problem`);
+- ``cvxpylayers-ecos``: the same layers with diffcp's third cone solver, ECOS (diffcp accepts
+  ``solve_method`` ``"SCS"``, ``"ECOS"`` and ``"Clarabel"``; cvxpylayers' other backends --
+  Moreau, CuClarabel, MPAX -- need packages or GPUs that are not installed), built here from
+  the package's layers (``lcs_cvx.layers.violation_layer``/``lcp_layer``) as
+  ``lcs_cvx.losses`` builds the other two;
+- ``qpth``: ``qpth.qp.QPFunction`` (batched primal-dual interior point, implicit
+  differentiation of its KKT system); every input is passed with the batch dimension, because
+  qpth averages the gradient of an input without one over the batch instead of summing it
+  (``Q``, ``G``, ``h`` shared by the batch would get gradients ``B`` times too small);
+- ``qplayer``: ProxSuite's ``proxsuite.torch.qplayer.QPFunction`` (ProxQP per sample, its own
+  backward);
+- ``qpoases``: qpOASES through CasADi's conic interface (``casadi.conic(..., "qpoases")``
+  mapped over the batch) for the forward solve, with the closed-form gradients written here:
+  for (V) the envelope theorem (Lemma 3: the objective of (V) evaluated at the detached
+  optimum, :meth:`lcs_cvx.problems.ViolationProblem.objective`, differentiated), for (P) the
+  implicit function theorem on the active set that qpOASES found (Lemma 1:
+  ``lam_I = -F_II^{-1} q_I`` through :func:`lcs_cvx.lcp.active_set_solve`, differentiated).
+
+The QPs handed to ``qpth``, ``qplayer`` and ``qpoases``, in ``min 1/2 z^T Q z + p^T z``:
+
+- (P), ``z = lam``: ``Q = F + F^T``, ``p = q``, subject to ``lam >= 0`` and ``F lam + q >= 0``
+  (the LCP with ``F + F^T > 0`` is this convex QP; its optimal value is 0);
+- (V), ``z = (lam, phi)``: eq. (9b) times ``eps`` (the same minimiser, a better-scaled QP)::
+
+      Q = [[eps C^T C + F^T F / gamma, I - F^T / gamma], [I - F / gamma, I / gamma]],
+      p = [eps C^T r + F^T q / gamma, -q / gamma],   z >= 0,
+
+  positive definite for ``gamma < sigma_min(F + F^T)`` (Lemma 2).
+
+On every path the loss is then evaluated by the package's formula at the path's solution
+(:meth:`~lcs_cvx.problems.ViolationProblem.objective` of (V); the prediction error for (P)),
+and autograd carries the gradient through the layer.
+
+Measured per (loss, size, path, batch): samples/s = batch / median time of one call (median of
+at least 5 repeats after a warm-up, one thread; :func:`lcs_cvx.bench.median_time` for calls
+under a second, else one warm-up call and 5 timed calls), at batch 1, 200 and 50,000. A path is
+not run at 50,000 when one call would take more than 60 s (estimated from its rate at 200, for
+the batched ``qpth`` from one call at 5,000; or found by the warm-up call): the row says
+"skipped: > 60 s per call" and gives the rate measured at 200. Agreement with the fast path on the same batch (the last timed call):
+max |Δlam|, relative Δloss ``|L - L_fast| / (1 + |L_fast|)`` and relative Δgradient
+``max_params max|g - g_fast| / (1 + max_params max|g_fast|)``. A path that raises is recorded
+with its error, never dropped.
+
+Data: sizes ``(n_x, n_u, n_lam) = (10, 4, 4)`` and ``(10, 4, 20)``; ground truth
+``lcs_cvx.random_lcs(stiffness=0.5, seed=0)``, 50,000 transitions
+``lcs_cvx.make_dataset(noise=1e-2, seed=1)`` (a batch of ``B`` is their first ``B``), the
+model is the truth with every parameter plus ``0.05 N(0, 1)`` (``lcs_cvx.bench``'s setting);
+``gamma = 1e-2``, ``eps = 1e-4``.
+
+    python -m studies.solvers.differentiable_paths --out studies/results/solvers [--smoke]
+
+Writes ``OUT/differentiable_paths.jsonl`` (one line per (loss, size, path, batch); a rerun skips
+finished rows), ``OUT/differentiable_paths.md`` and ``OUT/differentiable_paths.png``
+(``--smoke``: ``differentiable_paths_smoke.*``: n_lam = 3, batches 1 and 20, a few seconds per
+path).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import contextlib  # noqa: E402
+import functools  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from importlib.metadata import version  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+import lcs_cvx  # noqa: E402
+from lcs_cvx.bench import median_time  # noqa: E402
+from lcs_cvx.layers import lcp_layer, violation_layer  # noqa: E402
+from lcs_cvx.lcp import active_set_solve  # noqa: E402
+from lcs_cvx.losses import prediction_fast, violation_fast  # noqa: E402
+from lcs_cvx.problems import convex_lcp_problem, violation_problem  # noqa: E402
+from lcs_cvx.system import LCS, PARAMETER_NAMES  # noqa: E402
+
+DATE = time.strftime("%Y-%m-%d")
+MACHINE = "x86_64 2-core VM, one torch thread, the other core busy with other work"
+GAMMA, EPS = 1e-2, 1e-4
+PERTURB = 0.05
+N_DATA = 50_000
+SIZES = ((10, 4, 4), (10, 4, 20))
+BATCHES = (1, 200, 50_000)
+SMOKE_SIZES = ((4, 2, 3),)
+SMOKE_BATCHES = (1, 20)
+LOSSES = ("violation", "prediction")
+PATHS = ("fast", "cvxpylayers", "cvxpylayers-scs", "cvxpylayers-ecos", "qpth", "qplayer",
+         "qpoases")
+#: paths that solve the whole batch in one batched computation (the rest loop over samples)
+BATCHED = ("fast", "qpth")
+#: a call estimated to take longer than this at the largest batch is not run
+SKIP_SECONDS = 60.0
+#: calls longer than this are timed as one warm-up call and REPEATS timed calls
+SLOW_CALL_S = 1.0
+REPEATS = 5
+#: qpOASES: an index is free (lam_i > 0) above this, relative to 1 + |q|_inf
+FREE_TOL = 1e-9
+
+PATH_NOTES = {
+    "fast": "package kernels (`solver=\"fast\"`, as a training step runs them): exact pivoting "
+            "(compiled, each sample on its own), closed-form gradients",
+    "cvxpylayers": "package `solver=\"cvxpylayers\"`: diffcp + Clarabel (tolerances 1e-10), dense "
+                   "mode; includes the package's KKT-residual check",
+    "cvxpylayers-scs": "package `solver=\"cvxpylayers-scs\"`: diffcp + SCS (eps 1e-10, 1e5 "
+                       "iterations); includes the KKT-residual check",
+    "cvxpylayers-ecos": "the package's layers with diffcp + ECOS (abstol = reltol = feastol = "
+                        "1e-10), dense mode",
+    "qpth": "`qpth.qp.QPFunction(eps=1e-12, maxIter=50)`, batched PDIPM",
+    "qplayer": "`proxsuite.torch.qplayer.QPFunction(eps=1e-10, eps_backward=1e-9, "
+               "rho_backward=mu_backward=1e-9)`, serial",
+    "qpoases": "CasADi `conic('qpoases')` mapped over the batch (forward), gradient written "
+               "here: envelope theorem (V) / implicit function on the active set (P)",
+}
+
+
+# -- data -----------------------------------------------------------------------------------------
+def perturbed(truth: LCS, scale: float, seed: int) -> LCS:
+    """The truth with every parameter plus ``scale * N(0, 1)`` (a mid-training model)."""
+    model = LCS(truth.n_x, truth.n_u, truth.n_lam, stiffness=float(truth.stiffness), init_scale=0.0)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            src = getattr(truth, name)
+            p.copy_(src + scale * torch.randn(src.shape, generator=gen, dtype=src.dtype))
+    return model
+
+
+@functools.cache
+def setup(size: tuple[int, int, int], n_data: int) -> tuple[LCS, lcs_cvx.Dataset]:
+    n_x, n_u, n_lam = size
+    truth = lcs_cvx.random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=0)
+    data = lcs_cvx.make_dataset(truth, n_data, noise=1e-2, seed=1)
+    return perturbed(truth, PERTURB, 2), data
+
+
+# -- the QPs of (P) and (V) -----------------------------------------------------------------------
+def _terms(model: LCS, x: torch.Tensor, u: torch.Tensor, xn: torch.Tensor):
+    """``F``, ``C``, ``q = D x + E u + c``, ``r = A x + B u + d - x'`` (differentiable)."""
+    q = x @ model.D.mT + u @ model.E.mT + model.c
+    r = x @ model.A.mT + u @ model.B.mT + model.d - xn
+    return model.F, model.C, q, r
+
+
+def violation_qp(C: torch.Tensor, F: torch.Tensor, q: torch.Tensor, r: torch.Tensor,
+                 gamma: float, eps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(Q (2n, 2n), p (B, 2n))`` of (V) in ``z = (lam, phi)`` times ``eps`` (module docstring)."""
+    n = F.shape[0]
+    eye = torch.eye(n, dtype=F.dtype)
+    Q = torch.cat([
+        torch.cat([eps * C.mT @ C + F.mT @ F / gamma, eye - F.mT / gamma], 1),
+        torch.cat([eye - F / gamma, eye / gamma], 1),
+    ], 0)
+    p = torch.cat([eps * r @ C + q @ F / gamma, -q / gamma], 1)
+    return Q, p
+
+
+def prediction_from_lam(model: LCS, x, u, xn, lam) -> torch.Tensor:
+    pred = x @ model.A.mT + u @ model.B.mT + lam @ model.C.mT + model.d
+    return 0.5 * ((pred - xn) ** 2).sum(-1).mean()
+
+
+# -- qpOASES through CasADi -----------------------------------------------------------------------
+@functools.cache
+def _qpoases(kind: str, n: int, batch: int):
+    """A CasADi conic function (qpOASES) for (V) (``2n`` variables, bounds only) or (P)
+    (``n`` variables, ``F lam + q >= 0``), mapped over ``batch`` samples."""
+    import casadi as ca
+
+    opts = {"printLevel": "none", "error_on_fail": False}
+    if kind == "V":
+        S = ca.conic("S", "qpoases", {"h": ca.Sparsity.dense(2 * n, 2 * n),
+                                       "a": ca.Sparsity(0, 2 * n)}, opts)
+    else:
+        S = ca.conic("S", "qpoases", {"h": ca.Sparsity.dense(n, n),
+                                       "a": ca.Sparsity.dense(n, n)}, opts)
+    return S if batch == 1 else S.map(batch)
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """qpOASES prints its licence banner from C on first use: send file descriptor 1 to
+    /dev/null meanwhile (two system calls, negligible against a solve)."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    try:
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(null)
+
+
+def qpoases_violation(Q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(V)'s ``z = (lam, phi)`` ``(B, 2n)`` by qpOASES, from ``Q`` ``(2n, 2n)``, ``p`` ``(B, 2n)``."""
+    B, m = p.shape
+    with _quiet_stdout():
+        S = _qpoases("V", m // 2, B)
+        out = S(h=Q, g=p.T, lbx=0.0, ubx=np.inf)
+    return np.asarray(out["x"]).T.reshape(B, m)
+
+
+def qpoases_lcp(F: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The LCP's ``lam`` ``(B, n)`` by qpOASES on (P), from ``F`` ``(n, n)``, ``q`` ``(B, n)``."""
+    B, n = q.shape
+    with _quiet_stdout():
+        S = _qpoases("P", n, B)
+        out = S(h=F + F.T, g=q.T, a=F, lba=-q.T, uba=np.inf, lbx=0.0, ubx=np.inf)
+    return np.asarray(out["x"]).T.reshape(B, n)
+
+
+# -- the paths ------------------------------------------------------------------------------------
+_ECOS = {"solve_method": "ECOS", "n_jobs_forward": 1, "n_jobs_backward": 1, "mode": "dense",
+         "abstol": 1e-10, "reltol": 1e-10, "feastol": 1e-10}
+
+
+def _qpth(Q, p, G, h):
+    from qpth.qp import QPFunction
+
+    # every input with the batch dimension: qpth averages the gradient of an input without one
+    # over the batch (instead of summing it), which scales those gradients by 1/B
+    B = p.shape[0]
+    Q = Q.expand(B, *Q.shape[-2:])
+    G = G.expand(B, *G.shape[-2:])
+    h = h.expand(B, G.shape[-2])
+    e = torch.empty(0, dtype=Q.dtype)
+    return QPFunction(verbose=-1, eps=1e-12, maxIter=50)(Q, p, G, h, e, e)
+
+
+def _qplayer(Q, p, G, lo, hi):
+    from proxsuite.torch.qplayer import QPFunction
+
+    e = torch.empty(0, dtype=Q.dtype)
+    z, _, _ = QPFunction(eps=1e-10, maxIter=1000, eps_backward=1e-9, rho_backward=1e-9,
+                         mu_backward=1e-9)(Q, p, e, e, G, lo, hi)
+    return z
+
+
+def loss_and_lam(loss: str, path: str, model: LCS, x, u, xn, gamma: float = GAMMA,
+                 eps: float = EPS) -> tuple[torch.Tensor, torch.Tensor]:
+    """The differentiable loss and the (detached) ``lam`` of one call of ``path``; ``gamma``,
+    ``eps``: the violation loss's."""
+    if path == "fast":  # what a training step runs (no diagnostics: the residual is not formed)
+        if loss == "violation":
+            info = violation_fast(model, x, u, xn, gamma=gamma, eps=eps)
+        else:
+            info = prediction_fast(model, x, u, xn)
+        return info.loss, info.lam
+    if path in ("cvxpylayers", "cvxpylayers-scs"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", lcs_cvx.LayerAccuracyWarning)
+            if loss == "violation":
+                info = lcs_cvx.violation_loss_info(model, x, u, xn, gamma=gamma, eps=eps, solver=path)
+            else:
+                info = lcs_cvx.prediction_loss_info(model, x, u, xn, solver=path)
+        return info.loss, info.lam
+    n = model.n_lam
+    F, C, q, r = _terms(model, x, u, xn)
+    decl = violation_problem(n)
+    if loss == "violation":
+        if path == "cvxpylayers-ecos":
+            vals = decl.parameter_values(C, F, q, r, gamma, eps)
+            (lam,) = violation_layer(n)(*(vals[k] for k in decl.parameter_order), solver_args=_ECOS)
+            lam = lam.clamp(min=0.0)
+            phi = decl.phi(lam, F, q, gamma)
+        else:
+            Q, p = violation_qp(C, F, q, r, gamma, eps)
+            m = 2 * n
+            if path == "qpth":
+                z = _qpth(Q, p, -torch.eye(m, dtype=Q.dtype), torch.zeros(m, dtype=Q.dtype))
+            elif path == "qplayer":
+                z = _qplayer(Q, p, torch.eye(m, dtype=Q.dtype), torch.zeros(m, dtype=Q.dtype),
+                             torch.full((m,), 1e20, dtype=Q.dtype))
+            elif path == "qpoases":  # forward by qpOASES; the envelope theorem: z detached
+                z = torch.from_numpy(qpoases_violation(Q.detach().numpy(), p.detach().numpy()))
+            else:
+                raise ValueError(path)
+            lam, phi = z[:, :n], z[:, n:]
+        value = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
+        return value, lam.detach()
+    if path == "cvxpylayers-ecos":
+        pdecl = convex_lcp_problem(n)
+        vals = pdecl.parameter_values(F, q)
+        (lam,) = lcp_layer(n)(*(vals[k] for k in pdecl.parameter_order), solver_args=_ECOS)
+    elif path == "qpth":
+        G = torch.cat([-torch.eye(n, dtype=F.dtype), -F], 0)
+        h = torch.cat([torch.zeros_like(q), q], 1)
+        lam = _qpth(F + F.mT, q, G, h)
+    elif path == "qplayer":
+        G = torch.cat([torch.eye(n, dtype=F.dtype), F], 0)
+        lo = torch.cat([torch.zeros_like(q), -q], 1)
+        lam = _qplayer(F + F.mT, q, G, lo, torch.full_like(lo, 1e20))
+    elif path == "qpoases":  # forward by qpOASES; Lemma 1 on its active set
+        lam0 = torch.from_numpy(qpoases_lcp(F.detach().numpy(), q.detach().numpy()))
+        tol = FREE_TOL * (1.0 + q.detach().abs().amax(1, keepdim=True))
+        lam = active_set_solve(F, q, lam0 > tol)
+    else:
+        raise ValueError(path)
+    return prediction_from_lam(model, x, u, xn, lam), lam.detach()
+
+
+def grads(model: LCS) -> list[torch.Tensor]:
+    return [getattr(model, k).grad.detach().clone() if getattr(model, k).grad is not None
+            else torch.zeros_like(getattr(model, k)) for k in PARAMETER_NAMES]
+
+
+def call(loss: str, path: str, model: LCS, x, u, xn) -> tuple[float, torch.Tensor, list[torch.Tensor]]:
+    """One timed unit: the loss and its backward; returns (loss, lam, gradients)."""
+    model.zero_grad()
+    if path == "qplayer":  # its backward allocates in the default dtype: make it float64
+        old = torch.get_default_dtype()
+        torch.set_default_dtype(torch.float64)
+        try:
+            value, lam = loss_and_lam(loss, path, model, x, u, xn)
+            value.backward()
+        finally:
+            torch.set_default_dtype(old)
+    else:
+        value, lam = loss_and_lam(loss, path, model, x, u, xn)
+        value.backward()
+    return float(value.detach()), lam, grads(model)
+
+
+# -- timing ---------------------------------------------------------------------------------------
+class TooSlow(Exception):
+    """The warm-up call took longer than the limit (seconds in ``args[0]``)."""
+
+
+def timed(fn: Callable[[], object], limit: float = math.inf) -> tuple[float, str, object]:
+    """(median seconds per call, how, the last call's result); :class:`TooSlow` when the
+    warm-up call takes longer than ``limit`` seconds."""
+    box: dict[str, object] = {}
+
+    def run() -> None:
+        box["out"] = fn()
+
+    t0 = time.perf_counter()
+    run()
+    first = time.perf_counter() - t0
+    if first > limit:
+        raise TooSlow(first)
+    if first < SLOW_CALL_S:
+        med = median_time(run, REPEATS)
+        return med, f"median_time ({REPEATS}+ repeats)", box["out"]
+    times = []
+    for _ in range(REPEATS):
+        t0 = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), f"1 warm-up + {REPEATS} calls", box["out"]
+
+
+# -- one row --------------------------------------------------------------------------------------
+def agreement(out, ref) -> dict[str, float]:
+    value, lam, g = out
+    rvalue, rlam, rg = ref
+    dg = max(float((a - b).abs().max()) for a, b in zip(g, rg, strict=True))
+    gmax = max(float(b.abs().max()) for b in rg)
+    return {
+        "max_dlam": float((lam - rlam).abs().max()),
+        "rel_dloss": abs(value - rvalue) / (1.0 + abs(rvalue)),
+        "rel_dgrad": dg / (1.0 + gmax),
+    }
+
+
+def run_row(loss: str, size: tuple[int, int, int], path: str, batch: int, n_data: int,
+            rate_200: float | None, big: int) -> dict:
+    model, data = setup(size, n_data)
+    x, u, xn = data.x[:batch], data.u[:batch], data.x_next[:batch]
+    row = {"loss": loss, "n_x": size[0], "n_u": size[1], "n_lam": size[2], "path": path,
+           "batch": batch, "date": DATE, "machine": MACHINE, "status": "ok"}
+    t_start = time.perf_counter()
+    try:
+        if batch == big and rate_200 is not None:
+            est = big / rate_200
+            how = "rate at batch 200"
+            if est > SKIP_SECONDS and path in BATCHED and est < 10 * SKIP_SECONDS:
+                probe = min(5_000, big)
+                t0 = time.perf_counter()
+                call(loss, path, model, data.x[:probe], data.u[:probe], data.x_next[:probe])
+                est = (time.perf_counter() - t0) * big / probe
+                how = f"one call at batch {probe}"
+            if est > SKIP_SECONDS:
+                row.update(status="skipped", estimated_s=est, estimated_from=how,
+                           rate_at_200=rate_200,
+                           note=f"skipped: > {SKIP_SECONDS:.0f} s per call (estimated "
+                                f"{est:,.0f} s from the {how}; {rate_200:,.0f} samples/s at 200)")
+                row["row_seconds"] = time.perf_counter() - t_start
+                return row
+        ref = call(loss, "fast", model, x, u, xn)
+        try:
+            med, how, out = timed(lambda: call(loss, path, model, x, u, xn),
+                                  SKIP_SECONDS if batch == big else math.inf)
+        except TooSlow as slow:
+            row.update(status="skipped", measured_s=slow.args[0], rate_at_200=rate_200,
+                       note=f"skipped: > {SKIP_SECONDS:.0f} s per call (the warm-up call took "
+                            f"{slow.args[0]:,.0f} s; {rate_200:,.0f} samples/s at 200)")
+            row["row_seconds"] = time.perf_counter() - t_start
+            return row
+        row.update(median_s=med, samples_per_s=batch / med, timing=how, **agreement(out, ref),
+                   loss_value=ref[0])
+    except Exception as exc:  # a failed path is a result
+        row.update(status="error", error=f"{type(exc).__name__}: {str(exc)[:300]}")
+    row["row_seconds"] = time.perf_counter() - t_start
+    return row
+
+
+# -- the run --------------------------------------------------------------------------------------
+def plan(smoke: bool):
+    if smoke:
+        return SMOKE_SIZES, SMOKE_BATCHES, max(SMOKE_BATCHES)
+    return SIZES, BATCHES, N_DATA
+
+
+def load(path: Path) -> dict[tuple, dict]:
+    done: dict[tuple, dict] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip():
+                r = json.loads(line)
+                done[(r["loss"], (r["n_x"], r["n_u"], r["n_lam"]), r["path"], r["batch"])] = r
+    return done
+
+
+def run(out: Path, smoke: bool = False, paths: tuple[str, ...] = PATHS,
+        log: Callable[[str], None] = print) -> dict[tuple, dict]:
+    torch.set_num_threads(1)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = "differentiable_paths_smoke" if smoke else "differentiable_paths"
+    jpath = out / f"{stem}.jsonl"
+    done = load(jpath)
+    sizes, batches, n_data = plan(smoke)
+    big = max(batches)
+    for size in sizes:
+        for loss in LOSSES:
+            for path in paths:
+                for batch in batches:
+                    key = (loss, size, path, batch)
+                    if key in done:
+                        continue
+                    r200 = done.get((loss, size, path, 200), {}).get("samples_per_s")
+                    row = run_row(loss, size, path, batch, n_data, r200, big)
+                    with jpath.open("a") as fh:
+                        fh.write(json.dumps(row) + "\n")
+                    done[key] = row
+                    log(f"{loss:10s} {size} {path:17s} B={batch:<6d} {_cell(row):>28s} "
+                        f"dlam {_e(row.get('max_dlam'))} dgrad {_e(row.get('rel_dgrad'))} "
+                        f"[{row['row_seconds']:.1f} s]")
+    report(done, out, stem, sizes, batches, paths, smoke)
+    return done
+
+
+# -- report ---------------------------------------------------------------------------------------
+def _e(x: float | None) -> str:
+    return "–" if x is None else f"{x:.1e}"
+
+
+def _cell(r: dict) -> str:
+    if r["status"] == "ok":
+        return f"{r['samples_per_s']:,.0f}"
+    if r["status"] == "skipped":
+        return "skipped: > 60 s per call"
+    return "error"
+
+
+def versions() -> str:
+    names = ("torch", "cvxpy", "cvxpylayers", "diffcp", "clarabel", "scs", "ecos", "qpth",
+             "proxsuite", "casadi")
+    parts = [f"lcs_cvx {lcs_cvx.__version__}"]
+    for n in names:
+        try:
+            parts.append(f"{n} {version(n)}")
+        except Exception:
+            parts.append(f"{n} ?")
+    return ", ".join(parts)
+
+
+def report(done: dict, out: Path, stem: str, sizes, batches, paths, smoke: bool) -> None:
+    cmd = "python -m studies.solvers.differentiable_paths --out " + str(out) + (" --smoke" if smoke else "")
+    lines = [
+        "# Differentiable solver paths: loss + gradient",
+        "",
+        f"Command: `{cmd}` (resumable: one JSON line per (loss, size, path, batch) in "
+        f"`{stem}.jsonl`).  ",
+        f"Date: {DATE}. Machine: {MACHINE} ({platform.machine()}, Python "
+        f"{platform.python_version()}).  ",
+        f"Versions: {versions()}.",
+        "",
+        "One call = the loss on a batch and `.backward()` to all nine parameters "
+        "(`A, B, C, d, D, E, G, H, c`). samples/s = batch / median time per call (median of "
+        f"≥ {REPEATS} repeats after a warm-up, one thread). Agreement with `fast` on the same "
+        "batch: **Δλ** = max |λ − λ_fast|, **Δloss** = |L − L_fast| / (1 + |L_fast|), "
+        "**Δgrad** = max over parameters of max |g − g_fast| / (1 + max |g_fast|). "
+        f"Data: `random_lcs(stiffness=0.5, seed=0)`, `make_dataset(noise=1e-2, seed=1)`, the "
+        f"model = truth + {PERTURB} N(0, 1) per parameter; γ = {GAMMA:g}, ε = {EPS:g}. A path "
+        f"is not run at batch {max(batches):,} when one call would take > {SKIP_SECONDS:.0f} s "
+        "(estimated from its rate at 200; for the batched `qpth` from one call at 5,000).",
+        "",
+        "Paths: " + "; ".join(f"`{p}`: {PATH_NOTES[p]}" for p in paths) + ".",
+        "",
+    ]
+    for loss in LOSSES:
+        title = "violation loss (V), eq. (9)" if loss == "violation" else "prediction loss (P), eq. (6)"
+        lines += [f"## {title}", ""]
+        for size in sizes:
+            mid = sorted(batches)[len(batches) // 2] if len(batches) > 2 else max(batches)
+            lines += [f"### (n_x, n_u, n_λ) = {size}", "",
+                      "| path | " + " | ".join(f"samples/s @ {b:,}" for b in batches)
+                      + f" | × fast @ {mid} | Δλ @ {mid} | Δloss @ {mid} | Δgrad @ {mid} | notes |",
+                      "|---|" + "---:|" * len(batches) + "---:|---:|---:|---:|---|"]
+            fast_mid = done.get((loss, size, "fast", mid), {}).get("samples_per_s")
+            for path in paths:
+                rows = [done.get((loss, size, path, b)) for b in batches]
+                cells, notes = [], []
+                for b, r in zip(batches, rows, strict=True):
+                    if r is None:
+                        cells.append("–")
+                        continue
+                    cells.append(_cell(r))
+                    if r["status"] == "error":
+                        notes.append(f"batch {b:,}: {r['error']}")
+                    elif r["status"] == "skipped":
+                        notes.append(f"batch {b:,}: {r['note']}")
+                    else:
+                        if b != mid and (r["max_dlam"] > 1e-6 or r["rel_dgrad"] > 1e-6):
+                            notes.append(f"batch {b:,}: Δλ {_e(r['max_dlam'])}, "
+                                         f"Δgrad {_e(r['rel_dgrad'])}")
+                        if r["median_s"] > SKIP_SECONDS:
+                            notes.append(f"batch {b:,}: one call took {r['median_s']:.0f} s "
+                                         f"(> {SKIP_SECONDS:.0f} s; run because the estimate "
+                                         "from batch 200 was below)")
+                rm = done.get((loss, size, path, mid))
+                ok = rm is not None and rm["status"] == "ok"
+                ratio = f"{rm['samples_per_s'] / fast_mid:.2g}" if ok and fast_mid else "–"
+                lines.append(
+                    f"| {path} | " + " | ".join(cells) + f" | {ratio} | "
+                    f"{_e(rm.get('max_dlam')) if ok else '–'} | {_e(rm.get('rel_dloss')) if ok else '–'} | "
+                    f"{_e(rm.get('rel_dgrad')) if ok else '–'} | {'; '.join(notes)} |")
+            lines.append("")
+    lines += ["## Summary", "", summary(done, sizes, batches, paths), ""]
+    (out / f"{stem}.md").write_text("\n".join(lines))
+    try:
+        plot(done, out / f"{stem}.png", sizes, batches, paths)
+    except ImportError:  # matplotlib is in the [studies] extra
+        pass
+
+
+def summary(done: dict, sizes, batches, paths) -> str:
+    mid = 200 if 200 in batches else max(batches)
+    out = []
+    for loss in LOSSES:
+        for size in sizes:
+            fast = done.get((loss, size, "fast", mid), {}).get("samples_per_s")
+            if not fast:
+                continue
+            others = []
+            for p in paths[1:]:
+                r = done.get((loss, size, p, mid))
+                if r is None:
+                    continue
+                if r["status"] != "ok":
+                    others.append(f"{p} {r['status']}")
+                    continue
+                acc = "agrees" if r["rel_dgrad"] <= 1e-6 and r["max_dlam"] <= 1e-6 else (
+                    f"Δλ {r['max_dlam']:.0e}, Δgrad {r['rel_dgrad']:.0e}")
+                others.append(f"{p} {fast / r['samples_per_s']:,.0f}× slower ({acc})")
+            out.append(f"- {loss}, n_λ = {size[2]}, batch {mid}: fast {fast:,.0f} samples/s; "
+                       + "; ".join(others) + ".")
+    bad = []
+    for (loss, size, p, b), r in sorted(done.items(), key=lambda kv: str(kv[0])):
+        if r["status"] == "ok" and p in paths and (r["max_dlam"] > 1e-3 or r["rel_dgrad"] > 1e-3):
+            bad.append(f"{p} ({loss}, n_λ = {size[2]}, batch {b:,}: Δλ {r['max_dlam']:.1e}, "
+                       f"Δgrad {r['rel_dgrad']:.1e})")
+        elif r["status"] == "error" and p in paths:
+            bad.append(f"{p} ({loss}, n_λ = {size[2]}, batch {b:,}: {r['error']})")
+    if bad:
+        out.append("- Inaccurate or failed (Δλ or Δgrad above 1e-3, or an error): "
+                   + "; ".join(bad) + ".")
+    fastest = {}
+    for loss in LOSSES:
+        for size in sizes:
+            rates = {p: done.get((loss, size, p, mid), {}).get("samples_per_s") for p in paths[1:]}
+            rates = {p: v for p, v in rates.items() if v}
+            if rates:
+                fastest[(loss, size[2])] = max(rates, key=rates.get)
+    if fastest:
+        out.append("- Fastest path after `fast` at batch " + f"{mid}: " + ", ".join(
+            f"{p} ({loss}, n_λ = {n})" for (loss, n), p in fastest.items()) + ".")
+    return "\n".join(out)
+
+
+def plot(done: dict, path: Path, sizes, batches, paths) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(LOSSES), figsize=(12, 5), sharey=True)
+    styles = ("-", "--", ":")
+    for ax, loss in zip(axes, LOSSES, strict=True):
+        for k, p in enumerate(paths):
+            for s, size in enumerate(sizes):
+                pts = [(b, done[(loss, size, p, b)]["samples_per_s"]) for b in batches
+                       if done.get((loss, size, p, b), {}).get("status") == "ok"]
+                if pts:
+                    xs, ys = zip(*pts, strict=True)
+                    ax.plot(xs, ys, styles[s % 3], marker="o", color=f"C{k}", ms=4,
+                            label=f"{p}, n_λ={size[2]}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("batch size")
+        ax.set_title(f"{loss} loss: loss + gradient")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].set_ylabel("samples/s (one thread)")
+    axes[-1].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("studies/results/solvers"))
+    ap.add_argument("--smoke", action="store_true", help="n_lam = 3, batches 1 and 20")
+    ap.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS)
+    args = ap.parse_args(argv)
+    run(args.out, smoke=args.smoke, paths=tuple(args.paths), log=lambda s: print(s, flush=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
