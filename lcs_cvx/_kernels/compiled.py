@@ -251,9 +251,11 @@ def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, 
         for i in range(n):
             big = max(big, abs(lam[i]))
         tol[1] = -tol[1] * (1.0 + big)
-    for i in range(n):
-        bad[i] = (not ok) or ((lam[i] < tol[1]) if state[i] else (g[i] < -tol[0]))
-        bad[n + i] = (not ok) or ((t[i] < -tol[2]) if state[n + i] else (t[i] > tol[2]))
+    lo, glo, tlo = tol[1], -tol[0], tol[2]
+    for i in range(n):  # (branch-free: & and | of the flags)
+        f, p = state[i], state[n + i]
+        bad[i] = (not ok) | (f & (lam[i] < lo)) | ((not f) & (g[i] < glo))
+        bad[n + i] = (not ok) | (p & (t[i] < -tlo)) | ((not p) & (t[i] > tlo))
     return bad
 
 
@@ -382,7 +384,8 @@ def _lcp_solve(data, free):  # pragma: no cover - compiled
         for j in range(n):
             v += F[i, j] * lam[j]
         w[i] = v
-        bad[i] = (not ok) or ((lam[i] < at[0]) if free[i] else (v < at[0]))
+        f = free[i]
+        bad[i] = (not ok) | (f & (lam[i] < at[0])) | ((not f) & (v < at[0]))
     return bad
 
 
