@@ -28,7 +28,8 @@ from .data import make_dataset, random_lcs
 from .losses import prediction_loss, prediction_loss_info, violation_loss, violation_loss_info
 from .system import LCS
 
-__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time"]
+__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time",
+           "perturbed"]
 
 #: (n_x, n_u, n_lam) of the comparison with the authors' code (the paper's sizes).
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
@@ -61,7 +62,9 @@ class BenchRow:
         return asdict(self)
 
 
-def _perturbed(truth: LCS, scale: float, seed: int) -> LCS:
+def perturbed(truth: LCS, scale: float, seed: int) -> LCS:
+    """A copy of ``truth`` with every parameter plus ``scale * N(0, 1)`` (seeded): a
+    mid-training model, whose active sets are neither trivial nor the truth's."""
     model = LCS(truth.n_x, truth.n_u, truth.n_lam, stiffness=float(truth.stiffness), init_scale=0.0)
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -137,7 +140,7 @@ def run_bench(
     for n_x, n_u, n_lam in sizes:
         truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
         data = make_dataset(truth, batch, noise=1e-2, seed=seed + 1)
-        model = _perturbed(truth, 0.05, seed + 2)
+        model = perturbed(truth, 0.05, seed + 2)
         for loss in losses:
             fn = _loss_fn(loss, gamma, eps)
             ref_info = fn(model, data.x, data.u, data.x_next, "fast", True)

@@ -60,6 +60,8 @@ from lcs_cvx.losses import (  # noqa: E402
     violation_value_and_grad,
 )
 
+from . import records  # noqa: E402
+
 FIG1_SIZES = (
     [(10, 4, n) for n in (1, 4, 8, 12, 16, 20)]
     + [(n, 4, 10) for n in (2, 8, 16, 32, 64, 128)]
@@ -234,11 +236,7 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
     jsonl = args.out / f"{args.name}.jsonl"
-    done = {}
-    if jsonl.exists():
-        for line in jsonl.read_text().splitlines():
-            r = json.loads(line)
-            done[(r["n_x"], r["n_u"], r["n_lam"], r["loss"], r["batch"])] = r
+    done = records.load(jsonl, lambda r: (r["n_x"], r["n_u"], r["n_lam"], r["loss"], r["batch"]))
     for size in parse_sizes(args.sizes):
         for loss in args.losses:
             key = (*size, loss, args.batch)

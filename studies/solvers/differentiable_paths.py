@@ -95,12 +95,14 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import lcs_cvx  # noqa: E402
-from lcs_cvx.bench import median_time  # noqa: E402
+from lcs_cvx.bench import median_time, perturbed  # noqa: E402
 from lcs_cvx.layers import lcp_layer, violation_layer  # noqa: E402
 from lcs_cvx.lcp import active_set_solve  # noqa: E402
 from lcs_cvx.losses import prediction_fast, violation_fast  # noqa: E402
 from lcs_cvx.problems import convex_lcp_problem, violation_problem  # noqa: E402
 from lcs_cvx.system import LCS, PARAMETER_NAMES  # noqa: E402
+
+from . import records  # noqa: E402
 
 DATE = time.strftime("%Y-%m-%d")
 MACHINE = "x86_64 2-core VM, one torch thread, the other core busy with other work"
@@ -142,17 +144,6 @@ PATH_NOTES = {
 
 
 # -- data -----------------------------------------------------------------------------------------
-def perturbed(truth: LCS, scale: float, seed: int) -> LCS:
-    """The truth with every parameter plus ``scale * N(0, 1)`` (a mid-training model)."""
-    model = LCS(truth.n_x, truth.n_u, truth.n_lam, stiffness=float(truth.stiffness), init_scale=0.0)
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for name, p in model.named_parameters():
-            src = getattr(truth, name)
-            p.copy_(src + scale * torch.randn(src.shape, generator=gen, dtype=src.dtype))
-    return model
-
-
 @functools.cache
 def setup(size: tuple[int, int, int], n_data: int) -> tuple[LCS, lcs_cvx.Dataset]:
     n_x, n_u, n_lam = size
@@ -442,13 +433,7 @@ def plan(smoke: bool):
 
 
 def load(path: Path) -> dict[tuple, dict]:
-    done: dict[tuple, dict] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                done[(r["loss"], (r["n_x"], r["n_u"], r["n_lam"]), r["path"], r["batch"])] = r
-    return done
+    return records.load(path, lambda r: (r["loss"], (r["n_x"], r["n_u"], r["n_lam"]), r["path"], r["batch"]))
 
 
 def run(out: Path, smoke: bool = False, paths: tuple[str, ...] = PATHS,

@@ -114,6 +114,8 @@ from lcs_cvx.violation import (  # noqa: E402
     violation_kkt_residual,
 )
 
+from . import records  # noqa: E402
+
 MACHINE = "x86_64 2-core VM, one thread (the other core busy)"
 N_SAMPLES = 50
 SMOKE_SAMPLES = 5
@@ -560,13 +562,7 @@ def plan(smoke: bool) -> tuple[dict[str, Setting], int]:
 
 
 def load(path: Path) -> dict[tuple, dict]:
-    done: dict[tuple, dict] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                row = json.loads(line)
-                done[(row["problem"], row["setting"], row["solver"])] = row
-    return done
+    return records.load(path, lambda row: (row["problem"], row["setting"], row["solver"]))
 
 
 def run(out: Path, smoke: bool = False, log: Callable[[str], None] = print,

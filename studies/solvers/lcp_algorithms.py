@@ -56,7 +56,7 @@ import torch  # noqa: E402
 import lcs_cvx  # noqa: E402
 from lcs_cvx.lcp import lcp_residual, solve_lcp_brute, solve_lcp_fast  # noqa: E402
 
-from . import lcp_algos  # noqa: E402
+from . import lcp_algos, records  # noqa: E402
 
 DATE = "2026-11-25 (the two `pivoting` rows: 2026-11-26)"
 MACHINE = "2-core x86-64 VM, 1 torch thread"
@@ -212,13 +212,7 @@ def plan(smoke: bool) -> tuple[list[tuple[str, str, int, int]], tuple[int, ...],
 
 
 def load(path: Path) -> dict[tuple, dict]:
-    done: dict[tuple, dict] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                done[(r["method"], r["problem"], r["n"], r["batch"])] = r
-    return done
+    return records.load(path, lambda r: (r["method"], r["problem"], r["n"], r["batch"]))
 
 
 def run(out: Path, smoke: bool = False, log: Callable[[str], None] = print) -> dict[tuple, dict]:

@@ -65,6 +65,7 @@ from lcs_cvx.study.cells import expand, setup_cell  # noqa: E402
 from lcs_cvx.study.config import load_config  # noqa: E402
 
 from . import differentiable_paths as dp  # noqa: E402
+from . import records  # noqa: E402
 
 DATE = time.strftime("%Y-%m-%d")
 MACHINE = dp.MACHINE
@@ -206,13 +207,7 @@ def paths_rates(path: Path) -> dict[tuple, float]:
 
 
 def load(path: Path) -> dict[tuple, dict]:
-    done: dict[tuple, dict] = {}
-    if path.exists():
-        for line in path.read_text().splitlines():
-            if line.strip():
-                r = json.loads(line)
-                done[(r["n_lam"], r["loss"], r["path"], r["trial"])] = r
-    return done
+    return records.load(path, lambda r: (r["n_lam"], r["loss"], r["path"], r["trial"]))
 
 
 def run(out: Path, smoke: bool = False, paths: tuple[str, ...] = PATHS,
