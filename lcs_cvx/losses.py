@@ -16,27 +16,28 @@ r"""The two learning losses of the paper and the regulariser.
 :func:`violation_loss_info` and :func:`prediction_loss_info` take the same arguments and return
 a :class:`LossInfo` (the loss and the solver's diagnostics). ``solver`` selects the path:
 ``"fast"`` (batched kernels, default), ``"cvxpylayers"`` (diffcp + Clarabel over the declared
-problem) or ``"cvxpylayers-scs"`` (diffcp + SCS). On the fast path the arithmetic runs in
-:mod:`lcs_cvx._kernels.losses`; the ``torch.autograd.Function`` classes here only adapt it.
+problem) or ``"cvxpylayers-scs"`` (diffcp + SCS). On the fast path the arithmetic runs in the
+compiled kernels (:mod:`lcs_cvx._kernels.compiled`, one model's float64 CPU tensors, through
+:mod:`lcs_cvx._kernels.calls`) or the array kernels (:mod:`lcs_cvx._kernels.losses`); the
+``torch.autograd.Function`` classes here only adapt them. :func:`violation_value_and_grad` and
+:func:`prediction_value_and_grad` return a loss and its gradient without autograd.
 """
 
 from __future__ import annotations
 
 import warnings
-import weakref
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
 
 from ._checks import LayerAccuracyWarning, LCSInputError, as_transitions, check_positive
+from ._kernels import calls
 from ._kernels import losses as kernel
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH, array_ops
 from ._kernels.lcp import PIVOT_TOL as LCP_TOL
-from ._kernels.pivoting import STALL, check_warm_start
+from ._kernels.pivoting import STALL
 from ._kernels.violation import PIVOT_TOL as VIOLATION_TOL
 from .layers import lcp_layer, solve_layer, violation_layer
 from .lcp import lcp_residual, solve_lcp_fast
@@ -138,25 +139,6 @@ class EnvelopeLoss(torch.autograd.Function):
         return (None,) * 5 + kernel.envelope_backward(ctx.saved, grad, ctx.needs_input_grad[5:])
 
 
-class CompiledLoss(torch.autograd.Function):
-    """``apply(value, grads, *params)``: the value of a compiled loss
-    (:mod:`lcs_cvx._kernels.compiled`, which computes the loss and its closed-form gradients in
-    one call) with those gradients ``grads`` (in ``params`` order) as its backward; a stack's
-    values ``(K,)`` scale their models' slices of the gradients."""
-
-    @staticmethod
-    def forward(ctx, value, grads, *params):  # noqa: D102
-        ctx.grads = grads
-        return value
-
-    @staticmethod
-    def backward(ctx, grad):  # noqa: D102
-        need = ctx.needs_input_grad[2:]
-        return (None, None) + tuple(
-            None if not n else g * (grad if grad.dim() == 0 else grad.reshape((-1,) + (1,) * (g.dim() - 1)))
-            for g, n in zip(ctx.grads, need, strict=True))
-
-
 class ImplicitLoss(torch.autograd.Function):
     """``apply(batch, lam, free, *params)``: the value of
     :func:`lcs_cvx._kernels.losses.implicit_forward` with Lemma 1's gradient in closed form
@@ -171,98 +153,6 @@ class ImplicitLoss(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad):  # noqa: D102
         return (None,) * 3 + kernel.implicit_backward(ctx.saved, grad, ctx.needs_input_grad[3:])
-
-
-def _compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
-    """Whether the fast losses run compiled (:mod:`lcs_cvx._kernels.compiled`): one model's
-    float64 tensors on the CPU, the default there (``arrays="auto"``); ``arrays="compiled"``
-    asks for it and names what stands in the way."""
-    if arrays not in ("auto", "compiled"):
-        return False
-    ok = x.device.type == "cpu" and x.dtype == torch.float64 and model.A.dim() == 2
-    if arrays == "compiled" and not ok:
-        raise LCSInputError(
-            f"arrays: 'compiled' runs one model's float64 CPU tensors, received {x.dtype} on "
-            f"{x.device} with parameters of shape {tuple(model.A.shape)}"
-        )
-    return ok
-
-
-def as_arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
-    """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous)."""
-    return [np.ascontiguousarray(t.detach().numpy() if t.requires_grad else t.numpy())
-            for t in tensors]
-
-
-def _scalar(value: float) -> torch.Tensor:
-    """A 0-dim float64 tensor of ``value`` (through NumPy: a third of ``torch.tensor``'s cost)."""
-    return torch.from_numpy(np.array(value))
-
-
-#: Per model: its parameters when last seen, their storage addresses and arrays on their memory
-#: (an optimiser's step changes the values in place, which the arrays see).
-_PARAMETER_ARRAYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _parameter_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray]]:
-    """The model's parameters (``A, B, C, d, D, E, G, H, c``) and arrays on their memory, made
-    once per model and made again when a parameter is replaced or moved to other storage."""
-    table = model.__dict__.get("_parameters", {})  # a torch Module's own table: no __getattr__
-    params = [table[k] if k in table else getattr(model, k) for k in PARAMETER_NAMES]
-    seen = _PARAMETER_ARRAYS.get(model)
-    if seen is not None and all(p is q and p.data_ptr() == ptr
-                                for p, q, ptr in zip(params, seen[0], seen[1], strict=True)):
-        return params, seen[2]
-    found = as_arrays(*params)
-    _PARAMETER_ARRAYS[model] = (params, [p.data_ptr() for p in params], found)
-    return params, found
-
-
-def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor,
-                  u: torch.Tensor, x_next: torch.Tensor, warm_start: torch.Tensor | None, width: int,
-                  *options: Any) -> tuple[int, tuple]:
-    """``fn`` (:func:`lcs_cvx._kernels.compiled.violation` or ``.prediction``) on one model's
-    parameter arrays ``params`` (``A, B, C, d, D, E, G, H, c``) and a batch; returns its status
-    (0; 1: a sample did not converge, and the caller runs the array kernels, which end it with
-    the reference solvers; -1: the data are not finite) and its outputs, the gradients as
-    tensors."""
-    A, B, C, d, D, E, G, H, c = params
-    from ._kernels.compiled import COLD
-
-    warm = COLD
-    if warm_start is not None:
-        check_warm_start(warm_start, (x.shape[0], width))
-        warm = np.ascontiguousarray(warm_start.numpy())
-    out = fn(A, B, C, d, D, E, c, G, H, stiffness, *as_arrays(x, u, x_next), *options, warm)
-    status = out[5]
-    if status:
-        return (-1 if status < 0 else 1), out
-    return 0, (out[0], tuple(torch.from_numpy(g) for g in out[1])) + out[2:]
-
-
-def _compiled_call(fn: Any, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
-                   warm_start: torch.Tensor | None, width: int, *options: Any) -> tuple | None:
-    """:func:`compiled_call` on the model: its outputs, or None where the array kernels take
-    over. Non-finite data raise :func:`lcs_cvx._checks.as_transitions`'s error (the kernel checks
-    them: the public losses skip that check for tensors ready for it)."""
-    status, out = compiled_call(fn, _parameter_arrays(model)[1], float(model.stiffness), x, u,
-                                x_next, warm_start, width, *options)
-    if status < 0:
-        as_transitions(model, x, u, x_next)  # names the non-finite input
-    return None if status else out
-
-
-def _ready(model: Any, x: Any, u: Any, x_next: Any) -> bool:
-    """Whether ``(x, u, x_next)`` are already what :func:`lcs_cvx._checks.as_transitions` returns
-    for the compiled kernels: float64 CPU tensors of the right shapes for a float64 model
-    (their finiteness is then the kernel's check)."""
-    try:
-        return (x.dtype is u.dtype is x_next.dtype is model.A.dtype is torch.float64
-                and x.is_cpu and u.is_cpu and x_next.is_cpu and x.dim() == 2
-                and x.shape == x_next.shape and x.shape[1] == model.n_x
-                and u.shape == (x.shape[0], model.n_u))
-    except AttributeError:  # not tensors
-        return False
 
 
 def _normal_equations(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
@@ -281,8 +171,8 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
                    residual: bool = False, arrays: str = "auto") -> LossInfo:
     """The fast path of :func:`violation_loss_info` on validated tensors of the model's dtype
     and device (package-internal: the trainer validates its data once). ``residual``: also
-    compute every sample's KKT residual (``max_residual``; else None, and only then the
-    compiled kernel runs); ``arrays``: ``"auto"`` (the compiled kernel,
+    compute every sample's KKT residual (``max_residual``; else None); ``arrays``: ``"auto"``
+    (the compiled kernel,
     :mod:`lcs_cvx._kernels.compiled`, for one model's float64 CPU tensors; else the array kernels
     in NumPy on the CPU, in torch elsewhere), ``"compiled"``, or the array library of
     :func:`lcs_cvx.lcp.solve_lcp_fast` (``"numpy"``, ``"torch"``)."""
@@ -291,14 +181,12 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
     if not gamma < 2.0 * stiffness:  # F + F^T >= 2 s I by construction: below, no check needed
         check_gamma(model.F, gamma)
     n = model.n_lam
-    if _compiled(model, x, arrays):
-        from ._kernels import compiled
-        out = _compiled_call(compiled.violation, model, x, u, x_next, warm_start, 2 * n, gamma, eps,
-                             VIOLATION_TOL, MAX_ITER, STALL)
-        if out is not None:
-            value, grads, lam, phi, active, _, sweeps = out
-            loss = CompiledLoss.apply(_scalar(value), grads,
-                                      *[getattr(model, k) for k in PARAMETER_NAMES])
+    if calls.use_compiled(model, x, arrays):
+        done = calls.call_on_model("violation", model, x, u, x_next, warm_start, 2 * n, gamma, eps,
+                                   VIOLATION_TOL, MAX_ITER, STALL)
+        if done is not None:
+            params, (value, grads, lam, phi, active, _, sweeps) = done
+            loss = calls.CompiledLoss.apply(calls.scalar(value), grads, *params)
             lam = torch.from_numpy(lam)
             worst = None
             if residual:
@@ -332,14 +220,12 @@ def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.
                     arrays: str = "auto") -> LossInfo:
     """The fast path of :func:`prediction_loss_info` on validated tensors (see
     :func:`violation_fast`); ``warm_start`` ``(B, n_lam)``: the free sets."""
-    if _compiled(model, x, arrays):
-        from ._kernels import compiled
-        out = _compiled_call(compiled.prediction, model, x, u, x_next, warm_start, model.n_lam,
-                             LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL)
-        if out is not None:
-            value, grads, lam, w, free, _, sweeps, n_deg = out
-            loss = CompiledLoss.apply(_scalar(value), grads,
-                                      *[getattr(model, k) for k in PARAMETER_NAMES])
+    if calls.use_compiled(model, x, arrays):
+        done = calls.call_on_model("prediction", model, x, u, x_next, warm_start, model.n_lam,
+                                   LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL)
+        if done is not None:
+            params, (value, grads, lam, w, free, _, sweeps, n_deg) = done
+            loss = calls.CompiledLoss.apply(calls.scalar(value), grads, *params)
             lam, w = torch.from_numpy(lam), torch.from_numpy(w)
             worst = None
             if residual:
@@ -377,7 +263,7 @@ def _check_solver(solver: str, warm_start: Any) -> str:
 def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual) -> LossInfo:
     cone_solver = _check_solver(solver, warm_start)
     check_positive("eps", eps)
-    if not (solver == "fast" and _ready(model, x, u, x_next)):
+    if not (solver == "fast" and calls.ready(model, x, u, x_next)):
         x, u, x_next = as_transitions(model, x, u, x_next)
     if solver == "fast":
         return violation_fast(model, x, u, x_next, gamma=gamma, eps=eps, warm_start=warm_start,
@@ -448,7 +334,7 @@ def violation_loss_info(
 
 def _prediction(model, x, u, x_next, solver, warm_start, residual) -> LossInfo:
     cone_solver = _check_solver(solver, warm_start)
-    if not (solver == "fast" and _ready(model, x, u, x_next)):
+    if not (solver == "fast" and calls.ready(model, x, u, x_next)):
         x, u, x_next = as_transitions(model, x, u, x_next)
     if solver == "fast":
         return prediction_fast(model, x, u, x_next, warm_start=warm_start, residual=residual)
@@ -510,11 +396,11 @@ def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, wid
                     options: tuple, loss_fn: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The compiled kernel's value and gradients where it runs, else autograd through ``loss_fn``
     (the same numbers to round-off)."""
-    if _ready(model, x, u, x_next) and model.A.dim() == 2:
-        from ._kernels import compiled
-        out = _compiled_call(getattr(compiled, kernel_fn), model, x, u, x_next, None, width, *options)
-        if out is not None:
-            return _scalar(out[0]), dict(zip(PARAMETER_NAMES, out[1], strict=True))
+    if calls.ready(model, x, u, x_next) and model.A.dim() == 2:
+        done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options)
+        if done is not None:
+            out = done[1]
+            return calls.scalar(out[0]), dict(zip(PARAMETER_NAMES, out[1], strict=True))
     params = [getattr(model, k) for k in PARAMETER_NAMES]
     with torch.enable_grad():
         value = loss_fn()

@@ -30,6 +30,7 @@ from torch import nn
 
 from . import losses as _losses
 from ._checks import LCSInputError, check_positive
+from ._kernels import calls
 from ._kernels import lcp as kernel_lcp
 from ._kernels import losses as kernel
 from ._kernels import violation as kernel_violation
@@ -38,7 +39,7 @@ from ._kernels.lcp import PIVOT_TOL as LCP_TOL
 from ._kernels.pivoting import STALL
 from ._kernels.violation import PIVOT_TOL as VIOLATION_TOL
 from .lcp import finish as finish_lcp
-from .losses import CompiledLoss, EnvelopeLoss, ImplicitLoss
+from .losses import EnvelopeLoss, ImplicitLoss
 from .problems import check_gamma, violation_problem
 from .system import LCS, PARAMETER_NAMES
 from .violation import finish as finish_violation
@@ -167,7 +168,7 @@ def _model_rows(unconverged: torch.Tensor | None, K: int, B: int) -> dict[int, t
 def _compiled(fn_name: str, ens: StackedLCS, x: torch.Tensor, u: torch.Tensor,
               x_next: torch.Tensor, warm_start: torch.Tensor | None, warm: torch.Tensor | None,
               arrays: str, width: int, *options: Any) -> tuple[torch.Tensor, list[tuple]] | None:
-    """Each model's compiled call (:func:`lcs_cvx.losses.compiled_call`) on its own rows, for
+    """Each model's compiled call (:func:`lcs_cvx._kernels.calls.compiled_call`) on its own rows, for
     float64 CPU tensors (the default there): model ``k`` gets the numbers of its own call, bit
     for bit. Returns the ``(K,)`` loss (its gradients the models' own, stacked) and each model's
     outputs; None where the array kernels run the stack (other dtypes and devices, or a sample
@@ -183,18 +184,18 @@ def _compiled(fn_name: str, ens: StackedLCS, x: torch.Tensor, u: torch.Tensor,
 
     fn = getattr(compiled, fn_name)
     params = [getattr(ens, k) for k in PARAMETER_NAMES]
-    stacked = _losses.as_arrays(*params)
+    stacked = calls.as_arrays(*params)
     outs = []
     for k, s in enumerate(ens.stiffness.tolist()):
         own_warm = None if warm_start is None or (warm is not None and not bool(warm[k])) else warm_start[k]
-        status, out = _losses.compiled_call(fn, [a[k] for a in stacked], s, x[k], u[k], x_next[k],
+        status, out = calls.compiled_call(fn, [a[k] for a in stacked], s, x[k], u[k], x_next[k],
                                             own_warm, width, *options)
         if status:
             return None
         outs.append(out)
     grads = tuple(torch.stack([out[1][i] for out in outs]) for i in range(len(params)))
     values = torch.tensor([out[0] for out in outs], dtype=torch.float64)
-    return CompiledLoss.apply(values, grads, *params), outs
+    return calls.CompiledLoss.apply(values, grads, *params), outs
 
 
 def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,

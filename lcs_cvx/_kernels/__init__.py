@@ -10,8 +10,9 @@ executes it on NumPy arrays for CPU tensors (no copy) and on torch tensors elsew
 - :mod:`.lcp` -- the LCP kernel, ``0 <= lam _|_ F lam + q >= 0``;
 - :mod:`.violation` -- the kernel of the violation problem (V) and its normal equations;
 - :mod:`.losses` -- the forward and backward arithmetic of the two fast losses;
-- :mod:`.compiled` -- the two fast losses compiled (numba), solve, loss and gradient in one call,
-  for one model's float64 CPU tensors (the losses' default there);
+- :mod:`.compiled` -- the two fast losses and the LCP compiled (numba), solve, loss and gradient
+  in one call, for one model's float64 CPU tensors (the default there); :mod:`.dense`, their
+  small dense algebra; :mod:`.calls`, tensors in and out of them;
 - :mod:`.stacks`, :mod:`.c3` -- a kernel call's matrices (one model or a stack), C3's array work.
 
 Nothing here is public API; no name here is exported by :mod:`lcs_cvx`.

@@ -14,16 +14,20 @@ gradients with a few matrix products:
   (:func:`.losses.envelope_backward`);
 - :func:`prediction` -- the LCP of eq. (2), then Lemma 1's implicit gradient
   (:func:`.losses.implicit_backward`), whose adjoint solve ``F_II^T mu_I = (C^T g_e)_I`` reuses
-  the LU factors of the last pivoting sweep.
+  the LU factors of the last pivoting sweep;
+- :func:`lcp` -- the LCP alone (``solve_lcp``'s fast path).
+
+The ``n x n`` factorisations and the pivoting moves are in :mod:`.dense`.
 
 Both follow :func:`.pivoting.block_pivoting` sample by sample: the same cold guess, the same
 feasibility tests and tolerances, every infeasible index flipped, Murty's single pivot (largest
 infeasible index) once a sample has gone ``stall`` sweeps without a new lowest count. A sample
 that has not converged after ``max_iter`` sweeps, or whose factorisation failed, is reported
-(``converged`` False) and the caller hands the batch to the array kernels, which end it with the
+(``n_unconverged``) and the caller hands the batch to the array kernels, which end it with the
 reference solvers. Inputs are C-contiguous float64 arrays: parameters ``A (n_x, n_x)``,
 ``B (n_x, n_u)``, ``C (n_x, n)``, ``d (n_x,)``, ``D (n, n_x)``, ``E (n, n_u)``, ``c (n,)``,
-``F (n, n)``, ``G (n, n)``; data ``x (N, n_x)``, ``u (N, n_u)``, ``x_next (N, n_x)``.
+``G (n, n)``, ``H (n, n)`` and the stiffness ``s`` (``F = G G^T + H - H^T + s I``); data
+``x (N, n_x)``, ``u (N, n_u)``, ``x_next (N, n_x)``.
 """
 
 from __future__ import annotations
@@ -33,9 +37,10 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["COLD", "lcp", "prediction", "violation"]
+from .dense import JIT as _JIT
+from .dense import cholesky_solve, lu_factor, lu_solve, lu_solve_transposed, move, progress
 
-_JIT = {"cache": True, "nogil": True}
+__all__ = ["COLD", "lcp", "prediction", "violation"]
 
 #: Index arrays are unsigned: an index read from one then needs no wrap-around test for a
 #: negative value (numba's Python semantics), which costs a third of a small solve.
@@ -43,94 +48,6 @@ _INDEX = np.uint64
 
 #: The cold start (an empty warm start) of every kernel here.
 COLD = np.zeros((0, 0), dtype=np.bool_)
-
-
-@numba.njit(inline="always", **_JIT)
-def _cholesky_solve(M, rhs, m):  # pragma: no cover - compiled
-    """Solve ``M[:m, :m] z = rhs[:m]`` in place (lower triangle of ``M`` read and overwritten by
-    its Cholesky factor, the diagonal by its reciprocal); False if ``M`` is not positive definite
-    to working precision."""
-    for j in range(m):
-        s = M[j, j]
-        for k in range(j):
-            s -= M[j, k] * M[j, k]
-        if not s > 0.0:
-            return False
-        r = 1.0 / math.sqrt(s)
-        M[j, j] = r
-        for i in range(j + 1, m):
-            t = M[i, j]
-            for k in range(j):
-                t -= M[i, k] * M[j, k]
-            M[i, j] = t * r
-    for i in range(m):
-        t = rhs[i]
-        for k in range(i):
-            t -= M[i, k] * rhs[k]
-        rhs[i] = t * M[i, i]
-    for i in range(m - 1, -1, -1):
-        t = rhs[i]
-        for k in range(i + 1, m):
-            t -= M[k, i] * rhs[k]
-        rhs[i] = t * M[i, i]
-    return True
-
-
-@numba.njit(inline="always", **_JIT)
-def _lu_factor(M, piv, m):  # pragma: no cover - compiled
-    """LU with partial pivoting of ``M[:m, :m]`` in place (``piv``: the row swaps); False on an
-    exactly zero pivot (a singular matrix, as LAPACK's ``getrf`` reports it)."""
-    for k in range(m):
-        p, big = k, abs(M[k, k])
-        for i in range(k + 1, m):
-            if abs(M[i, k]) > big:
-                p, big = i, abs(M[i, k])
-        piv[k] = p
-        if big == 0.0:
-            return False
-        if p != k:
-            for j in range(m):
-                M[k, j], M[p, j] = M[p, j], M[k, j]
-        for i in range(k + 1, m):
-            f = M[i, k] / M[k, k]
-            M[i, k] = f
-            for j in range(k + 1, m):
-                M[i, j] -= f * M[k, j]
-    return True
-
-
-@numba.njit(inline="always", **_JIT)
-def _lu_solve(M, piv, b, m):  # pragma: no cover - compiled
-    """``M z = b`` in place with :func:`_lu_factor`'s factors."""
-    for k in range(m):
-        p = piv[k]
-        if p != k:
-            b[k], b[p] = b[p], b[k]
-    for i in range(m):
-        for k in range(i):
-            b[i] -= M[i, k] * b[k]
-    for i in range(m - 1, -1, -1):
-        t = b[i]
-        for k in range(i + 1, m):
-            t -= M[i, k] * b[k]
-        b[i] = t / M[i, i]
-
-
-@numba.njit(inline="always", **_JIT)
-def _lu_solve_transposed(M, piv, b, m):  # pragma: no cover - compiled
-    """``M^T z = b`` in place with :func:`_lu_factor`'s factors (``P M = L U``)."""
-    for i in range(m):
-        t = b[i]
-        for k in range(i):
-            t -= M[k, i] * b[k]
-        b[i] = t / M[i, i]
-    for i in range(m - 1, -1, -1):
-        for k in range(i + 1, m):
-            b[i] -= M[k, i] * b[k]
-    for k in range(m - 1, -1, -1):
-        p = piv[k]
-        if p != k:
-            b[k], b[p] = b[p], b[k]
 
 
 @numba.njit(**_JIT)
@@ -227,7 +144,7 @@ def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, 
         for c in range(mp):
             v += KIP[a, c] * h_all[s, pidx[c]]
         g[a] = v
-    ok = _cholesky_solve(M, g, m)
+    ok = cholesky_solve(M, g, m)
     lam[:] = 0.0
     if ok:
         for a in range(m):
@@ -257,25 +174,6 @@ def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, 
         bad[i] = (not ok) | (f & (lam[i] < lo)) | ((not f) & (g[i] < glo))
         bad[n + i] = (not ok) | (p & (t[i] < -tlo)) | ((not p) & (t[i] > tlo))
     return bad
-
-
-@numba.njit(inline="always", **_JIT)
-def _move(bad, state, k, murty):  # pragma: no cover - compiled
-    """One pivoting move (:func:`.pivoting.block_pivoting`'s rule): flip every infeasible flag
-    of ``state`` (``k`` flags), or only the largest one (Murty's rule)."""
-    for i in range(k - 1, -1, -1) if murty else range(k):
-        if bad[i]:
-            state[i] = not state[i]
-            if murty:
-                return
-
-
-@numba.njit(inline="always", **_JIT)
-def _progress(n_bad, best, stalled):  # pragma: no cover - compiled
-    """The lowest infeasible count so far and the sweeps since it fell."""
-    return (n_bad, 0) if n_bad < best else (best, stalled + 1)
-
-
 
 
 @numba.njit(**_JIT)
@@ -322,10 +220,10 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
         n_bad, sweeps = bad.sum(), 0
         best, stalled = n_bad, 0
         while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
-            _move(bad, state, 2 * n, sweeps >= stall and stalled >= stall)
+            move(bad, state, 2 * n, sweeps >= stall and stalled >= stall)
             bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, M, idx, pidx, KIP)
             n_bad, sweeps = bad.sum(), sweeps + 1
-            best, stalled = _progress(n_bad, best, stalled)
+            best, stalled = progress(n_bad, best, stalled)
         sweeps_max = max(sweeps_max, sweeps)
         n_unconverged += n_bad > 0
         for i in range(n):
@@ -373,10 +271,10 @@ def _lcp_solve(data, free):  # pragma: no cover - compiled
         for b in range(m):
             M[a, b] = F[idx[a], idx[b]]
         w[a] = -q[idx[a]]
-    ok = _lu_factor(M, piv, m)
+    ok = lu_factor(M, piv, m)
     lam[:] = 0.0
     if ok:
-        _lu_solve(M, piv, w, m)
+        lu_solve(M, piv, w, m)
         for a in range(m):
             lam[idx[a]] = w[a]
     for i in range(n):
@@ -398,10 +296,10 @@ def _lcp_pivot(data, free, max_iter, stall):  # pragma: no cover - compiled
     n_bad, sweeps = bad.sum(), 0
     best, stalled = n_bad, 0
     while sweeps < max_iter and n_bad > 0:  # Murty's rule once stalled
-        _move(bad, free, n, sweeps >= stall and stalled >= stall)
+        move(bad, free, n, sweeps >= stall and stalled >= stall)
         bad = _lcp_solve(data, free)
         n_bad, sweeps = bad.sum(), sweeps + 1
-        best, stalled = _progress(n_bad, best, stalled)
+        best, stalled = progress(n_bad, best, stalled)
     return n_bad, sweeps
 
 
@@ -497,7 +395,7 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             for k in range(n_x):
                 v += C[k, idx[a]] * Y[s, k]
             mu[a] = v
-        _lu_solve_transposed(M, piv, mu, m)
+        lu_solve_transposed(M, piv, mu, m)
         for i in range(n):
             Y[s, n_x + i] = 0.0
         for a in range(m):

@@ -1,0 +1,139 @@
+"""Tensors in and out of the compiled kernels (:mod:`.compiled`): when they run, the arrays
+they take (views of the tensors' memory, a model's parameters kept between calls), the tensors
+of what they return, and the loss as an autograd node whose backward is the kernel's gradient
+(:class:`CompiledLoss`).
+
+The fast losses (:mod:`lcs_cvx.losses`) and an ensemble's stack (:mod:`lcs_cvx.stacked`) call
+the compiled kernels through :func:`call_on_model` and :func:`compiled_call`.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from .._checks import LCSInputError, as_transitions
+from ..system import PARAMETER_NAMES
+from .pivoting import check_warm_start
+
+__all__ = ["CompiledLoss", "as_arrays", "call_on_model", "compiled_call", "parameter_arrays", "ready", "scalar",
+           "use_compiled"]
+
+
+def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
+    """Whether the fast losses run compiled (:mod:`.compiled`): one model's
+    float64 tensors on the CPU, the default there (``arrays="auto"``); ``arrays="compiled"``
+    asks for it and names what stands in the way."""
+    if arrays not in ("auto", "compiled"):
+        return False
+    ok = x.device.type == "cpu" and x.dtype == torch.float64 and model.A.dim() == 2
+    if arrays == "compiled" and not ok:
+        raise LCSInputError(
+            f"arrays: 'compiled' runs one model's float64 CPU tensors, received {x.dtype} on "
+            f"{x.device} with parameters of shape {tuple(model.A.shape)}"
+        )
+    return ok
+
+
+def as_arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
+    """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous)."""
+    return [np.ascontiguousarray(t.detach().numpy() if t.requires_grad else t.numpy())
+            for t in tensors]
+
+
+def scalar(value: float) -> torch.Tensor:
+    """A 0-dim float64 tensor of ``value`` (through NumPy: a third of ``torch.tensor``'s cost)."""
+    return torch.from_numpy(np.array(value))
+
+
+#: Per model: its parameters when last seen, their storage addresses and arrays on their memory
+#: (an optimiser's step changes the values in place, which the arrays see).
+_PARAMETER_ARRAYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def parameter_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray]]:
+    """The model's parameters (``A, B, C, d, D, E, G, H, c``) and arrays on their memory, made
+    once per model and made again when a parameter is replaced or moved to other storage."""
+    table = model.__dict__.get("_parameters", {})  # a torch Module's own table: no __getattr__
+    params = [table[k] if k in table else getattr(model, k) for k in PARAMETER_NAMES]
+    seen = _PARAMETER_ARRAYS.get(model)
+    if seen is not None and all(p is q and p.data_ptr() == ptr
+                                for p, q, ptr in zip(params, seen[0], seen[1], strict=True)):
+        return params, seen[2]
+    found = as_arrays(*params)
+    _PARAMETER_ARRAYS[model] = (params, [p.data_ptr() for p in params], found)
+    return params, found
+
+
+def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor,
+                  u: torch.Tensor, x_next: torch.Tensor, warm_start: torch.Tensor | None, width: int,
+                  *options: Any) -> tuple[int, tuple]:
+    """``fn`` (:func:`.compiled.violation` or ``.prediction``) on one model's
+    parameter arrays ``params`` (``A, B, C, d, D, E, G, H, c``) and a batch; returns its status
+    (0; 1: a sample did not converge, and the caller runs the array kernels, which end it with
+    the reference solvers; -1: the data are not finite) and its outputs, the gradients as
+    tensors."""
+    A, B, C, d, D, E, G, H, c = params
+    from .compiled import COLD
+
+    warm = COLD
+    if warm_start is not None:
+        check_warm_start(warm_start, (x.shape[0], width))
+        warm = np.ascontiguousarray(warm_start.numpy())
+    out = fn(A, B, C, d, D, E, c, G, H, stiffness, *as_arrays(x, u, x_next), *options, warm)
+    status = out[5]
+    if status:
+        return (-1 if status < 0 else 1), out
+    return 0, (out[0], tuple(torch.from_numpy(g) for g in out[1])) + out[2:]
+
+
+def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
+                  warm_start: torch.Tensor | None, width: int, *options: Any) -> tuple | None:
+    """:func:`compiled_call` of the kernel ``name`` (``"violation"`` or ``"prediction"``) on the
+    model: ``(params, outputs)``, or None where the array kernels take over. Non-finite data
+    raise :func:`lcs_cvx._checks.as_transitions`'s error (the kernel checks them: the public
+    losses skip that check for tensors ready for it)."""
+    from . import compiled
+
+    params, arrays = parameter_arrays(model)
+    status, out = compiled_call(getattr(compiled, name), arrays, float(model.stiffness), x, u,
+                                x_next, warm_start, width, *options)
+    if status < 0:
+        as_transitions(model, x, u, x_next)  # names the non-finite input
+    return None if status else (params, out)
+
+
+def ready(model: Any, x: Any, u: Any, x_next: Any) -> bool:
+    """Whether ``(x, u, x_next)`` are already what :func:`lcs_cvx._checks.as_transitions` returns
+    for the compiled kernels: float64 CPU tensors of the right shapes for a float64 model
+    (their finiteness is then the kernel's check)."""
+    try:
+        return (x.dtype is u.dtype is x_next.dtype is model.A.dtype is torch.float64
+                and x.is_cpu and u.is_cpu and x_next.is_cpu and x.dim() == 2
+                and x.shape == x_next.shape and x.shape[1] == model.n_x
+                and u.shape == (x.shape[0], model.n_u))
+    except AttributeError:  # not tensors
+        return False
+
+
+class CompiledLoss(torch.autograd.Function):
+    """``apply(value, grads, *params)``: the value of a compiled loss
+    (:mod:`lcs_cvx._kernels.compiled`, which computes the loss and its closed-form gradients in
+    one call) with those gradients ``grads`` (in ``params`` order) as its backward; a stack's
+    values ``(K,)`` scale their models' slices of the gradients."""
+
+    @staticmethod
+    def forward(ctx, value, grads, *params):  # noqa: D102
+        ctx.grads = grads
+        return value
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: D102
+        need = ctx.needs_input_grad[2:]
+        return (None, None) + tuple(
+            None if not n else g * (grad if grad.dim() == 0 else grad.reshape((-1,) + (1,) * (g.dim() - 1)))
+            for g, n in zip(ctx.grads, need, strict=True))
