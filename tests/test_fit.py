@@ -90,7 +90,8 @@ def test_history_records_and_settings(small):
     assert [h["iteration"] for h in result.history] == [50, 100, 150, 200]
     assert seen == result.history
     assert all(h["phase"] == "adam" and h["e_test"] > 0 and h["loss"] > 0 for h in result.history)
-    assert result.settings == resolve_options(iterations=200, eval_every=50)
+    # keep_best=None is resolved: off for transitions
+    assert result.settings == resolve_options(iterations=200, eval_every=50, keep_best=False)
     assert result.settings.adam.lr == 1e-3 and result.settings.adam.betas == (0.9, 0.9)
 
 
@@ -505,7 +506,8 @@ def test_fit_overrides_keep_fields_no_keyword_names(small):
                       refine=RefineOptions(method="gauss-newton", iterations=1, record_every=5))
     result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, options=opts, lr=2e-3, progress=False)
     assert result.settings.polish.batch_size == 1000 and result.settings.refine.record_every == 5
-    assert result.settings == dataclasses.replace(opts, adam=dataclasses.replace(opts.adam, lr=2e-3))
+    assert result.settings == dataclasses.replace(opts, adam=dataclasses.replace(opts.adam, lr=2e-3),
+                                                  run=dataclasses.replace(opts.run, keep_best=False))
 
 
 @pytest.mark.parametrize("keyword", FLAT_OPTIONS)

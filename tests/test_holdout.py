@@ -107,6 +107,45 @@ def test_keep_best_follows_the_heldout_score_without_a_test_set(data):
     assert result.heldout_error == pytest.approx(min(scores), rel=1e-9)
 
 
+def test_keep_best_is_on_by_default_where_trajectories_are_held_out(truth, data):
+    _, runs = fit(data, holdout_horizon=4, iterations=40, eval_every=10, rollout_iterations=20)
+    assert runs.settings.run.keep_best is True
+    scores = [h["e_test"] for h in runs.history]
+    assert all(s is not None for s in scores)
+    assert runs.heldout_error <= min(scores) * (1 + 1e-9)  # the best iterate (or the start)
+    _, off = fit(data, keep_best=False, iterations=20, eval_every=10, rollout_iterations=10)
+    assert off.settings.run.keep_best is False and all(h["e_test"] is None for h in off.history)
+    _, transitions = fit(lcs_cvx.make_dataset(truth, 300, seed=1), iterations=20, eval_every=10)
+    assert transitions.settings.run.keep_best is False
+    with pytest.raises(lcs_cvx.LCSInputError, match="keep_best: expected True, False or None"):
+        fit(data, keep_best="yes")
+
+
+def test_keep_best_returns_the_start_when_training_only_makes_it_worse(truth, data):
+    """The start is a candidate: from the truth itself, steps of a huge learning rate only
+    raise the held-out error, and the returned model is the start, bit for bit."""
+    model = lcs_cvx.random_lcs(2, 1, 2, seed=0).requires_grad_(True)
+    start = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    result = lcs_cvx.fit(model, data, init="model", normalize=False, lr=0.5, iterations=30, eval_every=10,
+                         rollout_horizon=None, holdout_horizon=4, progress=False)
+    assert all(h["e_test"] > result.heldout_error for h in result.history)
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, start[k]), k
+
+
+def test_with_keep_best_the_simulation_error_phase_refines_the_best_iterate(truth):
+    """The phase starts from the best iterate so far, not the last: with a vanishing step its
+    first record scores as the best Adam record, which here is not the last one."""
+    noisy = make_trajectories(truth, 10, 25, seed=1, noise=0.05)
+    _, result = fit(noisy, keep_best=True, holdout_horizon=4, eval_every=10, lr=5e-2, iterations=90,
+                    rollout_horizon=5, rollout_iterations=20, rollout_lr=1e-12)
+    adam = [h["e_test"] for h in result.history if h["phase"] == "adam"]
+    rollout = [h["e_test"] for h in result.history if h["phase"] == "rollout"]
+    assert adam[-1] > min(adam) * 1.01  # the last Adam iterate is not the best
+    assert rollout[0] == pytest.approx(min(adam), rel=1e-6)
+    assert result.heldout_error <= min(adam) * (1 + 1e-9)
+
+
 def test_the_simulation_error_phase_runs_last_and_lowers_its_loss(truth):
     noisy = make_trajectories(truth, 10, 25, seed=1, noise=0.05)
     _, result = fit(noisy, rollout_horizon=5, rollout_iterations=120, eval_every=20, rollout_lr=3e-3)

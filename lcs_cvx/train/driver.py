@@ -117,6 +117,10 @@ def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] |
     kept its fit (:func:`kept_fit`) and its parameters."""
     if r.keep_best:
         state.restore_best()
+        start, best = state.rollout_start, state.best
+        if start is not None and best is not None and state.score is state.validate:
+            # the phase is kept where one of its iterates is the one returned
+            state.rollout_kept = best[0] < start[0]
     model = state.model
     return {"score": holdout_score(model) if holdout_score is not None else math.nan,
             "history": state.history, "kept": kept_fit(state.history, r.restart_tolerance),
@@ -205,6 +209,9 @@ def fit(
     check_learnable(model)
     opts = fit_options(options, recipe, overrides)
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
+    if opts.run.keep_best is None:  # on by default where whole trajectories are held out
+        opts = dataclasses.replace(opts, run=dataclasses.replace(
+            opts.run, keep_best=split.trajectories is not None and split.holdout is not None))
     fit_user = check_data("train", split.fit, model)
     if isinstance(split.holdout, Dataset):
         split = dataclasses.replace(split, holdout=check_data("validation", split.holdout, model))

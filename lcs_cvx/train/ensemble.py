@@ -24,6 +24,7 @@ model as it would a cell of its own).
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -161,6 +162,9 @@ def fit_ensemble(
         check_learnable(m)
     opts = [fit_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
             for k in range(K)]
+    # transitions, no held-out part: keep_best=None is off, as in fit
+    opts = [o if o.run.keep_best is not None else dataclasses.replace(
+        o, run=dataclasses.replace(o.run, keep_best=False)) for o in opts]
     check_supported(opts[0])
     members = [
         _Member(m, check_data(f"trains[{k}]", trains[k], m),

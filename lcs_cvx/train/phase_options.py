@@ -264,7 +264,10 @@ class RunOptions:
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
             second-order step are always followed by one).
         keep_best: return the iterate with the lowest e_test on ``test`` instead of the last
-            (without ``test``, the lowest held-out score when there is a held-out part).
+            (without ``test``, the lowest held-out score when there is a held-out part); the
+            starting model is a candidate too. None (the default): True when the training data
+            are :class:`lcs_cvx.Trajectories` with a held-out part (``validation``, or the
+            ``holdout`` fraction of whole trajectories), else False.
         holdout_horizon: with :class:`lcs_cvx.Trajectories` as data, the held-out score is the
             rollout error (:func:`lcs_cvx.rollout_error`) at this horizon on the held-out
             trajectories (1: the one-step relative error).
@@ -293,7 +296,7 @@ class RunOptions:
     seed: int = 0
     eval_every: int = 100
     checkpoint_every: int = 500
-    keep_best: bool = False
+    keep_best: bool | None = None
     normalize: bool = True
     init: str | tuple[str, ...] = "increment"
     holdout_horizon: int = 1
@@ -301,9 +304,10 @@ class RunOptions:
 
     def __post_init__(self) -> None:
         _count(self, 1, "restarts", "eval_every", "checkpoint_every", "holdout_horizon")
-        for name in ("keep_best", "affine_if_better"):
-            if not isinstance(getattr(self, name), bool):
-                raise option_error(name, "True or False", getattr(self, name))
+        if self.keep_best is not None and not isinstance(self.keep_best, bool):
+            raise option_error("keep_best", "True, False or None", self.keep_best)
+        if not isinstance(self.affine_if_better, bool):
+            raise option_error("affine_if_better", "True or False", self.affine_if_better)
         if isinstance(self.init, (list, tuple)):  # a TOML or JSON list is the tuple
             object.__setattr__(self, "init", tuple(self.init))
             if not self.init or any(k not in INITS for k in self.init):

@@ -263,8 +263,9 @@ class PolishPhase(Phase):
 class RolloutPhase(Phase):
     """Adam on the simulation error (:func:`lcs_cvx.simulation_error.simulation_error`) of
     ``batch_size`` windows of ``H`` steps drawn at random from the training trajectories,
-    constant learning rate. Recorded and checkpointed as the polish. With a held-out part, the
-    model before the phase comes back at its end unless the held-out score fell
+    constant learning rate. Recorded and checkpointed as the polish. With ``keep_best`` it starts
+    from the best iterate so far (the model the run would otherwise return). With a held-out
+    part, the model before the phase comes back at its end unless the held-out score fell
     (``state.rollout_kept``)."""
 
     key = "rollout"
@@ -279,8 +280,11 @@ class RolloutPhase(Phase):
 
     def step(self, state: TrainState) -> Outcome:
         ro, obj = self.options.rollout, self.options.objective
-        if state.steps["rollout"] == 0 and state.validate is not None:
-            state.rollout_start = (state.validate(state.model), _parameters(state.model))
+        if state.steps["rollout"] == 0:
+            if state.options.run.keep_best:  # refine the model a run would return, its best so far
+                state.restore_best()
+            if state.validate is not None:
+                state.rollout_start = (state.validate(state.model), _parameters(state.model))
         w = state.windows
         idx = torch.randint(len(w), (min(ro.batch_size, len(w)),), generator=state.generator)
         kw = {"dtype": state.model.dtype, "device": state.model.device}

@@ -10,6 +10,7 @@ types only, loadable with ``torch.load(weights_only=True)``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -82,6 +83,8 @@ class TrainState:
         self.history: list[dict[str, Any]] = []
         self.damping = options.refine.damping
         self.best: tuple[float, dict[str, torch.Tensor]] | None = None
+        if options.run.keep_best and self.scored:  # the start is a candidate too
+            self._consider(self.score(model))
         self._reset_stretch()
         # the fast solver's final active sets per training sample: the warm start of the
         # sample's next visit; the loss does not depend on them, the solver's work does
@@ -142,10 +145,16 @@ class TrainState:
         self._reset_stretch()
         self.history.append(rec)
         tracked = self.work is self.model  # not while a grown model is trained
-        if (self.options.run.keep_best and tracked and e_test is not None
-                and (self.best is None or e_test < self.best[0])):
-            self.best = (e_test, {k: getattr(self.model, k).detach().clone() for k in PARAMETER_NAMES})
+        if self.options.run.keep_best and tracked and e_test is not None:
+            self._consider(e_test)
         return rec
+
+    def _consider(self, score: float) -> None:
+        """Keep the model's parameters as the best iterate if ``score`` is the lowest so far (a
+        NaN score, a diverged rollout, counts as infinite)."""
+        score = math.inf if math.isnan(score) else score
+        if self.best is None or score < self.best[0]:
+            self.best = (score, {k: getattr(self.model, k).detach().clone() for k in PARAMETER_NAMES})
 
     def restore_best(self) -> None:
         """Load the best iterate (``keep_best``) into the model."""

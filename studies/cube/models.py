@@ -12,24 +12,22 @@ specs, in the order of the tables (:func:`specs`):
   AdamW on the mean squared normalised increment error, early stopping on the validation tosses'
   one-step error; one fit per point of the grid :data:`MLP_GRID`, the one with the lowest
   validation rollout error (:func:`validation_score`) kept;
-- ``LCS``: :func:`lcs_cvx.select_n_lam` over ``n_lam`` in :data:`N_LAMS` with the library's default
-  options (and ``iterations``), the candidates' one-step validation errors recorded, and the
-  ``n_lam`` chosen by :func:`lcs_cvx.selection.choose` on the validation rollout errors
-  (:func:`validation_score`), since what is evaluated is rollouts;
+- ``constant increment``: ``x' = x + m``, ``m`` the mean training increment (where
+  :func:`lcs_cvx.fit` starts; no dynamics at all);
+- ``LCS``: :func:`lcs_cvx.select_n_lam` over ``n_lam`` in :data:`N_LAMS` on the training tosses as
+  :class:`lcs_cvx.Trajectories`, the validation tosses as ``validation`` with the rollout score
+  at :data:`VALIDATION_HORIZON` steps (``holdout_horizon``), and the library's defaults otherwise:
+  the simulation-error phase and the best iterate by that score, both ``fit``'s defaults on
+  trajectories with a held-out part;
 - ``LCS, known structure``: the same with the structure a user knows of a tossed cube
   (:func:`structured_lcs`);
-- ``LCS + rollout phase`` and ``LCS, known structure + rollout phase``: the same two, trained on
-  the tosses as :class:`lcs_cvx.Trajectories` with ``lcs_cvx.fit``'s simulation-error phase
-  (``rollout_horizon``) and the validation tosses passed as ``validation`` with a rollout
-  held-out score (``holdout_horizon``), at the ``n_lam`` its twin without the phase chose at the
-  same size (to save two thirds of the time; all of :data:`N_LAMS` when the twin has no record);
-  listed only when the installed ``lcs_cvx.fit`` has these options (:func:`has_rollout_options`).
+- ``LCS, one-step losses only``: ``LCS`` without the simulation-error phase
+  (``rollout_horizon=None``), at the ``n_lam`` ``LCS`` chose at the same size (one fit instead
+  of one per candidate; all of :data:`N_LAMS` when that cell has no record): what the phase buys.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
 import json
 import math
 import os
@@ -45,11 +43,10 @@ from torch import nn
 import lcs_cvx
 from lcs_cvx.datasets import CUBE_DT
 from lcs_cvx.metrics import AffineMap, affine_lstsq
-from lcs_cvx.selection import choose
 
 from .metrics import Stepper
 
-__all__ = ["Spec", "specs", "structured_lcs", "ResidualMLP", "validation_score", "has_rollout_options",
+__all__ = ["Spec", "specs", "structured_lcs", "ResidualMLP", "validation_score",
            "N_LAMS", "MLP_GRID", "GRAVITY", "VALIDATION_HORIZON", "Budget"]
 
 #: Candidates for ``n_lam``.
@@ -272,20 +269,6 @@ def structured_lcs(n_lam: int, seed: int = 0) -> lcs_cvx.LCS:
     return model.fix(d=d.reshape(tuple(model.d.shape)))
 
 
-def has_rollout_options() -> bool:
-    """Whether the installed :func:`lcs_cvx.fit` takes ``Trajectories``, ``validation=``,
-    ``rollout_horizon`` and ``holdout_horizon`` and returns ``heldout_error``."""
-    try:
-        from lcs_cvx.train.options import FLAT_OPTIONS
-        from lcs_cvx.train.result import FitResult
-    except ImportError:
-        return False
-    fields = {f.name for f in dataclasses.fields(FitResult)}
-    return ({"rollout_horizon", "holdout_horizon"} <= set(FLAT_OPTIONS)
-            and "validation" in inspect.signature(lcs_cvx.fit).parameters
-            and {"heldout_error", "affine_heldout_error", "heldout_growth"} <= fields)
-
-
 def _num(v: Any) -> Any:
     """A JSON-safe float (None for None; inf/NaN as strings)."""
     if v is None:
@@ -295,48 +278,43 @@ def _num(v: Any) -> Any:
 
 
 def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, dict[str, Any]]]:
+    """The LCS of a user: :func:`lcs_cvx.select_n_lam` on the training tosses as
+    :class:`lcs_cvx.Trajectories`, the validation tosses as ``validation`` with the rollout score
+    at :data:`VALIDATION_HORIZON` (by which ``n_lam`` is chosen and, by ``fit``'s default on
+    trajectories, the best iterate kept) and otherwise the library's defaults: with ``rollout``
+    the simulation-error phase runs (its default on trajectories), without it the one-step losses
+    only (``rollout_horizon=None``)."""
     def fit(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str,
             n_lams: tuple[int, ...] | None = None) -> tuple[Stepper, dict[str, Any]]:
         t0 = time.perf_counter()
         make = (lambda n: structured_lcs(n)) if structured else (lambda n: lcs_cvx.LCS(13, 0, n, seed=0))
-        models: dict[int, lcs_cvx.LCS] = {}
+        extra = {} if rollout else {"rollout_horizon": None}
+        if budget.rollout_iterations != Budget.rollout_iterations:  # the smoke run's budget
+            extra = {**extra, "rollout_iterations": budget.rollout_iterations,
+                     "rollout_horizon": budget.rollout_horizon} if rollout else extra
+        sel = lcs_cvx.select_n_lam(train, list(n_lams or budget.n_lams), validation=val, make_model=make,
+                                   iterations=budget.lcs_iterations, holdout_horizon=VALIDATION_HORIZON,
+                                   progress=False, seed=0, **extra)
         table: list[dict[str, Any]] = []
-        if rollout:
-            for n in n_lams or budget.n_lams:
-                t1 = time.perf_counter()
-                m = make(n)
-                res = lcs_cvx.fit(m, train, validation=val, iterations=budget.lcs_iterations,
-                                  rollout_horizon=budget.rollout_horizon,
-                                  rollout_iterations=budget.rollout_iterations,
-                                  holdout_horizon=VALIDATION_HORIZON, progress=False, seed=0)
-                models[n] = m
-                table.append({"n_lam": n, "val_one_step": lcs_cvx.relative_error(m, val.to_transitions()),
-                              "heldout_error": _num(res.heldout_error),
-                              "affine_heldout_error": _num(res.affine_heldout_error),
-                              "heldout_growth": _num(res.heldout_growth),
-                              "refinement_kept": res.refinement_kept,
-                              "wall": time.perf_counter() - t1})
-        else:
-            sel = lcs_cvx.select_n_lam(train.to_transitions(), list(budget.n_lams), validation=val.to_transitions(),
-                                       make_model=make, iterations=budget.lcs_iterations, progress=False, seed=0)
-            for row in sel.table:
-                n = row["n_lam"]
-                models[n] = sel.results[n].model
-                table.append({"n_lam": n, "val_one_step": row["validation_error"], "wall": row["wall_time"]})
-            one_step_choice = sel.n_lam
-        for row in table:
-            row["val_rollout"] = validation_score(lcs_stepper(models[row["n_lam"]]), val, budget.val_stride)
-        scores = {row["n_lam"]: row["val_rollout"] for row in table}
-        if any(math.isfinite(v) for v in scores.values()):
-            n_star = choose(scores)
-        else:  # every candidate's rollout diverged: the one-step choice
-            n_star = choose({row["n_lam"]: row["val_one_step"] for row in table})
-        model = models[n_star]
-        lcs_cvx.save_model(model, path, metadata={"n_lam": n_star, "structured": structured, "rollout": rollout})
-        info = {"wall": time.perf_counter() - t0, "n_lam": n_star, "candidates": table,
-                "val_rollout": scores[n_star]}
-        if not rollout:
-            info["n_lam_by_one_step"] = one_step_choice
+        for row in sel.table:
+            n = row["n_lam"]
+            res = sel.results[n]
+            scored = [(h["iteration"], h["e_test"]) for h in res.history if h.get("e_test") is not None]
+            best = min(scored, key=lambda t: t[1]) if scored else None
+            table.append({"n_lam": n, "heldout_error": _num(res.heldout_error),
+                          "affine_heldout_error": _num(res.affine_heldout_error),
+                          "beats_affine": res.beats_affine, "heldout_growth": _num(res.heldout_growth),
+                          "refinement_kept": res.refinement_kept, "keep_best": res.settings.run.keep_best,
+                          "best_iteration": None if best is None else best[0],
+                          "val_one_step": lcs_cvx.relative_error(res.model, val.to_transitions()),
+                          "val_rollout": validation_score(lcs_stepper(res.model), val, budget.val_stride),
+                          "wall": row["wall_time"]})
+        model = sel.model
+        lcs_cvx.save_model(model, path, metadata={"n_lam": sel.n_lam, "structured": structured, "rollout": rollout})
+        chosen = next(r for r in table if r["n_lam"] == sel.n_lam)
+        info = {"wall": time.perf_counter() - t0, "n_lam": sel.n_lam, "candidates": table,
+                "val_rollout": chosen["val_rollout"], "beats_affine": chosen["beats_affine"],
+                "verdict": sel.results[sel.n_lam].verdict}
         for row in table:
             for k, v in list(row.items()):
                 if isinstance(v, float):
@@ -345,26 +323,41 @@ def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, di
     return fit
 
 
+# ----------------------------------------------------------------------------- constant increment
+def _fit_increment(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str
+                   ) -> tuple[Stepper, dict[str, Any]]:
+    """``x' = x + m``, ``m`` the mean training increment (``fit``'s starting ``(A, B, d)``)."""
+    t0 = time.perf_counter()
+    tr = train.to_transitions()
+    m = (tr.x_next - tr.x).mean(0)
+    np.savez(path, m=m.numpy())
+    step = _increment_step(m)
+    return step, {"wall": time.perf_counter() - t0, "val_rollout": validation_score(step, val, budget.val_stride)}
+
+
+def _increment_step(m: torch.Tensor) -> Stepper:
+    return lambda x: x + m
+
+
+def _load_increment(path: str) -> Stepper:
+    with np.load(path) as f:
+        return _increment_step(torch.from_numpy(f["m"]))
+
+
 def _load_lcs(path: str) -> Stepper:
     return lcs_stepper(lcs_cvx.load_model(path))
 
 
-def specs(include_rollout: bool | None = None) -> list[Spec]:
-    """The model specs in table order; the two ``rollout`` LCSs only when
-    :func:`has_rollout_options` (or ``include_rollout``) says so."""
-    out = [
+def specs() -> list[Spec]:
+    """The model specs in table order."""
+    return [
         Spec("affine LS", "affine", "npz", _fit_affine, _load_affine),
+        Spec("constant increment", "increment", "npz", _fit_increment, _load_increment),
         Spec("MLP", "mlp", "pt", _fit_mlp, _load_mlp),
-        Spec("LCS", "lcs", "npz", _fit_lcs(False, False), _load_lcs),
-        Spec("LCS, known structure", "lcs_structured", "npz", _fit_lcs(True, False), _load_lcs),
+        Spec("LCS", "lcs", "npz", _fit_lcs(False, True), _load_lcs),
+        Spec("LCS, known structure", "lcs_structured", "npz", _fit_lcs(True, True), _load_lcs),
+        Spec("LCS, one-step losses only", "lcs_one_step", "npz", _fit_lcs(False, False), _load_lcs, twin="lcs"),
     ]
-    if include_rollout if include_rollout is not None else has_rollout_options():
-        out += [
-            Spec("LCS + rollout phase", "lcs_rollout", "npz", _fit_lcs(False, True), _load_lcs, twin="lcs"),
-            Spec("LCS, known structure + rollout phase", "lcs_structured_rollout", "npz",
-                 _fit_lcs(True, True), _load_lcs, twin="lcs_structured"),
-        ]
-    return out
 
 
 def to_json(obj: Any) -> str:

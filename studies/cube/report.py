@@ -80,6 +80,13 @@ def target_check(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _verdicts(records: list[dict[str, Any]]) -> list[str]:
+    """One line per chosen LCS: its ``FitResult.verdict`` (validation rollout error against the
+    affine map's)."""
+    return [f"- {r['size']} tosses, **{r['model']}**: {r['fit']['verdict']}" for r in records
+            if r["fit"].get("verdict")]
+
+
 def _tables(records: list[dict[str, Any]]) -> list[str]:
     lines = ["## Rollouts on the test tosses", "",
              "Mean over the rollouts (∞ when any diverged; the count and the mean over the others "
@@ -125,7 +132,9 @@ def _selection(records: list[dict[str, Any]]) -> list[str]:
                 extra = ""
                 if c.get("heldout_error") is not None:
                     extra = (f" (fit's held-out {_f(_val(c['heldout_error']), 3)}, affine "
-                             f"{_f(_val(c['affine_heldout_error']), 3)}, growth {_f(_val(c['heldout_growth']), 3)})")
+                             f"{_f(_val(c['affine_heldout_error']), 3)}, growth {_f(_val(c['heldout_growth']), 3)}"
+                             + (f", best iterate {c['best_iteration']}" if c.get("best_iteration") is not None
+                                else "") + ")")
                 lines.append(f"| {r['size']} | {r['model']} | n_λ = {c['n_lam']}{mark} | {_f(_val(c['val_one_step']), 3)} | "
                              f"{_f(_val(c['val_rollout']), 3)}{extra} | {_val(c['wall']):.0f} |")
         elif "grid" in fit:
@@ -187,7 +196,7 @@ def _rollout_figure(out: str, records: list[dict[str, Any]], test_xs: list[torch
         axes[0, j].plot(t, x[:, 6].numpy(), "k-", lw=2.5, label="recorded")
         axes[1, j].plot(t, x[:, 4].numpy(), "k-", lw=2.5, label="recorded")
         for r in rs:
-            spec = next(s for s in M.specs(True) if s.name == r["model"])
+            spec = next(s for s in M.specs() if s.name == r["model"])
             step = spec.load(os.path.join(out, r["model_file"]))
             maxnorm = torch.linalg.vector_norm(x, dim=1).max().reshape(1)
             pred = rollout(step, x[:1], x.shape[0] - 1, maxnorm)[0].numpy()
@@ -250,26 +259,24 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         f"the validation one-step error (checked every {budget.mlp_eval_every} steps, patience "
         f"{budget.mlp_patience}); grid: " + ", ".join(
             f"{'×'.join(map(str, g['hidden']))} wd {g['weight_decay']:g}" for g in budget.mlp_grid) + ";",
-        f"- *LCS*: `lcs_cvx.select_n_lam(train, {list(budget.n_lams)}, validation=...)` with the "
-        f"library's default options" + (" (10,000 Adam iterations of batch 200, violation loss, normalised "
-        "coordinates)" if budget.lcs_iterations == 10_000 else f" but `iterations={budget.lcs_iterations}`")
-        + "; the candidates' one-step validation errors are recorded and n_λ is "
-        "chosen by `lcs_cvx.selection.choose` on their validation rollout errors;",
+        "- *constant increment*: x' = x + m, m the mean training increment (where `lcs_cvx.fit` starts; "
+        "a reference without dynamics, not a target);",
+        f"- *LCS*: `lcs_cvx.select_n_lam(train, {list(budget.n_lams)}, validation=val, "
+        f"holdout_horizon={M.VALIDATION_HORIZON})` on the tosses as `lcs_cvx.Trajectories`, with the "
+        "library's default options otherwise" + (" (10,000 Adam iterations of batch 200, violation loss, "
+        "normalised coordinates, then the simulation-error phase: 300 Adam steps on 10-step windows, "
+        "kept only if the held-out score fell)" if budget.lcs_iterations == 10_000
+        else f" but `iterations={budget.lcs_iterations}`") + "; on trajectories with a held-out part "
+        "`fit` returns the iterate with the lowest held-out rollout error (the starting model "
+        "included), and `select_n_lam` chooses n_λ by that error;",
         "- *LCS, known structure*: the same with `d` fixed to gravity (v_z' = v_z − g dt, p_z' = p_z − g dt², "
         "g = 9.81 m/s²; the recorded positions follow p' = p + dt v') and `A` masked to the free-flight "
         "pattern (p_i' from p_i, v_i; w_i' from w_i; v_i' from v_i; q' from q, w); the values of the "
         "unmasked entries of A are learned, as `LCS.fix` fixes whole parameters, not entries "
         "(`studies.cube.models.structured_lcs`);",
+        "- *LCS, one-step losses only*: *LCS* with `rollout_horizon=None` (no simulation-error phase), at "
+        "the n_λ *LCS* chose at the same size: what the phase buys.",
     ]
-    if any("rollout phase" in n for n in names):
-        L.append(f"- *+ rollout phase*: the same, trained on the tosses as `lcs_cvx.Trajectories` with "
-                 f"`rollout_horizon={budget.rollout_horizon}`, `rollout_iterations={budget.rollout_iterations}` "
-                 f"(the simulation-error phase after the Adam phase), `validation=` the validation tosses "
-                 f"and `holdout_horizon={M.VALIDATION_HORIZON}`, at the n_λ its twin without the phase chose "
-                 "at the same size (one fit instead of one per candidate).")
-    else:
-        L.append("- the LCS trained with the library's simulation-error (rollout) phase is not in this run "
-                 "(the installed `lcs_cvx.fit` has no `rollout_horizon`).")
     L += [
         "",
         "**Metrics** on the test tosses (`studies/cube/metrics.py`): one-step errors per state group; "
@@ -287,15 +294,15 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         "",
     ]
     L += check if check else ["Met: no LCS is worse than a baseline in any rollout metric and no rollout diverged."]
-    L += ["", "Two things no linear model here can do: the quaternion kinematics q' = q + (dt/2) q ⊗ (0, w) "
-          "is bilinear in q and w, so the affine map and every LCS (linear in x between mode switches) "
-          "predict the rotation with one linear map per mode, while the MLP can represent it; and an "
-          "LCS need not learn contact to fit these data: on the models fitted on all 275 tosses, the "
-          "learned LCS's v_z row is a damped spring on the height (A[v_z, p_z] ≈ −1.5, A[v_z, v_z] ≈ 0.84, "
-          "the affine map's way of stopping the fall), the known-structure LCS learned damping "
-          "A[v_z, v_z] ≈ 0.87 in free flight (its masked entries are learned, not fixed at 1), and both "
-          "have each λ active in about half of the flight and of the resting states alike: no contact "
-          "mode was found (diagnostic run by hand on the cached models, not by this script).", ""]
+    L += ["", "Two things no linear model of this state can do: the quaternion kinematics "
+          "q' = q + (dt/2) q ⊗ (0, w) is bilinear in q and w, so the affine map and every LCS (linear in x "
+          "between mode switches) predict the rotation with one linear map per mode, while the MLP can "
+          "represent it; and the height of a corner of the cube, what contact depends on, is "
+          "p_z + (R(q) r)_z, quadratic in q, so the LCS's gap D x + c can only approximate it with a "
+          "plane. The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
+          f"validation rollout error at H = {M.VALIDATION_HORIZON} against the affine map's.", ""]
+    L += _verdicts(records)
+    L += [""]
     L += _tables(records)
     L += [""]
     L += _selection(records)

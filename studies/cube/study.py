@@ -51,7 +51,7 @@ __all__ = ["SIZES", "SPLIT_SEED", "split", "subset", "run", "main"]
 SIZES = (2, 4, 8, 16, 32, 64, 128, 275)
 SPLIT_SEED = 0
 MACHINE = "2-core x86-64 VM, 1 torch thread"
-DATE = "2026-11-25"
+DATE = "2026-11-26"
 HORIZONS = (10, 30)
 SMOKE_BUDGET = M.Budget(lcs_iterations=60, rollout_iterations=10, rollout_horizon=5, mlp_steps=100,
                         mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(M.MLP_GRID[0],), val_stride=1)
@@ -124,7 +124,7 @@ def run(out: str, sizes: list[int], smoke: bool = False, only: list[str] | None 
             print(f"n={size:4d} {spec.name:40s} fit {info['wall']:7.1f} s  pos H30 {r['H30']['pos']:.4f} m  "
                   f"rot H30 {r['H30']['rot']:.3f} rad  end {r['end']['pos']:.4f} m {r['end']['rot']:.3f} rad  "
                   f"diverged {r['end']['diverged']}/{r['end']['rollouts']}", file=log, flush=True)
-    order = [s.name for s in M.specs(True)]
+    order = [s.name for s in M.specs()]
     return [done[k] for k in sorted(done, key=lambda k: (k[0], order.index(k[1]) if k[1] in order else 99))]
 
 
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", default=None, help="comma-separated training sizes (tosses), default "
                     + ",".join(map(str, SIZES)))
     ap.add_argument("--models", default=None, help="comma-separated model keys (default all): "
-                    + ",".join(s.key for s in M.specs(True)))
+                    + ",".join(s.key for s in M.specs()))
     ap.add_argument("--smoke", action="store_true", help="sizes 2,4, 20 validation/test tosses, tiny budgets")
     ap.add_argument("--no-report", action="store_true", help="fit and evaluate only")
     args = ap.parse_args(argv)

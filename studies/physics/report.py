@@ -222,7 +222,9 @@ def measured_with_noise(s: dict[str, Any]) -> list[str]:
         + ", rollout_horizon=None)` (one-step losses only) and the same with the simulation-error phase "
         f"(`rollout_horizon=` {', '.join(str(h) for h in f['rollout_horizons'])}; with `Trajectories` `fit` runs it "
         "by default, 10 steps, and keeps its result only if the held-out score fell), seeds "
-        f"{f['seeds']}. The affine map: least squares "
+        f"{f['seeds']}; every fit returns its iterate of lowest held-out score (`keep_best`"
+        + (", set in the options" if "keep_best" in f["options"] else ", `fit`'s default with held-out trajectories")
+        + "). The affine map: least squares "
         "on the same training transitions (the map `fit` compares with).",
         "",
         f"Columns: **held-out** -- the {H}-step rollout error on the validation trajectories "
