@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from . import models as M
-from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout
+from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout, rollouts
 
 __all__ = ["write_report", "target_check", "ROLLOUT_METRICS"]
 
@@ -78,6 +78,20 @@ def target_check(records: list[dict[str, Any]]) -> list[str]:
             if worse:
                 lines.append(f"- {n} tosses, **{r['model']}** worse than a baseline in " + "; ".join(worse) + ".")
     return lines
+
+
+def _linear_floor(test: Any) -> list[str]:
+    """The rollout errors of the affine map fitted by least squares on the test tosses themselves
+    (an oracle no user has: the best affine map of these tosses at one step)."""
+    from lcs_cvx.metrics import AffineMap, affine_lstsq
+
+    amap = AffineMap(affine_lstsq(test.to_transitions()).W)
+    ro = rollouts(lambda x: amap.step(x, x.new_zeros(x.shape[0], 0)), test.xs, (10, 30))
+    cells = "; ".join(f"{label} {_f(_val(ro[hk][field]))}" for label, hk, field in ROLLOUT_METRICS)
+    return ["**The linear floor.** The affine map fitted by least squares on the test tosses themselves (an "
+            f"oracle, not a model a user could fit): {cells}. It rotates no better than the models "
+            "learned from the training tosses: their rotation error comes from the class of models (affine "
+            "in the state, or affine between few mode switches), not from too few tosses."]
 
 
 def _verdicts(records: list[dict[str, Any]]) -> list[str]:
@@ -302,7 +316,7 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
           "plane. The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
           f"validation rollout error at H = {M.VALIDATION_HORIZON} against the affine map's.", ""]
     L += _verdicts(records)
-    L += [""]
+    L += ["", *_linear_floor(test), ""]
     L += _tables(records)
     L += [""]
     L += _selection(records)
