@@ -14,7 +14,7 @@ import torch
 from . import models as M
 from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout, rollouts
 
-__all__ = ["write_report", "target_check", "ROLLOUT_METRICS"]
+__all__ = ["write_report", "target_check", "linear_floor", "ROLLOUT_METRICS"]
 
 #: The rollout metrics of the target check: (label, horizon key, field).
 ROLLOUT_METRICS = (("position H=10 (m)", "H10", "pos"), ("rotation H=10 (rad)", "H10", "rot"),
@@ -80,18 +80,23 @@ def target_check(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def _linear_floor(test: Any) -> list[str]:
-    """The rollout errors of the affine map fitted by least squares on the test tosses themselves
-    (an oracle no user has: the best affine map of these tosses at one step)."""
+def linear_floor(test: Any) -> dict[str, dict[str, float]]:
+    """The rollout errors (:func:`.metrics.rollouts`) of the affine map fitted by least squares
+    on the test tosses themselves (an oracle no user has: the best affine map of these tosses at
+    one step)."""
     from lcs_cvx.metrics import AffineMap, affine_lstsq
 
     amap = AffineMap(affine_lstsq(test.to_transitions()).W)
-    ro = rollouts(lambda x: amap.step(x, x.new_zeros(x.shape[0], 0)), test.xs, (10, 30))
-    cells = "; ".join(f"{label} {_f(_val(ro[hk][field]))}" for label, hk, field in ROLLOUT_METRICS)
-    return ["**The linear floor.** The affine map fitted by least squares on the test tosses themselves (an "
-            f"oracle, not a model a user could fit): {cells}. It rotates no better than the models "
-            "learned from the training tosses: their rotation error comes from the class of models (affine "
-            "in the state, or affine between few mode switches), not from too few tosses."]
+    return rollouts(lambda x: amap.step(x, x.new_zeros(x.shape[0], 0)), test.xs, (10, 30))
+
+
+def _floor_lines(floor: dict[str, dict[str, float]]) -> list[str]:
+    cells = "; ".join(f"{label} {_f(_val(floor[hk][field]))}" for label, hk, field in ROLLOUT_METRICS)
+    return ["**The linear floor** (dashed in `learning_curve.png`). The affine map fitted by least squares on "
+            f"the test tosses themselves (an oracle, not a model a user could fit): {cells}. It rotates no "
+            "better than the models learned from the training tosses: their rotation error comes from the "
+            "class of models (affine in the state, or affine between few mode switches), not from too few "
+            "tosses."]
 
 
 def _verdicts(records: list[dict[str, Any]]) -> list[str]:
@@ -160,7 +165,7 @@ def _selection(records: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def _curve(records: list[dict[str, Any]], path: str) -> None:
+def _curve(records: list[dict[str, Any]], path: str, floor: dict[str, dict[str, float]] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,6 +184,9 @@ def _curve(records: list[dict[str, Any]], path: str) -> None:
             bad = [(x, y) for x, y, z in zip(xs, ys_ok, ys, strict=True) if not math.isfinite(z)]
             if bad:  # diverged somewhere: the mean over the rest, hollow
                 ax.plot(*zip(*bad, strict=True), "x", color=line.get_color(), ms=9)
+        if floor is not None:
+            ax.axhline(_val(floor[hk][field]), color="0.4", ls="--", lw=1,
+                       label="affine map of the test tosses (oracle)")
         ax.set_xscale("log", base=2)
         ax.set_yscale("log")
         ax.set_title(label, fontsize=10)
@@ -316,7 +324,8 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
           "plane. The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
           f"validation rollout error at H = {M.VALIDATION_HORIZON} against the affine map's.", ""]
     L += _verdicts(records)
-    L += ["", *_linear_floor(test), ""]
+    floor = linear_floor(test)
+    L += ["", *_floor_lines(floor), ""]
     L += _tables(records)
     L += [""]
     L += _selection(records)
@@ -331,5 +340,5 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
           "| ---: | " + " | ".join("---:" for _ in names) + " |", *wall_rows, ""]
     with open(os.path.join(out, f"report{suffix}.md"), "w") as f:
         f.write("\n".join(L))
-    _curve(records, os.path.join(out, f"learning_curve{suffix}.png"))
+    _curve(records, os.path.join(out, f"learning_curve{suffix}.png"), floor)
     _rollout_figure(out, records, list(test.xs), os.path.join(out, f"rollouts{suffix}.png"), CUBE_DT)
