@@ -393,11 +393,13 @@ def prediction_loss_info(
 
 
 def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, width: int,
-                    options: tuple, loss_fn: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                    options: tuple, loss_fn: Any, gamma: float | None = None
+                    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The compiled kernel's value and gradients where it runs, else autograd through ``loss_fn``
-    (the same numbers to round-off)."""
+    (the same numbers to round-off; ``loss_fn`` checks its own arguments); ``gamma``: the
+    violation loss's, checked against the model's ``F`` (Lemma 2)."""
     if calls.ready(model, x, u, x_next) and model.A.dim() == 2:
-        done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options)
+        done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options, gamma=gamma)
         if done is not None:
             out = done[1]
             return calls.scalar(out[0]), dict(zip(PARAMETER_NAMES, out[1], strict=True))
@@ -423,12 +425,10 @@ def violation_value_and_grad(model: Any, x: Any, u: Any, x_next: Any, gamma: flo
     """
     check_positive("eps", eps)
     check_positive("gamma", gamma)
-    if not gamma < 2.0 * float(model.stiffness):
-        check_gamma(model.F, gamma)
     return _value_and_grad(
         model, x, u, x_next, "violation", 2 * model.n_lam,
         (gamma, eps, VIOLATION_TOL, MAX_ITER, STALL),
-        lambda: violation_loss(model, x, u, x_next, gamma=gamma, eps=eps))
+        lambda: violation_loss(model, x, u, x_next, gamma=gamma, eps=eps), gamma=gamma)
 
 
 def prediction_value_and_grad(model: Any, x: Any, u: Any, x_next: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:

@@ -9,6 +9,7 @@ non-finite data), the compiled path must hand over to the array path or raise it
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -19,7 +20,7 @@ from helpers import lemma3_gradients, make_problem, rel_err
 import lcs_cvx
 from lcs_cvx import FallbackWarning, LCSInputError
 from lcs_cvx import losses as losses_module
-from lcs_cvx.losses import prediction_fast, violation_fast
+from lcs_cvx.losses import prediction_fast, violation_fast, violation_value_and_grad
 from lcs_cvx.system import PARAMETER_NAMES
 
 GAMMA, EPS = 1e-2, 1e-3
@@ -176,6 +177,21 @@ def test_parameter_arrays_follow_the_parameters():
     assert compiled(model) == pytest.approx(fresh(model), rel=1e-12)
     model.C = torch.nn.Parameter(model.C.detach() * 2.0)
     assert compiled(model) == pytest.approx(fresh(model), rel=1e-12)
+    before = compiled(model)
+    model.stiffness.fill_(2.0 * float(model.stiffness))  # the stiffness buffer, in place ...
+    assert compiled(model) != before and compiled(model) == pytest.approx(fresh(model), rel=1e-12)
+    model.stiffness = torch.tensor(0.3, dtype=torch.float64)  # ... and replaced
+    assert compiled(model) == pytest.approx(fresh(model), rel=1e-12)
+
+
+def test_value_and_grad_checks_gamma_against_the_model():
+    """Lemma 2's bound, checked by the one-call API from 2 s on as by the loss (named error)."""
+    model, data = make_problem(n_lam=3, n=20, model="perturbed", seed=2)
+    s = float(model.stiffness)
+    with pytest.raises(LCSInputError, match="gamma"):
+        violation_value_and_grad(model, data.x, data.u, data.x_next, gamma=1e6 * s)
+    value, grads = violation_value_and_grad(model, data.x, data.u, data.x_next, gamma=s)  # < 2 s
+    assert math.isfinite(float(value)) and set(grads) == set(PARAMETER_NAMES)
 
 
 def test_compiled_kernel_reports_non_finite_data_without_work():

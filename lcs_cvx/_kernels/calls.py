@@ -9,6 +9,7 @@ the compiled kernels through :func:`call_on_model` and :func:`compiled_call`.
 
 from __future__ import annotations
 
+import operator
 import weakref
 from collections.abc import Sequence
 from typing import Any
@@ -20,8 +21,8 @@ from .._checks import LCSInputError, as_transitions
 from ..system import PARAMETER_NAMES
 from .pivoting import check_warm_start
 
-__all__ = ["CompiledLoss", "as_arrays", "call_on_model", "compiled_call", "parameter_arrays", "ready", "scalar",
-           "use_compiled"]
+__all__ = ["COLD", "CompiledLoss", "as_arrays", "call_on_model", "compiled", "compiled_call", "parameter_arrays",
+           "ready", "scalar", "use_compiled"]
 
 
 def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
@@ -50,23 +51,51 @@ def scalar(value: float) -> torch.Tensor:
     return torch.from_numpy(np.array(value))
 
 
-#: Per model: its parameters when last seen, their storage addresses and arrays on their memory
-#: (an optimiser's step changes the values in place, which the arrays see).
+#: Per model: its parameters and ``stiffness`` buffer when last seen, their storage addresses,
+#: arrays on their memory and the stiffness as a 0-dim array (an optimiser's step changes the
+#: values in place, which the arrays see).
 _PARAMETER_ARRAYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+#: The compiled kernels (:mod:`.compiled`), imported on first use (numba's import and the
+#: kernels' loading cost a fraction of a second, paid only by a program that runs them).
+_COMPILED: Any = None
+
+#: The cold start (an empty warm start) of the compiled kernels (:data:`.compiled.COLD`).
+COLD = np.zeros((0, 0), dtype=np.bool_)
+
+
+def compiled() -> Any:
+    """The module :mod:`.compiled` (imported once)."""
+    global _COMPILED
+    if _COMPILED is None:
+        from . import compiled as module
+
+        _COMPILED = module
+    return _COMPILED
 
 
 def parameter_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray]]:
     """The model's parameters (``A, B, C, d, D, E, G, H, c``) and arrays on their memory, made
     once per model and made again when a parameter is replaced or moved to other storage."""
+    params, arrays, _ = _model_arrays(model)
+    return params, arrays
+
+
+def _model_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray], np.ndarray]:
+    """:func:`parameter_arrays` and the model's ``stiffness`` as a 0-dim array on its buffer."""
     table = model.__dict__.get("_parameters", {})  # a torch Module's own table: no __getattr__
     params = [table[k] if k in table else getattr(model, k) for k in PARAMETER_NAMES]
+    buffers = model.__dict__.get("_buffers", {})
+    stiffness = buffers["stiffness"] if "stiffness" in buffers else model.stiffness
+    tensors = [*params, stiffness]
+    pointers = [t.data_ptr() for t in tensors]
     seen = _PARAMETER_ARRAYS.get(model)
-    if seen is not None and all(p is q and p.data_ptr() == ptr
-                                for p, q, ptr in zip(params, seen[0], seen[1], strict=True)):
-        return params, seen[2]
+    if seen is not None and all(map(operator.is_, tensors, seen[0])) and pointers == seen[1]:
+        return params, seen[2], seen[3]
     found = as_arrays(*params)
-    _PARAMETER_ARRAYS[model] = (params, [p.data_ptr() for p in params], found)
-    return params, found
+    s = stiffness.detach().numpy()
+    _PARAMETER_ARRAYS[model] = (tensors, pointers, found, s)
+    return params, found, s
 
 
 def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor,
@@ -78,8 +107,6 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     the reference solvers; -1: the data are not finite) and its outputs, the gradients as
     tensors."""
     A, B, C, d, D, E, G, H, c = params
-    from .compiled import COLD
-
     warm = COLD
     if warm_start is not None:
         check_warm_start(warm_start, (x.shape[0], width))
@@ -88,20 +115,30 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     status = out[5]
     if status:
         return (-1 if status < 0 else 1), out
-    return 0, (out[0], tuple(torch.from_numpy(g) for g in out[1])) + out[2:]
+    g = out[1]
+    grads = (torch.from_numpy(g[0]), torch.from_numpy(g[1]), torch.from_numpy(g[2]), torch.from_numpy(g[3]),
+             torch.from_numpy(g[4]), torch.from_numpy(g[5]), torch.from_numpy(g[6]), torch.from_numpy(g[7]),
+             torch.from_numpy(g[8]))
+    return 0, (out[0], grads) + out[2:]
 
 
 def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
-                  warm_start: torch.Tensor | None, width: int, *options: Any) -> tuple | None:
+                  warm_start: torch.Tensor | None, width: int, *options: Any,
+                  gamma: float | None = None) -> tuple | None:
     """:func:`compiled_call` of the kernel ``name`` (``"violation"`` or ``"prediction"``) on the
     model: ``(params, outputs)``, or None where the array kernels take over. Non-finite data
     raise :func:`lcs_cvx._checks.as_transitions`'s error (the kernel checks them: the public
-    losses skip that check for tensors ready for it)."""
-    from . import compiled
+    losses skip that check for tensors ready for it). ``gamma``: also check Lemma 2's
+    ``gamma < sigma_min(F + F^T)`` (:func:`lcs_cvx._checks.check_gamma`, needed only from
+    ``2 s`` on)."""
+    params, arrays, stiffness = _model_arrays(model)
+    s = float(stiffness)
+    if gamma is not None and not gamma < 2.0 * s:  # F + F^T >= 2 s I: below, nothing to check
+        from ..problems import check_gamma
 
-    params, arrays = parameter_arrays(model)
-    status, out = compiled_call(getattr(compiled, name), arrays, float(model.stiffness), x, u,
-                                x_next, warm_start, width, *options)
+        check_gamma(model.F, gamma)
+    status, out = compiled_call(getattr(compiled(), name), arrays, s, x, u, x_next, warm_start, width,
+                                *options)
     if status < 0:
         as_transitions(model, x, u, x_next)  # names the non-finite input
     return None if status else (params, out)
