@@ -115,11 +115,7 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     status = out[5]
     if status:
         return (-1 if status < 0 else 1), out
-    g = out[1]
-    grads = (torch.from_numpy(g[0]), torch.from_numpy(g[1]), torch.from_numpy(g[2]), torch.from_numpy(g[3]),
-             torch.from_numpy(g[4]), torch.from_numpy(g[5]), torch.from_numpy(g[6]), torch.from_numpy(g[7]),
-             torch.from_numpy(g[8]))
-    return 0, (out[0], grads) + out[2:]
+    return 0, (out[0], tuple(map(torch.from_numpy, out[1]))) + out[2:]
 
 
 def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,

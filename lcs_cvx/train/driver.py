@@ -37,7 +37,7 @@ from ..system import LCS
 from ..trajectories import Trajectories
 from .ensemble import train_together
 from .holdout import Split, affine_lcs, split_data
-from .inputs import check_data, fit_options
+from .inputs import check_data, fit_options, resolve_keep_best
 from .options import FitOptions
 from .phases import run_phases
 from .result import FitResult, lowest
@@ -209,9 +209,7 @@ def fit(
     check_learnable(model)
     opts = fit_options(options, recipe, overrides)
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
-    if opts.run.keep_best is None:  # on by default where whole trajectories are held out
-        opts = dataclasses.replace(opts, run=dataclasses.replace(
-            opts.run, keep_best=split.trajectories is not None and split.holdout is not None))
+    opts = resolve_keep_best(opts, split.trajectories is not None and split.holdout is not None)
     fit_user = check_data("train", split.fit, model)
     if isinstance(split.holdout, Dataset):
         split = dataclasses.replace(split, holdout=check_data("validation", split.holdout, model))

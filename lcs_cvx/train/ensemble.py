@@ -24,7 +24,6 @@ model as it would a cell of its own).
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -39,7 +38,7 @@ from ..parameter_constraints import check_learnable
 from ..scaling import Scaling, fold_back, in_user_coordinates
 from ..stacked import StackedLCS, prediction_losses, violation_losses
 from ..system import LCS
-from .inputs import check_data, fit_options
+from .inputs import check_data, fit_options, resolve_keep_best
 from .options import FitOptions
 from .phases import AdamPhase, divergence
 from .result import FitResult
@@ -162,9 +161,7 @@ def fit_ensemble(
         check_learnable(m)
     opts = [fit_options(options, recipe, dict(overrides) if seeds is None else {**overrides, "seed": seeds[k]})
             for k in range(K)]
-    # transitions, no held-out part: keep_best=None is off, as in fit
-    opts = [o if o.run.keep_best is not None else dataclasses.replace(
-        o, run=dataclasses.replace(o.run, keep_best=False)) for o in opts]
+    opts = [resolve_keep_best(o, held_out_runs=False) for o in opts]  # transitions, as in fit
     check_supported(opts[0])
     members = [
         _Member(m, check_data(f"trains[{k}]", trains[k], m),

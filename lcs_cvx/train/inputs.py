@@ -1,9 +1,11 @@
 """The inputs of :func:`lcs_cvx.fit` and :func:`lcs_cvx.fit_ensemble`, checked once at the
 boundary: the data against the model (:func:`check_data`) and the options from ``options``,
-``recipe`` and flat keywords (:func:`fit_options`)."""
+``recipe`` and flat keywords (:func:`fit_options`), with ``keep_best``'s default resolved for the
+data (:func:`resolve_keep_best`)."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
@@ -14,7 +16,7 @@ from ..system import LCS
 from .options import FitOptions, split_groups
 from .recipes import resolve_options
 
-__all__ = ["check_data", "fit_options"]
+__all__ = ["check_data", "fit_options", "resolve_keep_best"]
 
 
 def check_data(name: str, data: Any, model: LCS) -> Dataset:
@@ -41,6 +43,14 @@ def check_data(name: str, data: Any, model: LCS) -> Dataset:
     kw = {"device": model.device, "dtype": model.dtype}
     return Dataset(data.x.to(**kw), data.u.to(**kw), data.x_next.to(**kw),
                    None if data.lam is None else data.lam.to(**kw))
+
+
+def resolve_keep_best(opts: FitOptions, held_out_runs: bool) -> FitOptions:
+    """``opts`` with ``keep_best=None`` resolved: on where whole runs are held out
+    (``held_out_runs``), else off; an explicit True or False is kept."""
+    if opts.run.keep_best is not None:
+        return opts
+    return dataclasses.replace(opts, run=dataclasses.replace(opts.run, keep_best=held_out_runs))
 
 
 def fit_options(options: FitOptions | None, recipe: str | None, overrides: dict[str, Any]) -> FitOptions:

@@ -62,12 +62,13 @@ EMPTY_U = torch.zeros(0, 0, dtype=torch.float64)
 
 @dataclass(frozen=True)
 class Budget:
-    """How long each model trains: LCS Adam iterations per candidate (and of the simulation-error
-    phase), MLP steps and evaluation interval, the validation rollout's window stride."""
+    """How long each model trains: LCS Adam iterations per candidate, the simulation-error phase's
+    steps and window (None: :func:`lcs_cvx.fit`'s defaults), MLP steps and evaluation interval,
+    the validation rollout's window stride."""
 
     lcs_iterations: int = 10_000
-    rollout_iterations: int = 300
-    rollout_horizon: int = 10
+    rollout_iterations: int | None = None
+    rollout_horizon: int | None = None
     mlp_steps: int = 8000
     mlp_eval_every: int = 100
     mlp_patience: int = 15
@@ -288,10 +289,8 @@ def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, di
             n_lams: tuple[int, ...] | None = None) -> tuple[Stepper, dict[str, Any]]:
         t0 = time.perf_counter()
         make = (lambda n: structured_lcs(n)) if structured else (lambda n: lcs_cvx.LCS(13, 0, n, seed=0))
-        extra = {} if rollout else {"rollout_horizon": None}
-        if budget.rollout_iterations != Budget.rollout_iterations:  # the smoke run's budget
-            extra = {**extra, "rollout_iterations": budget.rollout_iterations,
-                     "rollout_horizon": budget.rollout_horizon} if rollout else extra
+        phase = {"rollout_iterations": budget.rollout_iterations, "rollout_horizon": budget.rollout_horizon}
+        extra = {k: v for k, v in phase.items() if v is not None} if rollout else {"rollout_horizon": None}
         sel = lcs_cvx.select_n_lam(train, list(n_lams or budget.n_lams), validation=val, make_model=make,
                                    iterations=budget.lcs_iterations, holdout_horizon=VALIDATION_HORIZON,
                                    progress=False, seed=0, **extra)
