@@ -398,7 +398,7 @@ def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, wid
     """The compiled kernel's value and gradients where it runs, else autograd through ``loss_fn``
     (the same numbers to round-off; ``loss_fn`` checks its own arguments); ``gamma``: the
     violation loss's, checked against the model's ``F`` (Lemma 2)."""
-    if calls.ready(model, x, u, x_next) and model.A.dim() == 2:
+    if calls.ready(model, x, u, x_next, one_model=True):
         done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options, gamma=gamma)
         if done is not None:
             out = done[1]

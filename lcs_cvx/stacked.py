@@ -230,7 +230,7 @@ def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: 
         normal = kernel_violation.normal_equations(xp, b.C, b.F, b.q, b.r, gamma, eps)
         flat = {"LtL": normal["LtL"], "K": normal["K"], "Ltb": normal["Ltb"].reshape(K * B, n),
                 "h": normal["h"].reshape(K * B, n)}
-        cold = xp.unwrap(xp.concat([flat["h"] < 0, flat["h"] < 0]))
+        cold = xp.unwrap(kernel_violation.cold_guess(xp, flat["K"], flat["h"]))
         pivoted = kernel_violation.solve_arrays(xp, flat, device=x.device, max_iter=_losses.MAX_ITER,
                                                 warm_start=_initial(cold, warm_start, warm))
         n_fb, worst = [0] * K, [0.0] * K

@@ -169,7 +169,8 @@ def solve_violation_fast(
         residual: also compute the per-sample KKT residual (a few more batched products).
         warm_start: ``(B, 2 n)`` bool first guess ``[free, pos]`` of the pivoting, e.g.
             :attr:`ViolationSolution.active` of an earlier solve of the same samples (default:
-            the guess of ``lam = 0``). The solution does not depend on it (the problem is
+            one projected Jacobi step from ``lam = 0``, :func:`lcs_cvx._kernels.violation.cold_guess`).
+            The solution does not depend on it (the problem is
             strongly convex); the number of sweeps does: from the exact active sets, none.
         arrays: the kernel's array library: ``"auto"`` (NumPy for CPU tensors, torch
             otherwise), ``"numpy"`` or ``"torch"``.

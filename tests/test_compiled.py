@@ -233,3 +233,67 @@ def test_compiled_lcp_is_the_array_kernel(n):
             a0 = solve_lcp_fast(F, q, max_iter=0, arrays="numpy")
         assert c0.n_fallback == a0.n_fallback > 0
         assert float((c0.lam - a0.lam).abs().max()) <= 1e-12 * (1.0 + float(a0.lam.abs().max()))
+
+
+def test_factor_table_keeps_each_state_once_until_three_quarters_full():
+    """:func:`lookup` gives a new state an empty slot and a state seen before its own slot; once
+    three quarters are kept, new states get the scratch slot and are never found. Up to the
+    table's bits a state's key is its slot; above ``TABLE_N`` there is only the scratch slot."""
+    from lcs_cvx._kernels import dense
+
+    k = 12  # more flags than the table's 2**9 slots: hashed
+    meta = dense.factor_table(6, k, k)[0]
+    S = int(meta[-1, 3])
+    keys = np.random.default_rng(0).permutation(2**k)[:S]
+    states = [np.array([(key >> (k - 1 - i)) & 1 for i in range(k)], dtype=bool) for key in keys]
+    kept = 3 * S // 4
+    slots = []
+    for state in states[:kept]:
+        at, found = dense.lookup(meta, state, k)
+        assert not found and 0 <= at < S
+        slots.append(at)
+    assert len(set(slots)) == kept
+    for state, at in zip(states[:kept], slots, strict=True):
+        assert dense.lookup(meta, state, k) == (at, True)
+    for state in states[kept:kept + 5]:
+        assert dense.lookup(meta, state, k) == (S, False)
+        assert dense.lookup(meta, state, k) == (S, False)
+    state = np.array([True, False, True, True])
+    meta = dense.factor_table(2, 4, 4)[0]
+    assert dense.lookup(meta, state, 4) == (0b1011, False)
+    assert dense.lookup(meta, state, 4) == (0b1011, True)
+    meta = dense.factor_table(dense.TABLE_N + 1, 4, 4)[0]
+    assert dense.lookup(meta, state, 4) == (0, False)
+    assert dense.lookup(meta, state, 4) == (0, False)
+
+
+def test_a_factor_from_the_table_is_a_new_factorisation():
+    """One candidate solve of (V) and of the LCP on a sample whose state another sample put in
+    the call's table gives, bit for bit, what it gives with a fresh table (which builds and
+    factors the matrix)."""
+    from lcs_cvx._kernels import compiled as kernels
+    from lcs_cvx._kernels import dense
+
+    rng = np.random.default_rng(1)
+    n = 5
+    R = rng.normal(size=(n, n))
+    LtL, K, F = R @ R.T + n * np.eye(n), rng.normal(size=(n, n)), R @ R.T + np.eye(n) + np.triu(R) - np.triu(R).T
+    data, state = rng.normal(size=(2, n)), rng.random(2 * n) < 0.5
+
+    def violation_candidate(s, table):
+        lam, t, g, bad, tol = np.empty(n), np.empty(n), np.empty(n), np.zeros(2 * n, bool), np.full(3, 1e-11)
+        count = kernels._violation_solve(state, LtL, K, np.ascontiguousarray(K.T), data, -data, s, tol, lam, t,
+                                         g, bad, table[0], table[1], table[3], np.empty((n, n)))
+        return lam, t, g, bad, count
+
+    def lcp_candidate(s, table):
+        lam, w, bad = np.empty(n), np.empty(n), np.zeros(n, bool)
+        count = kernels._lcp_solve(F, data, s, -1e-11, lam, w, bad, state[:n], *table)
+        return lam, w, bad, count
+
+    for candidate, k in ((violation_candidate, 2 * n), (lcp_candidate, n)):
+        shared = dense.factor_table(n, k, k)
+        candidate(0, shared)  # sample 0 builds the state's factor
+        assert dense.lookup(shared[0], state, k)[1]
+        for reused, fresh in zip(candidate(1, shared), candidate(1, dense.factor_table(n, k, k)), strict=True):
+            assert np.array_equal(reused, fresh)

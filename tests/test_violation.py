@@ -240,3 +240,23 @@ def test_enumeration_refuses_large_n():
     values = violation_values(10, "paper", batch=2)
     with pytest.raises(lcs_cvx.LCSInputError, match=r"^n_lam: enumeration of \(V\)'s 4\^n pieces, expected n <= 8, received 10$"):
         solve_violation_brute(values)
+
+
+@pytest.mark.parametrize("arrays", ["numpy", "torch"])
+def test_cold_guess_is_one_projected_jacobi_step(arrays):
+    """Without a warm start, pivoting starts from one projected Jacobi step on ``-K lam + h``:
+    worked by hand on ``-K = [[2, 1], [-3, 1]]``, and ``h < 0`` (the guess of ``lam = 0``) where
+    ``-K_ii <= 0``."""
+    from lcs_cvx._kernels.arrays import array_ops
+    from lcs_cvx._kernels.violation import cold_guess
+
+    K = -torch.tensor([[2.0, 1.0], [-3.0, 1.0]], dtype=torch.float64)
+    h = torch.tensor([[-2.0, 1.0], [1.0, -1.0]], dtype=torch.float64)
+    # row 0: lam0 = [1, 0], w = h - K lam0 = [0, -2], guess = [2 - 0 > 0, 0 + 2 > 0]
+    # row 1: lam0 = [0, 1], w = [2, 0], guess = [0 - 2 > 0, 1 - 0 > 0]
+    xp = array_ops(h, arrays)
+    guess = xp.unwrap(cold_guess(xp, xp.wrap(K), xp.wrap(h)))
+    assert guess.tolist() == [[True, True, True, True], [False, True, False, True]]
+    K[1, 1] = 1.0  # -K_11 < 0: lam0_1 = 0 and guess_1 = h_1 < 0
+    guess = xp.unwrap(cold_guess(xp, xp.wrap(K), xp.wrap(h)))
+    assert guess.tolist() == [[True, False, True, False], [False, True, False, True]]

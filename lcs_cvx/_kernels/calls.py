@@ -140,15 +140,18 @@ def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_nex
     return None if status else (params, out)
 
 
-def ready(model: Any, x: Any, u: Any, x_next: Any) -> bool:
+def ready(model: Any, x: Any, u: Any, x_next: Any, one_model: bool = False) -> bool:
     """Whether ``(x, u, x_next)`` are already what :func:`lcs_cvx._checks.as_transitions` returns
     for the compiled kernels: float64 CPU tensors of the right shapes for a float64 model
-    (their finiteness is then the kernel's check)."""
+    (their finiteness is then the kernel's check); ``one_model``: and the model is one LCS (its
+    ``A`` is 2-D), not a stack."""
+    table = model.__dict__.get("_parameters", {})  # a torch Module's own table: no __getattr__
     try:
-        return (x.dtype is u.dtype is x_next.dtype is model.A.dtype is torch.float64
+        A = table["A"] if "A" in table else model.A
+        return (x.dtype is u.dtype is x_next.dtype is A.dtype is torch.float64
                 and x.is_cpu and u.is_cpu and x_next.is_cpu and x.dim() == 2
                 and x.shape == x_next.shape and x.shape[1] == model.n_x
-                and u.shape == (x.shape[0], model.n_u))
+                and u.shape == (x.shape[0], model.n_u) and (not one_model or A.dim() == 2))
     except AttributeError:  # not tensors
         return False
 

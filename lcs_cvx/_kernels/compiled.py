@@ -17,10 +17,11 @@ gradients with a few matrix products:
   the LU factors of the last pivoting sweep;
 - :func:`lcp` -- the LCP alone (``solve_lcp``'s fast path).
 
-The ``n x n`` factorisations and the pivoting moves are in :mod:`.dense`.
+The ``n x n`` factorisations, the call's table of them (a state met again reuses its factor)
+and the pivoting moves are in :mod:`.dense`.
 
-Both follow :func:`.pivoting.block_pivoting` sample by sample: the same cold guess, the same
-feasibility tests and tolerances, every infeasible index flipped, Murty's single pivot (largest
+Both follow :func:`.pivoting.block_pivoting` sample by sample: the same cold guess (for (V),
+:func:`.violation.cold_guess`), the same feasibility tests and tolerances, every infeasible index flipped, Murty's single pivot (largest
 infeasible index) once a sample has gone ``stall`` sweeps without a new lowest count. A sample
 that has not converged after ``max_iter`` sweeps, or whose factorisation failed, is reported
 (``n_unconverged``) and the caller hands the batch to the array kernels, which end it with the
@@ -38,13 +39,19 @@ import numba
 import numpy as np
 
 from .dense import JIT as _JIT
-from .dense import cholesky_solve, lu_factor, lu_solve, lu_solve_transposed, move, progress
+from .dense import (
+    cholesky_factor,
+    cholesky_substitute,
+    factor_table,
+    lookup,
+    lu_factor,
+    lu_solve,
+    lu_solve_transposed,
+    move,
+    progress,
+)
 
 __all__ = ["COLD", "lcp", "prediction", "violation"]
-
-#: Index arrays are unsigned: an index read from one then needs no wrap-around test for a
-#: negative value (numba's Python semantics), which costs a third of a small solve.
-_INDEX = np.uint64
 
 #: The cold start (an empty warm start) of every kernel here.
 COLD = np.zeros((0, 0), dtype=np.bool_)
@@ -114,52 +121,61 @@ def _F(G, H, stiffness):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always", **_JIT)
-def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, M, idx, pidx, KIP):  # pragma: no cover
+def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, meta, idx, M, KIP):  # pragma: no cover
     """One candidate of (V) on the pieces ``state = [free, pos]`` of one sample: ``lam`` (zero
     off the free set) from ``(LtL + K_P^T K_P)_II lam_I = (-Ltb + K_P^T h_P)_I`` (``P`` the pos
+    set; the matrix's factor from the call's :func:`.dense.factor_table` ``(meta, idx, _, M)``,
+    built there the first time the state is met; ``idx``: the free set, then from ``n`` the pos
     set), ``t = K lam - h``, the gradient ``g = LtL lam + Ltb + K_P^T t_P``, and the ``2 n``
-    infeasible flags of :func:`.violation.pivot_violation` (``tol``: ``[gradient, lam, t]``
-    scales; ``tol[1]`` is set from the first candidate's ``|lam|``)."""
+    infeasible flags of :func:`.violation.pivot_violation` in ``bad`` (``tol``: ``[gradient,
+    lam, t]`` scales; ``tol[1]`` is set from the first candidate's ``|lam|``); returns their
+    count."""
     n = lam.shape[0]
-    m, mp = 0, 0
-    for i in range(n):
-        if state[i]:
-            idx[m] = i
-            m += 1
-        if state[n + i]:
-            pidx[mp] = i
-            mp += 1
-    # KIP = (K_PI)^T, compact: M = LtL_II + KIP KIP^T, rhs = -Ltb_I + KIP h_P
-    for a in range(m):
-        for c in range(mp):
-            KIP[a, c] = KT[idx[a], pidx[c]]
-    for a in range(m):
-        ia = idx[a]
-        for b in range(a + 1):
-            v = LtL[ia, idx[b]]
-            for c in range(mp):
-                v += KIP[a, c] * KIP[b, c]
-            M[a, b] = v
+    at, found = lookup(meta, state, 2 * n)
+    if not found:
+        m, mp = 0, n
+        for i in range(n):
+            if state[i]:
+                idx[at, m] = i
+                m += 1
+            if state[n + i]:
+                idx[at, mp] = i
+                mp += 1
+        for a in range(m):  # KIP = (K_PI)^T, compact: M = LtL_II + KIP KIP^T
+            for c in range(mp - n):
+                KIP[a, c] = KT[idx[at, a], idx[at, n + c]]
+        for a in range(m):
+            ia = idx[at, a]
+            for b in range(a + 1):
+                v = LtL[ia, idx[at, b]]
+                for c in range(mp - n):
+                    v += KIP[a, c] * KIP[b, c]
+                M[at, a, b] = v
+        meta[at, 1], meta[at, 2], meta[at, 3] = m, mp, cholesky_factor(M, at, m)
+    m, mp, ok = meta[at, 1], meta[at, 2], meta[at, 3] != 0
+    for a in range(m):  # rhs = -Ltb_I + (K_PI)^T h_P
+        ia = idx[at, a]
         v = -Ltb_all[s, ia]
-        for c in range(mp):
-            v += KIP[a, c] * h_all[s, pidx[c]]
+        for c in range(n, mp):
+            k = idx[at, c]
+            v += KT[ia, k] * h_all[s, k]
         g[a] = v
-    ok = cholesky_solve(M, g, m)
     lam[:] = 0.0
     if ok:
+        cholesky_substitute(M, at, g, m)
         for a in range(m):
-            lam[idx[a]] = g[a]
+            lam[idx[at, a]] = g[a]
     for i in range(n):
         t[i] = -h_all[s, i]
         g[i] = Ltb_all[s, i]
     for a in range(m):  # t = K lam - h and LtL lam: over the free columns only
-        j = idx[a]
+        j = idx[at, a]
         la = lam[j]
         for i in range(n):
             t[i] += KT[j, i] * la
             g[i] += LtL[j, i] * la
-    for c in range(mp):  # + K_P^T t_P
-        k = pidx[c]
+    for c in range(n, mp):  # + K_P^T t_P
+        k = idx[at, c]
         tk = t[k]
         for i in range(n):
             g[i] += K[k, i] * tk
@@ -169,11 +185,14 @@ def _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tol, lam, t, g, bad, 
             big = max(big, abs(lam[i]))
         tol[1] = -tol[1] * (1.0 + big)
     lo, glo, tlo = tol[1], -tol[0], tol[2]
+    count = 0
     for i in range(n):  # (branch-free: & and | of the flags)
         f, p = state[i], state[n + i]
-        bad[i] = (not ok) | (f & (lam[i] < lo)) | ((not f) & (g[i] < glo))
-        bad[n + i] = (not ok) | (p & (t[i] < -tlo)) | ((not p) & (t[i] > tlo))
-    return bad
+        b1 = (not ok) | (f & (lam[i] < lo)) | ((not f) & (g[i] < glo))
+        b2 = (not ok) | (p & (t[i] < -tlo)) | ((not p) & (t[i] > tlo))
+        bad[i], bad[n + i] = b1, b2
+        count += b1 + b2
+    return count
 
 
 @numba.njit(**_JIT)
@@ -182,8 +201,8 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
     """(V) for every sample, its batch-mean value and Lemma 3's gradients.
 
     ``warm``: ``(N, 2 n)`` bool first guess of ``[free, pos]`` (an empty ``(0, 0)`` array: the
-    cold guess ``h < 0``). Returns ``(value, (dA, dB, dC, dd, dD, dE, dG, dH, dc), lam, phi,
-    active, n_unconverged, sweeps)``; ``active = [lam > 0, K lam - h > 0]`` ``(N, 2 n)``, the
+    cold guess of :func:`.violation.cold_guess`). Returns ``(value, (dA, dB, dC, dd, dD, dE, dG,
+    dH, dc), lam, phi, active, n_unconverged, sweeps)``; ``active = [lam > 0, K lam - h > 0]`` ``(N, 2 n)``, the
     gradients those of the mean value; ``n_unconverged = -1`` (and nothing else computed) if the
     data are not finite."""
     N, n_x = x.shape
@@ -204,8 +223,9 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
     lam_all = np.empty((N, n))
     state = np.zeros(2 * n, dtype=np.bool_)
     lam, t, g, tols = np.empty(n), np.empty(n), np.empty(n), np.empty(3)
-    KT, bad, M, KIP = np.ascontiguousarray(K.T), np.zeros(2 * n, dtype=np.bool_), np.empty((n, n)), np.empty((n, n))
-    idx, pidx = np.empty(n, dtype=_INDEX), np.empty(n, dtype=_INDEX)
+    KT, bad, KIP = np.ascontiguousarray(K.T), np.zeros(2 * n, dtype=np.bool_), np.empty((n, n))
+    m_K = -np.diag(K).copy()
+    meta, index, _, factors = factor_table(n, 2 * n, 2 * n)
     use_warm = warm.shape[0] == N
     n_unconverged, sweeps_max = 0 if finite else -1, 0
     for s in range(N if finite else 0):
@@ -213,16 +233,25 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
         for i in range(n):  # the tolerances of pivot_violation
             hi = h_all[s, i]
             b1, b2, b3 = max(b1, abs(Ltb_all[s, i])), max(b2, abs(KTh_all[s, i])), max(b3, abs(hi))
-            state[i] = warm[s, i] if use_warm else hi < 0.0
-            state[n + i] = warm[s, n + i] if use_warm else hi < 0.0
+            if use_warm:
+                state[i], state[n + i] = warm[s, i], warm[s, n + i]
+            else:  # .violation.cold_guess: lam0 = max(0, -h / m), m = -diag(K)
+                lam[i] = max(-hi / m_K[i], 0.0) if m_K[i] > 0.0 else 0.0
+        for i in range(n if not use_warm else 0):  # w = h - K lam0; guess m lam0 - w > 0
+            v = 0.0
+            for j in range(n):
+                v += K[i, j] * lam[j]
+            hi = h_all[s, i]
+            guess = m_K[i] * lam[i] - (hi - v) > 0.0 if m_K[i] > 0.0 else hi < 0.0
+            state[i], state[n + i] = guess, guess
         tols[0], tols[1], tols[2] = tol * (1.0 + b1 + b2), tol, tol * (1.0 + b3)
-        bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, M, idx, pidx, KIP)
-        n_bad, sweeps = bad.sum(), 0
+        n_bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, meta, index, factors, KIP)
+        sweeps = 0
         best, stalled = n_bad, 0
         while sweeps < max_iter and n_bad > 0:  # block pivoting, Murty's rule once stalled
             move(bad, state, 2 * n, sweeps >= stall and stalled >= stall)
-            bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, M, idx, pidx, KIP)
-            n_bad, sweeps = bad.sum(), sweeps + 1
+            n_bad = _violation_solve(state, LtL, K, KT, Ltb_all, h_all, s, tols, lam, t, g, bad, meta, index, factors, KIP)
+            sweeps += 1
             best, stalled = progress(n_bad, best, stalled)
         sweeps_max = max(sweeps_max, sweeps)
         n_unconverged += n_bad > 0
@@ -255,50 +284,57 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
 
 
 @numba.njit(inline="always", **_JIT)
-def _lcp_solve(data, free):  # pragma: no cover - compiled
-    """One candidate of the LCP on the free set ``free`` of one sample: ``F_II lam_I = -q_I``
-    (``M``, ``piv``: its LU factors; ``idx[:m]`` the free indices, ``m = idx[n]``), ``w = F lam +
-    q``, and the infeasible flags of :func:`.lcp.pivot_lcp` (``at``: ``-tol (1 + |q|_inf)``)."""
-    F, q, at, lam, w, bad, M, piv, idx = data
+def _lcp_solve(F, Q, s, lo, lam, w, bad, free, meta, idx, piv, M):  # pragma: no cover - compiled
+    """One candidate of the LCP ``0 <= lam _|_ F lam + q >= 0`` (``q = Q[s]``) on the free set
+    ``free``: ``F_II lam_I = -q_I`` (``F_II``'s LU factors from the call's
+    :func:`.dense.factor_table` ``(meta, idx, piv, M)``, built there the first time the free set
+    is met), ``w = F lam + q``, and the infeasible flags of :func:`.lcp.pivot_lcp` in ``bad``
+    (``lo``: ``-tol (1 + |q|_inf)``); returns their count."""
     n = lam.shape[0]
-    m = 0
-    for i in range(n):
-        if free[i]:
-            idx[m] = i
-            m += 1
-    idx[n] = m
-    for a in range(m):
-        for b in range(m):
-            M[a, b] = F[idx[a], idx[b]]
-        w[a] = -q[idx[a]]
-    ok = lu_factor(M, piv, m)
+    at, found = lookup(meta, free, n)
+    if not found:
+        m = 0
+        for i in range(n):
+            if free[i]:
+                idx[at, m] = i
+                m += 1
+        for a in range(m):
+            for b in range(m):
+                M[at, a, b] = F[idx[at, a], idx[at, b]]
+        meta[at, 1], meta[at, 3] = m, lu_factor(M, piv, at, m)
+    m, ok = meta[at, 1], meta[at, 3] != 0
     lam[:] = 0.0
     if ok:
-        lu_solve(M, piv, w, m)
         for a in range(m):
-            lam[idx[a]] = w[a]
+            w[a] = -Q[s, idx[at, a]]
+        lu_solve(M, piv, at, w, m)
+        for a in range(m):
+            lam[idx[at, a]] = w[a]
+    count = 0
     for i in range(n):
-        v = q[i]
+        v = Q[s, i]
         for j in range(n):
             v += F[i, j] * lam[j]
         w[i] = v
         f = free[i]
-        bad[i] = (not ok) | (f & (lam[i] < at[0])) | ((not f) & (v < at[0]))
-    return bad
+        b = (not ok) | (f & (lam[i] < lo)) | ((not f) & (v < lo))
+        bad[i] = b
+        count += b
+    return count
 
 
 @numba.njit(inline="always", **_JIT)
-def _lcp_pivot(data, free, max_iter, stall):  # pragma: no cover - compiled
-    """Block pivoting on one sample's LCP from the free set ``free`` (:func:`_lcp_solve`'s
-    ``data``): (infeasible count at the end, sweeps), the last candidate in ``data``."""
-    bad = _lcp_solve(data, free)
-    n = free.shape[0]
-    n_bad, sweeps = bad.sum(), 0
+def _lcp_pivot(F, Q, s, lo, lam, w, bad, free, meta, idx, piv, M, max_iter, stall):  # pragma: no cover
+    """Block pivoting on the LCP of ``Q[s]`` from the free set ``free`` (:func:`_lcp_solve`'s
+    arguments): (infeasible count at the end, sweeps), the last candidate in ``lam``, ``w`` and
+    the table (its slot ``meta[-1, 2]``)."""
+    n_bad = _lcp_solve(F, Q, s, lo, lam, w, bad, free, meta, idx, piv, M)
+    sweeps = 0
     best, stalled = n_bad, 0
     while sweeps < max_iter and n_bad > 0:  # Murty's rule once stalled
-        move(bad, free, n, sweeps >= stall and stalled >= stall)
-        bad = _lcp_solve(data, free)
-        n_bad, sweeps = bad.sum(), sweeps + 1
+        move(bad, free, free.shape[0], sweeps >= stall and stalled >= stall)
+        n_bad = _lcp_solve(F, Q, s, lo, lam, w, bad, free, meta, idx, piv, M)
+        sweeps += 1
         best, stalled = progress(n_bad, best, stalled)
     return n_bad, sweeps
 
@@ -313,19 +349,19 @@ def lcp(F, q_all, tol, max_iter, stall, warm):  # pragma: no cover - compiled
     N, n = q_all.shape
     lam_all, free_all = np.empty((N, n)), np.zeros((N, n), dtype=np.bool_)
     free, bad = np.zeros(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
-    lam, w, at = np.empty(n), np.empty(n), np.empty(1)
-    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=_INDEX), np.empty(n + 1, dtype=_INDEX)
+    lam, w = np.empty(n), np.empty(n)
+    meta, idx, piv, M = factor_table(n, n, n)
     use_warm = warm.shape[0] == N
     failed = np.zeros(N, dtype=np.bool_)
     sweeps_max = 0
     for s in range(N):
-        q = q_all[s]
         big = 0.0
         for i in range(n):
-            free[i] = warm[s, i] if use_warm else q[i] < 0.0
-            big = max(big, abs(q[i]))
-        at[0] = -tol * (1.0 + big)
-        n_bad, sweeps = _lcp_pivot((F, q, at, lam, w, bad, M, piv, idx), free, max_iter, stall)
+            qi = q_all[s, i]
+            free[i] = warm[s, i] if use_warm else qi < 0.0
+            big = max(big, abs(qi))
+        lo = -tol * (1.0 + big)
+        n_bad, sweeps = _lcp_pivot(F, q_all, s, lo, lam, w, bad, free, meta, idx, piv, M, max_iter, stall)
         sweeps_max = max(sweeps_max, sweeps)
         failed[s] = n_bad > 0
         for i in range(n):
@@ -354,20 +390,18 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
     free_all = np.zeros((N, n), dtype=np.bool_)
     free = np.zeros(n, dtype=np.bool_)
     lam, w, mu = np.empty(n), np.empty(n), np.empty(n)
-    at = np.empty(1)
-    M, piv, idx = np.empty((n, n)), np.empty(n, dtype=_INDEX), np.empty(n + 1, dtype=_INDEX)
+    meta, idx, piv, M = factor_table(n, n, n)
     bad = np.empty(n, dtype=np.bool_)
     use_warm = warm.shape[0] == N
     n_unconverged, sweeps_max, n_deg, total = 0 if finite else -1, 0, 0, 0.0
     for s in range(N if finite else 0):
-        q = QR[s, :n]
         big = 0.0
         for i in range(n):
-            free[i] = warm[s, i] if use_warm else q[i] < 0.0
-            big = max(big, abs(q[i]))
-        at[0] = -tol * (1.0 + big)
-        data = (F, q, at, lam, w, bad, M, piv, idx)
-        n_bad, sweeps = _lcp_pivot(data, free, max_iter, stall)
+            qi = QR[s, i]
+            free[i] = warm[s, i] if use_warm else qi < 0.0
+            big = max(big, abs(qi))
+        lo = -tol * (1.0 + big)
+        n_bad, sweeps = _lcp_pivot(F, QR, s, lo, lam, w, bad, free, meta, idx, piv, M, max_iter, stall)
         sweeps_max = max(sweeps_max, sweeps)
         n_unconverged += n_bad > 0
         # the final free set: free and lam > 0 (an index at zero is held there: one-sided)
@@ -379,10 +413,11 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             lam[i] = max(lam[i], 0.0)
             lam_all[s, i] = lam[i]
         if refactor:
-            _lcp_solve(data, free)  # F_II's factors on the final free set (lam unchanged)
+            _lcp_solve(F, QR, s, lo, lam, w, bad, free, meta, idx, piv, M)  # F_II on the final free set
             for i in range(n):
                 lam[i] = lam_all[s, i]
-        m = int(idx[n])
+        final = meta[-1, 2]  # the slot of F_II's factors on the final free set
+        m = meta[final, 1]
         # e = C lam + r; the adjoint F_II^T mu_I = (C^T e / N)_I, mu_J = 0; g_q = -mu
         for k in range(n_x):
             v = QR[s, n + k]
@@ -393,19 +428,19 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
         for a in range(m):
             v = 0.0
             for k in range(n_x):
-                v += C[k, idx[a]] * Y[s, k]
+                v += C[k, idx[final, a]] * Y[s, k]
             mu[a] = v
-        lu_solve_transposed(M, piv, mu, m)
+        lu_solve_transposed(M, piv, final, mu, m)
         for i in range(n):
             Y[s, n_x + i] = 0.0
         for a in range(m):
-            Y[s, n_x + idx[a]] = -mu[a]
+            Y[s, n_x + idx[final, a]] = -mu[a]
         deg = False
         atd = degenerate_tol * (1.0 + big)
         for i in range(n):  # w = F lam + q: the last sweep's, unless lam was clamped there
             v = w[i]
             if refactor:
-                v = q[i]
+                v = QR[s, i]
                 for j in range(n):
                     v += F[i, j] * lam[j]
             w_all[s, i] = v

@@ -71,7 +71,7 @@ def pivot_lcp(xp: ArrayOps, F: Any, q: Any, tol: float, max_iter: int,
             bad |= failed[:, None]  # a singular F_II (not a P-matrix) is never trusted
         return lam, bad
 
-    state0 = initial_state(xp, q < 0, warm_start, device)
+    state0 = initial_state(xp, lambda: q < 0, tuple(q.shape), warm_start, device)
     return block_pivoting(xp, solve, state0, max_iter=max_iter)
 
 

@@ -49,12 +49,13 @@ def check_warm_start(warm_start: Any, shape: tuple[int, ...]) -> None:
         )
 
 
-def initial_state(xp: ArrayOps, guess: Any, warm_start: torch.Tensor | None, device: torch.device) -> Any:
-    """The pivoting's starting state (a kernel array for ``device``): ``warm_start`` where given
-    (checked to be a bool tensor of ``guess``'s shape), else the cold ``guess``."""
+def initial_state(xp: ArrayOps, cold: Callable[[], Any], shape: tuple[int, ...],
+                  warm_start: torch.Tensor | None, device: torch.device) -> Any:
+    """The pivoting's starting state (a kernel array for ``device``, ``shape``): ``warm_start``
+    where given (checked to be a bool tensor of ``shape``), else the cold guess ``cold()``."""
     if warm_start is None:
-        return guess
-    check_warm_start(warm_start, tuple(guess.shape))
+        return cold()
+    check_warm_start(warm_start, shape)
     return xp.wrap(warm_start.to(device))
 
 

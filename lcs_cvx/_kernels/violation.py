@@ -31,7 +31,8 @@ from .arrays import ArrayOps, array_ops
 from .pivoting import PivotResult, block_pivoting, initial_state, unconverged
 from .stacks import matrices
 
-__all__ = ["PIVOT_TOL", "Pivoted", "normal_equations", "phi", "pivot_violation", "solve", "solve_arrays"]
+__all__ = ["PIVOT_TOL", "Pivoted", "cold_guess", "normal_equations", "phi", "pivot_violation", "solve",
+           "solve_arrays"]
 
 #: Relative feasibility tolerance of a pivoting candidate: ``lam`` against ``1 + |lam|_inf``,
 #: the gradient against ``1 + |L^T b|_inf + |K^T h|_inf`` (which is ~1/gamma large), and
@@ -84,6 +85,27 @@ class Pivoted(NamedTuple):
     iterations: int
 
 
+def cold_guess(xp: ArrayOps, K: Any, h: Any) -> Any:
+    """The pivoting's first guess ``[free, pos]`` ``(B, 2 n)`` without a warm start: one projected
+    Jacobi step from ``lam = 0`` on the LCP ``0 <= lam _|_ -K lam + h >= 0`` (that of
+    ``F - gamma I``, scaled by ``1 / sqrt(gamma)``; at (V)'s solution the free and pos sets mostly
+    coincide with its free set)::
+
+        lam0_i = max(0, -h_i / m_i),   w = h - K lam0,   guess_i = m_i lam0_i - w_i > 0
+
+    with ``m_i = -K_ii``, and ``guess_i = h_i < 0`` (that of ``lam = 0``) where ``m_i <= 0``.
+    On the Fig. 1 models it starts a fifth to a third of the samples' indices closer than
+    ``h < 0``. ``K`` ``(n, n)`` (or a stack, :mod:`.stacks`), ``h`` ``(B, n)``."""
+    n = h.shape[1]
+    everyone = matrices(xp, K, h.shape[0]).select(None)
+    m = -everyone.rows(xp.contiguous(K.diagonal(0, -2, -1)).reshape(-1, n))
+    pos = m > 0
+    lam0 = xp.where(pos, xp.clamp_min(-h / xp.where(pos, m, 1.0), 0.0), 0.0)
+    w = h - everyone.rmul(lam0, xp.contiguous(K.swapaxes(-1, -2)))
+    guess = xp.where(pos, m * lam0 - w > 0, h < 0)
+    return xp.concat([guess, guess])
+
+
 def pivot_violation(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float, max_iter: int,
           warm_start: torch.Tensor | None, device: torch.device) -> tuple[Any, Any, PivotResult]:
     """Block pivoting on (V) in the kernel's arrays (:func:`normal_equations`; ``LtL`` and ``K``
@@ -128,7 +150,7 @@ def pivot_violation(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float
             bad |= failed[:, None]  # a failed factorisation is never trusted
         return lam, bad
 
-    state0 = initial_state(xp, xp.concat([h < 0, h < 0]), warm_start, device)
+    state0 = initial_state(xp, lambda: cold_guess(xp, K, h), (h.shape[0], 2 * n), warm_start, device)
     res = block_pivoting(xp, solve, state0, max_iter=max_iter)
     lam = xp.clamp_min(res.solution, 0.0)
     return lam, xp.concat([lam > 0, (everyone.rmul(lam, KT) - h) > 0]), res
