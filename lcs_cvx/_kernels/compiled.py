@@ -40,6 +40,7 @@ import numpy as np
 
 from .dense import JIT as _JIT
 from .dense import (
+    borrow,
     cholesky_factor,
     cholesky_substitute,
     factor_table,
@@ -49,6 +50,7 @@ from .dense import (
     lu_solve_transposed,
     move,
     progress,
+    release,
 )
 
 __all__ = ["COLD", "lcp", "prediction", "violation"]
@@ -226,6 +228,11 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
     KT, bad, KIP = np.ascontiguousarray(K.T), np.zeros(2 * n, dtype=np.bool_), np.empty((n, n))
     m_K = -np.diag(K).copy()
     meta, index, _, factors = factor_table(n, 2 * n, 2 * n)
+    held = (state, LtL, K, KT, Ltb_all, h_all, tols, lam, t, g, bad, meta, index, factors, KIP)
+    state, LtL, K, KT, Ltb_all, h_all, tols = (borrow(state), borrow(LtL), borrow(K), borrow(KT),
+                                               borrow(Ltb_all), borrow(h_all), borrow(tols))
+    lam, t, g, bad, meta, index, factors, KIP = (borrow(lam), borrow(t), borrow(g), borrow(bad), borrow(meta),
+                                                 borrow(index), borrow(factors), borrow(KIP))
     use_warm = warm.shape[0] == N
     n_unconverged, sweeps_max = 0 if finite else -1, 0
     for s in range(N if finite else 0):
@@ -280,6 +287,7 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
             total += 0.5 * v * v
             Y[s, k] = v / N
     grads = _gradients(X, lam_all, Y, G, n_x, n_u)
+    release(held)
     return total / N, grads, lam_all, phi, active, n_unconverged, sweeps_max
 
 
@@ -351,6 +359,9 @@ def lcp(F, q_all, tol, max_iter, stall, warm):  # pragma: no cover - compiled
     free, bad = np.zeros(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
     lam, w = np.empty(n), np.empty(n)
     meta, idx, piv, M = factor_table(n, n, n)
+    held = (F, q_all, lam, w, bad, free, meta, idx, piv, M)
+    F, q_all, lam, w, bad, free = borrow(F), borrow(q_all), borrow(lam), borrow(w), borrow(bad), borrow(free)
+    meta, idx, piv, M = borrow(meta), borrow(idx), borrow(piv), borrow(M)
     use_warm = warm.shape[0] == N
     failed = np.zeros(N, dtype=np.bool_)
     sweeps_max = 0
@@ -368,6 +379,7 @@ def lcp(F, q_all, tol, max_iter, stall, warm):  # pragma: no cover - compiled
             free_all[s, i] = free[i] and lam[i] > 0.0
             lam_all[s, i] = max(lam[i], 0.0)
     w_all = lam_all @ F.T + q_all
+    release(held)
     return lam_all, w_all, free_all, np.flatnonzero(failed), sweeps_max
 
 
@@ -392,6 +404,9 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
     lam, w, mu = np.empty(n), np.empty(n), np.empty(n)
     meta, idx, piv, M = factor_table(n, n, n)
     bad = np.empty(n, dtype=np.bool_)
+    held = (F, QR, lam, w, mu, bad, free, meta, idx, piv, M)
+    F, QR, lam, w, mu, bad, free = borrow(F), borrow(QR), borrow(lam), borrow(w), borrow(mu), borrow(bad), borrow(free)
+    meta, idx, piv, M = borrow(meta), borrow(idx), borrow(piv), borrow(M)
     use_warm = warm.shape[0] == N
     n_unconverged, sweeps_max, n_deg, total = 0 if finite else -1, 0, 0, 0.0
     for s in range(N if finite else 0):
@@ -447,4 +462,5 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             deg = deg or (lam[i] <= atd and abs(v) <= atd)
         n_deg += deg
     grads = _gradients(X, lam_all, Y, G, n_x, n_u)
+    release(held)
     return total / N, grads, lam_all, w_all, free_all, n_unconverged, sweeps_max, n_deg
