@@ -52,74 +52,12 @@ from .dense import (
     progress,
     release,
 )
+from .products import batch_inputs, parameter_gradients, stiffness_matrix
 
 __all__ = ["COLD", "lcp", "prediction", "violation"]
 
 #: The cold start (an empty warm start) of every kernel here.
 COLD = np.zeros((0, 0), dtype=np.bool_)
-
-
-@numba.njit(**_JIT)
-def _inputs(A, B, C, d, D, E, c, x, u, x_next):  # pragma: no cover - compiled
-    """``X = [x, u, 1]`` ``(N, n_x + n_u + 1)``, ``QR = [q, r]`` ``(N, n + n_x)``, ``q = D x + E u +
-    c``, ``r = A x + B u + d - x'`` (one product ``X [[D, E, c], [A, B, d]]^T``), and whether the
-    data are finite (the sum of their entries is)."""
-    N, n_x = x.shape
-    n_u, n = u.shape[1], C.shape[1]
-    p = n_x + n_u + 1
-    X = np.empty((N, p))
-    total = 0.0
-    for s in range(N):
-        for j in range(n_x):
-            X[s, j] = x[s, j]
-            total += x[s, j] + x_next[s, j]
-        for j in range(n_u):
-            X[s, n_x + j] = u[s, j]
-            total += u[s, j]
-        X[s, n_x + n_u] = 1.0
-    W = np.empty((p, n + n_x))  # [[D, E, c], [A, B, d]]^T
-    for i in range(n):
-        for j in range(n_x):
-            W[j, i] = D[i, j]
-        for j in range(n_u):
-            W[n_x + j, i] = E[i, j]
-        W[p - 1, i] = c[i]
-    for i in range(n_x):
-        for j in range(n_x):
-            W[j, n + i] = A[i, j]
-        for j in range(n_u):
-            W[n_x + j, n + i] = B[i, j]
-        W[p - 1, n + i] = d[i]
-    QR = X @ W
-    for s in range(N):
-        for i in range(n_x):
-            QR[s, n + i] -= x_next[s, i]
-    return X, QR, np.isfinite(total)
-
-
-@numba.njit(**_JIT)
-def _gradients(X, lam, Y, G, n_x, n_u):  # pragma: no cover - compiled
-    """The nine parameter gradients from ``Y^T [X, lam]`` (``Y = [g_r, g_q]`` ``(N, n_x + n)``,
-    the loss's sensitivities to ``r`` and ``q``; ``X = [x, u, 1]``): ``dA = g_r^T x``, ``dB =
-    g_r^T u``, ``dd = sum g_r``, ``dC = g_r^T lam``, the same with ``g_q`` for ``D, E, c, F``, and
-    ``dG = (dF + dF^T) G``, ``dH = dF - dF^T`` (:func:`.losses.parameter_gradients`)."""
-    P = Y.T @ X
-    L = Y.T @ lam
-    p = n_x + n_u + 1
-    dF = np.ascontiguousarray(L[n_x:])
-    return (np.ascontiguousarray(P[:n_x, :n_x]), np.ascontiguousarray(P[:n_x, n_x:n_x + n_u]),
-            np.ascontiguousarray(L[:n_x]), P[:n_x, p - 1].copy(),
-            np.ascontiguousarray(P[n_x:, :n_x]), np.ascontiguousarray(P[n_x:, n_x:n_x + n_u]),
-            (dF + dF.T) @ G, dF - dF.T, P[n_x:, p - 1].copy())
-
-
-@numba.njit(**_JIT)
-def _F(G, H, stiffness):  # pragma: no cover - compiled
-    """``F = G G^T + H - H^T + s I``."""
-    F = G @ G.T + H - H.T
-    for i in range(F.shape[0]):
-        F[i, i] += stiffness
-    return F
 
 
 @numba.njit(inline="always", **_JIT)
@@ -204,13 +142,13 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
 
     ``warm``: ``(N, 2 n)`` bool first guess of ``[free, pos]`` (an empty ``(0, 0)`` array: the
     cold guess of :func:`.violation.cold_guess`). Returns ``(value, (dA, dB, dC, dd, dD, dE, dG,
-    dH, dc), lam, phi, active, n_unconverged, sweeps)``; ``active = [lam > 0, K lam - h > 0]`` ``(N, 2 n)``, the
-    gradients those of the mean value; ``n_unconverged = -1`` (and nothing else computed) if the
-    data are not finite."""
+    dH, dc), lam, phi, active, n_unconverged, sweeps)``; ``active = [lam > 0, K lam - h > 0]``
+    ``(N, 2 n)``, the gradients those of the mean value; ``n_unconverged = -1`` (and nothing else
+    computed) if the data are not finite."""
     N, n_x = x.shape
     n_u, n = u.shape[1], C.shape[1]
-    F = _F(G, H, stiffness)
-    X, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    F = stiffness_matrix(G, H, stiffness)
+    X, QR, finite = batch_inputs(A, B, C, d, D, E, c, x, u, x_next)
     scale = 1.0 / math.sqrt(gamma)
     LtL = eps * (C.T @ C) + F + F.T
     K = -F * scale
@@ -228,6 +166,7 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
     KT, bad, KIP = np.ascontiguousarray(K.T), np.zeros(2 * n, dtype=np.bool_), np.empty((n, n))
     m_K = -np.diag(K).copy()
     meta, index, _, factors = factor_table(n, 2 * n, 2 * n)
+    # the sample loop's arrays as borrowed views (.dense.borrow), their owners held to the end
     held = (state, LtL, K, KT, Ltb_all, h_all, tols, lam, t, g, bad, meta, index, factors, KIP)
     state, LtL, K, KT, Ltb_all, h_all, tols = (borrow(state), borrow(LtL), borrow(K), borrow(KT),
                                                borrow(Ltb_all), borrow(h_all), borrow(tols))
@@ -286,7 +225,7 @@ def violation(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, gamma, eps, to
             v = Y[s, k]
             total += 0.5 * v * v
             Y[s, k] = v / N
-    grads = _gradients(X, lam_all, Y, G, n_x, n_u)
+    grads = parameter_gradients(X, lam_all, Y, G, n_x, n_u)
     release(held)
     return total / N, grads, lam_all, phi, active, n_unconverged, sweeps_max
 
@@ -359,6 +298,7 @@ def lcp(F, q_all, tol, max_iter, stall, warm):  # pragma: no cover - compiled
     free, bad = np.zeros(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
     lam, w = np.empty(n), np.empty(n)
     meta, idx, piv, M = factor_table(n, n, n)
+    # the sample loop's arrays as borrowed views (.dense.borrow), their owners held to the end
     held = (F, q_all, lam, w, bad, free, meta, idx, piv, M)
     F, q_all, lam, w, bad, free = borrow(F), borrow(q_all), borrow(lam), borrow(w), borrow(bad), borrow(free)
     meta, idx, piv, M = borrow(meta), borrow(idx), borrow(piv), borrow(M)
@@ -395,8 +335,8 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
     ``n_unconverged = -1`` if the data are not finite."""
     N, n_x = x.shape
     n_u, n = u.shape[1], C.shape[1]
-    F = _F(G, H, stiffness)
-    X, QR, finite = _inputs(A, B, C, d, D, E, c, x, u, x_next)
+    F = stiffness_matrix(G, H, stiffness)
+    X, QR, finite = batch_inputs(A, B, C, d, D, E, c, x, u, x_next)
     Y = np.empty((N, n_x + n))
     lam_all, w_all = np.empty((N, n)), np.empty((N, n))
     free_all = np.zeros((N, n), dtype=np.bool_)
@@ -404,6 +344,7 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
     lam, w, mu = np.empty(n), np.empty(n), np.empty(n)
     meta, idx, piv, M = factor_table(n, n, n)
     bad = np.empty(n, dtype=np.bool_)
+    # the sample loop's arrays as borrowed views (.dense.borrow), their owners held to the end
     held = (F, QR, lam, w, mu, bad, free, meta, idx, piv, M)
     F, QR, lam, w, mu, bad, free = borrow(F), borrow(QR), borrow(lam), borrow(w), borrow(mu), borrow(bad), borrow(free)
     meta, idx, piv, M = borrow(meta), borrow(idx), borrow(piv), borrow(M)
@@ -461,6 +402,6 @@ def prediction(A, B, C, d, D, E, c, G, H, stiffness, x, u, x_next, tol, max_iter
             w_all[s, i] = v
             deg = deg or (lam[i] <= atd and abs(v) <= atd)
         n_deg += deg
-    grads = _gradients(X, lam_all, Y, G, n_x, n_u)
+    grads = parameter_gradients(X, lam_all, Y, G, n_x, n_u)
     release(held)
     return total / N, grads, lam_all, w_all, free_all, n_unconverged, sweeps_max, n_deg
