@@ -1,4 +1,12 @@
-"""lcs_cvx: learning linear complementarity systems (Jin, Aydinoglu, Halm, Posa; L4DC 2022)."""
+"""lcs_cvx: learning linear complementarity systems (Jin, Aydinoglu, Halm, Posa; L4DC 2022).
+
+The subpackages :mod:`lcs_cvx.control`, :mod:`lcs_cvx.datasets`, :mod:`lcs_cvx.study` and the
+modules :mod:`lcs_cvx.bench` and :mod:`lcs_cvx.cli` are imported on first access
+(``lcs_cvx.datasets.cube_tosses()`` after ``import lcs_cvx``), so that ``import lcs_cvx`` stays
+light; none of them imports an optional dependency before it is used.
+"""
+
+import importlib as _importlib
 
 from ._checks import FallbackWarning as FallbackWarning
 from ._checks import LayerAccuracyWarning as LayerAccuracyWarning
@@ -94,3 +102,16 @@ __all__ = [
     "violation_problem",
     "violation_value_and_grad",
 ]
+
+#: Public subpackages and modules imported when first accessed as attributes.
+_LAZY = ("bench", "cli", "control", "datasets", "study")
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return _importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -18,15 +18,16 @@ def relative_error(model: Any, dataset: Any) -> float:
 
         e_test = sum_t ||x'_theta(x_t, u_t) - x'_t||^2 / sum_t ||x'_t||^2,
 
-    with ``x'_theta`` from the exact LCP solution of ``model`` (an :class:`lcs_cvx.LCS`).
+    with ``x'_theta`` from the exact LCP solution of ``model`` (an :class:`lcs_cvx.LCS`), computed on
+    the model's device whatever the dataset's.
     """
     if len(dataset) == 0:
         raise LCSInputError("dataset: expected at least one sample, received an empty dataset")
     with torch.no_grad():
         x = dataset.x.to(model.dtype)
         u = dataset.u.to(model.dtype)
-        pred = model.step(x, u)
-        target = dataset.x_next.to(model.dtype)
+        pred = model.step(x, u)  # on the model's device
+        target = dataset.x_next.to(dtype=model.dtype, device=pred.device)
         num = ((pred - target) ** 2).sum()
         den = (target**2).sum()
     if float(den) == 0.0:
@@ -48,7 +49,8 @@ def count_modes(model: Any, dataset: Any, tol: float = ACTIVE_TOL) -> int:
 
 class AffineMap:
     """``x' = [x, u, 1] W``, ``W = [A B d]^T`` ``(n_x + n_u + 1, n_x)`` float64: a model with one
-    mode (an LCS with no unit active anywhere), as :func:`relative_error` takes it."""
+    mode (an LCS with no unit active anywhere), as :func:`relative_error` takes it. A reference,
+    not a model with a device of its own: it steps on the device of the states it is given."""
 
     dtype = torch.float64
 
@@ -62,8 +64,9 @@ class AffineMap:
         return torch.cat([x.detach().to(cls.dtype), u.detach().to(cls.dtype), ones], dim=1)
 
     def step(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """Next states ``(N, n_x)`` of states ``x`` ``(N, n_x)`` and inputs ``u`` ``(N, n_u)``."""
-        return self.features(x, u) @ self.W
+        """Next states ``(N, n_x)`` of states ``x`` ``(N, n_x)`` and inputs ``u`` ``(N, n_u)``, on
+        ``x``'s device (``W`` is moved there)."""
+        return self.features(x, u.to(x.device)) @ self.W.to(x.device)
 
 
 def affine_lstsq(dataset: Any) -> AffineMap:

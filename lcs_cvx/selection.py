@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import torch
 
 from ._checks import LCSInputError
 from .data import Dataset
@@ -152,7 +153,8 @@ def select_n_lam(
     """Learn one LCS per candidate ``n_lam`` and choose among them by held-out error.
 
     For each ``n`` of ``candidates`` (by increasing ``n``): a model ``make_model(n)`` (default
-    ``LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed)``), trained by
+    ``LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed)`` on the device of a
+    :class:`lcs_cvx.Dataset` ``train``), trained by
     ``lcs_cvx.fit(model, part, progress=False, seed=seed, **fit_options)``, where ``part`` is
     ``train`` when ``validation`` is given, else the first part of
     ``train.split(1 - holdout, seed=seed)``; its relative error (:func:`lcs_cvx.relative_error`)
@@ -253,7 +255,8 @@ def select_n_lam(
 
     def build(n: int) -> LCS:
         if make_model is None:
-            return LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed)
+            device = train.x.device if isinstance(train, Dataset) else torch.device("cpu")
+            return LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed).to(device)
         model = make_model(n)
         if not isinstance(model, LCS) or (model.n_x, model.n_u, model.n_lam) != (train.n_x, train.n_u, n):
             got = (f"n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam}" if isinstance(model, LCS)

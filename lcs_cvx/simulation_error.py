@@ -110,14 +110,15 @@ def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.T
 
 def _window_rollouts(step: Any, trajectories: Trajectories, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
     """``(predicted, recorded)`` states of every window of ``horizon`` steps, stacked by step
-    ``h = 1 .. H``: ``(H, W, n_x)`` each."""
+    ``h = 1 .. H``: ``(H, W, n_x)`` each, on the device ``step`` returns."""
     w = Windows(trajectories, horizon)
     x0, us, xs = w.batch(torch.arange(len(w)))
     xh, pred = x0, []
     for h in range(horizon):
         xh = step(xh, us[:, h])
         pred.append(xh)
-    return torch.stack(pred), xs.transpose(0, 1)
+    pred_t = torch.stack(pred)
+    return pred_t, xs.transpose(0, 1).to(dtype=pred_t.dtype, device=pred_t.device)
 
 
 def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon: int) -> float:

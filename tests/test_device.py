@@ -3,18 +3,25 @@ re-initialisation of saturated units, the extra units of :func:`lcs_cvx.resizing
 restarts' fresh models) is taken on the run's CPU generator in float64 -- the same numbers on every
 device, CPU runs bit-identical to before -- and then moved to the parameter's device and dtype.
 
-The CUDA test runs where a GPU is present (skipped otherwise); the others run everywhere.
+Every held-out score, the affine reference and the rollouts compute on the model's device
+whatever the data's (a CUDA model with CPU data, or CUDA data with a default model). The CUDA
+tests run where a GPU is present (skipped otherwise); the others run everywhere, with the meta
+device standing in for a GPU.
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import pytest
 import torch
+from helpers import simulated_runs
 
 import lcs_cvx
 import lcs_cvx.train.phases as phases
+from lcs_cvx.metrics import AffineMap, affine_lstsq
+from lcs_cvx.simulation_error import affine_rollout_error
 from lcs_cvx.system import PARAMETER_NAMES
 from lcs_cvx.train.phases import draw
 
@@ -113,3 +120,76 @@ def test_c3_plans_on_cuda_as_on_the_cpu():
     cpu, gpu = ctrl.solve(X0), ctrl.solve(X0.to("cuda"))
     assert gpu.u.device.type == "cuda"
     assert torch.allclose(gpu.u.cpu(), cpu.u, rtol=0, atol=1e-9)
+
+
+def test_the_affine_reference_steps_on_the_device_of_its_states():
+    """The least-squares affine map fitted on the CPU scores states held on another device (a
+    CUDA model's held-out data): it steps there, ``W`` moved to them. The meta device stands in
+    for the GPU; before, this was ``RuntimeError: ... mat2 is on cpu``."""
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    data = lcs_cvx.make_dataset(truth, 50, seed=1)
+    affine = affine_lstsq(data)
+    assert affine.W.device.type == "cpu"
+    out = affine.step(data.x.to("meta"), data.u.to("meta"))
+    assert out.device.type == "meta" and out.shape == (50, 2) and out.dtype == F64
+    # on the CPU, the same operations as before: bit-identical
+    assert torch.equal(affine.step(data.x, data.u), AffineMap.features(data.x, data.u) @ affine.W)
+    assert lcs_cvx.relative_error(affine, data) == lcs_cvx.affine_error(data, data)
+
+
+def test_held_out_scores_are_on_the_model_device_whatever_the_datas(monkeypatch):
+    """``fit`` scores the held-out part and builds the affine reference from the training data
+    it moved to the model's device, not from the user's: every dataset the affine map is fitted
+    on, or scored on, is on the model's device (and dtype)."""
+    import lcs_cvx.train.holdout as holdout
+
+    seen = []
+    real = holdout.affine_lstsq
+    monkeypatch.setattr(holdout, "affine_lstsq", lambda d: seen.append(d.x.dtype) or real(d))
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 300, seed=1)  # float64, the model float32
+    model = lcs_cvx.LCS(2, 1, 2, seed=2, dtype=torch.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", lcs_cvx.FallbackWarning)
+        result = lcs_cvx.fit(model, train, iterations=20, restarts=2, progress=False)
+    assert seen == [torch.float32]
+    assert math.isfinite(result.heldout_error) and math.isfinite(result.affine_heldout_error)
+
+
+def _runs():
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    return simulated_runs(truth, [25] * 10, seed=1, x_range=5.0, u_range=3.0)
+
+
+@needs_cuda
+def test_fit_on_trajectories_with_validation_and_the_simulation_error_phase_on_cuda():
+    """A CUDA model learned from CPU trajectories with held-out runs: Adam, the simulation-error
+    phase, the held-out scores of the model and of the affine map, the rollout growth."""
+    runs = _runs()
+    train, validation = runs.split(0.8, seed=0)
+    model = lcs_cvx.LCS(2, 1, 2, seed=3).to("cuda")
+    result = lcs_cvx.fit(model, train, validation=validation, iterations=100, rollout_horizon=5,
+                         rollout_iterations=20, holdout_horizon=3, progress=False)
+    assert model.device.type == "cuda"
+    assert {h["phase"] for h in result.history} >= {"adam", "rollout"}
+    assert math.isfinite(result.heldout_error) and math.isfinite(result.affine_heldout_error)
+    assert result.heldout_growth is not None and math.isfinite(result.heldout_growth)
+    errors = lcs_cvx.rollout_error(model, validation, horizons=(1, 3))
+    assert all(math.isfinite(e) for e in errors.values())
+    assert math.isfinite(affine_rollout_error(affine_lstsq(train.to_transitions().to("cuda")), validation, 3))
+    print("cuda fit on trajectories:", result.verdict)
+
+
+@needs_cuda
+def test_select_n_lam_with_data_on_cuda():
+    """``select_n_lam`` of a dataset on the GPU: the candidates are built there and scored there
+    (before: a device mismatch in ``relative_error``)."""
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    data = lcs_cvx.make_dataset(truth, 500, seed=1).to("cuda")
+    selection = lcs_cvx.select_n_lam(data, candidates=(1, 2), iterations=50, progress=False)
+    assert selection.model.device.type == "cuda"
+    assert all(math.isfinite(row["validation_error"]) for row in selection.table)
+    traj = lcs_cvx.select_n_lam(_runs(), candidates=(2,), iterations=50, progress=False,
+                                make_model=lambda n: lcs_cvx.LCS(2, 1, n, seed=0).to("cuda"))
+    assert traj.model.device.type == "cuda" and math.isfinite(traj.table[0]["validation_error"])
+    print("cuda select_n_lam:", [(r["n_lam"], r["validation_error"]) for r in selection.table])

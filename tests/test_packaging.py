@@ -85,6 +85,26 @@ def test_import_loads_no_optional_dependency(module):
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
 
 
+def test_public_subpackages_are_reached_from_the_package():
+    """After a bare ``import lcs_cvx``, ``lcs_cvx.datasets.cube_tosses()`` (and the other public
+    subpackages) work without importing them by name, and reaching them imports no optional
+    dependency; a name that is not there is still an AttributeError."""
+    code = (
+        "import json, sys, lcs_cvx\n"
+        "n = len(lcs_cvx.datasets.cube_tosses())\n"
+        "names = [lcs_cvx.control.C3.__name__, lcs_cvx.study.__name__, lcs_cvx.cli.__name__,\n"
+        "         lcs_cvx.bench.__name__]\n"
+        "try:\n    lcs_cvx.no_such_name\n    missing = False\nexcept AttributeError:\n    missing = True\n"
+        f"opt = sorted({{m.split('.')[0] for m in sys.modules}} & {set(OPTIONAL_MODULES)!r})\n"
+        "print(json.dumps([n, names, missing, 'datasets' in dir(lcs_cvx), opt]))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         check=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    n, names, missing, listed, optional = json.loads(out.stdout.strip().splitlines()[-1])
+    assert n == 550 and names == ["C3", "lcs_cvx.study", "lcs_cvx.cli", "lcs_cvx.bench"]
+    assert missing and listed and optional == []
+
+
 def test_dask_scheduler_without_dask_names_the_extra(monkeypatch):
     from lcs_cvx.study.executors import dask_cluster
 

@@ -211,6 +211,7 @@ def fit(
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
     opts = resolve_keep_best(opts, split.trajectories is not None and split.holdout is not None)
     fit_user = check_data("train", split.fit, model)
+    split = dataclasses.replace(split, fit=fit_user)  # the affine reference on the model's device too
     if isinstance(split.holdout, Dataset):
         split = dataclasses.replace(split, holdout=check_data("validation", split.holdout, model))
     holdout = split.holdout
