@@ -14,7 +14,7 @@ TORCH  := torch==2.13.0
 # (torch and numpy, both already here).
 QPTH   := qpth==0.0.18
 
-.PHONY: demo test docs lint bench lock clean
+.PHONY: demo test test-portable docs lint bench lock clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -42,6 +42,13 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+# The suite again as on another processor (tools/other-cpus: numba, torch and BLAS on the code
+# paths of a generic x86-64 CPU by default; CPUS="generic avx2 avx512" for more), so that a test
+# asserting a fact of this machine's round-off fails here and not on a user's machine.
+CPUS ?= generic
+test-portable: $(STAMP)
+	CPUS="$(CPUS)" PY=$(PY) bash tools/other-cpus
 
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site

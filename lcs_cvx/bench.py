@@ -28,8 +28,8 @@ from .data import make_dataset, random_lcs
 from .losses import prediction_loss, prediction_loss_info, violation_loss, violation_loss_info
 from .system import LCS
 
-__all__ = ["BenchRow", "DEFAULT_SIZES", "run_bench", "format_table", "run_lcp_bench", "median_time",
-           "perturbed"]
+__all__ = ["BenchRow", "DEFAULT_SIZES", "THROUGHPUT_BATCHES", "run_bench", "format_table", "run_lcp_bench",
+           "run_throughput", "median_time", "perturbed"]
 
 #: (n_x, n_u, n_lam) of the comparison with the authors' code (the paper's sizes).
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
@@ -219,4 +219,58 @@ def run_lcp_bench(
             lines.append(
                 f"| {n_lam} | {batch:,} | {fast:,.0f} | {clar:,.0f} | {fast / clar:,.0f} | {err:.1e} |"
             )
+    return "\n".join(lines)
+
+
+#: The batch sizes of :func:`run_throughput` (a curve from a training minibatch to a full batch).
+THROUGHPUT_BATCHES: tuple[int, ...] = (200, 2_000, 20_000, 50_000, 200_000, 1_000_000)
+
+
+def run_throughput(
+    sizes: Iterable[tuple[int, int, int]] = ((10, 4, 4),),
+    losses: Iterable[str] = LOSSES,
+    batches: Iterable[int] = THROUGHPUT_BATCHES,
+    device: str = "cpu",
+    threads: int = 1,
+    dtype: torch.dtype = torch.float64,
+    repeats: int = 5,
+    gamma: float = 1e-2,
+    eps: float = 1e-4,
+    seed: int = 0,
+    progress: Callable[[str], None] | None = None,
+) -> str:
+    """Throughput of the one-call loss and gradient (:func:`lcs_cvx.violation_value_and_grad`,
+    :func:`lcs_cvx.prediction_value_and_grad`) against the batch size, on ``device`` in
+    ``dtype``, with ``threads`` threads (the compiled kernels' on the CPU, and torch's); a
+    mid-training model as in :func:`run_bench`. On a GPU each call is followed by
+    ``torch.cuda.synchronize()``. Returns a markdown table (samples/s)."""
+    from .losses import prediction_value_and_grad, violation_value_and_grad
+
+    torch.set_num_threads(threads)
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    lines = ["| (n_x, n_u, n_λ) | loss | device | dtype | threads | batch | samples/s |",
+             "|---|---|---|---|---:|---:|---:|"]
+    batches = sorted(batches)
+    for n_x, n_u, n_lam in sizes:
+        truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
+        data = make_dataset(truth, max(batches), noise=1e-2, seed=seed + 1)
+        model = perturbed(truth, 0.05, seed + 2).to(device=dev, dtype=dtype)
+        x_all, u_all, xn_all = (t.to(device=dev, dtype=dtype) for t in (data.x, data.u, data.x_next))
+        for loss in losses:
+            for batch in batches:
+                x, u, xn = x_all[:batch], u_all[:batch], xn_all[:batch]
+
+                def call(x=x, u=u, xn=xn, loss=loss, model=model):
+                    if loss == "violation":
+                        violation_value_and_grad(model, x, u, xn, gamma=gamma, eps=eps, threads=threads)
+                    else:
+                        prediction_value_and_grad(model, x, u, xn, threads=threads)
+                    sync()
+
+                rate = batch / median_time(call, repeats)
+                lines.append(f"| ({n_x}, {n_u}, {n_lam}) | {loss} | {dev.type} | {str(dtype).split('.')[-1]} | "
+                             f"{threads} | {batch:,} | {rate:,.0f} |")
+                if progress is not None:
+                    progress(lines[-1])
     return "\n".join(lines)

@@ -168,14 +168,15 @@ def _normal_equations(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torc
 
 def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
                    gamma: float, eps: float, warm_start: torch.Tensor | None = None,
-                   residual: bool = False, arrays: str = "auto") -> LossInfo:
+                   residual: bool = False, arrays: str = "auto", threads: int | None = None) -> LossInfo:
     """The fast path of :func:`violation_loss_info` on validated tensors of the model's dtype
     and device (package-internal: the trainer validates its data once). ``residual``: also
     compute every sample's KKT residual (``max_residual``; else None); ``arrays``: ``"auto"``
     (the compiled kernel,
     :mod:`lcs_cvx._kernels.compiled`, for one model's float64 CPU tensors; else the array kernels
     in NumPy on the CPU, in torch elsewhere), ``"compiled"``, or the array library of
-    :func:`lcs_cvx.lcp.solve_lcp_fast` (``"numpy"``, ``"torch"``)."""
+    :func:`lcs_cvx.lcp.solve_lcp_fast` (``"numpy"``, ``"torch"``); ``threads``: the compiled
+    kernel's (:func:`lcs_cvx._kernels.calls.compiled_call`; None: ``torch.get_num_threads()``)."""
     stiffness = float(model.stiffness)
     check_positive("gamma", gamma)
     if not gamma < 2.0 * stiffness:  # F + F^T >= 2 s I by construction: below, no check needed
@@ -183,7 +184,7 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
     n = model.n_lam
     if calls.use_compiled(model, x, arrays):
         done = calls.call_on_model("violation", model, x, u, x_next, warm_start, 2 * n, gamma, eps,
-                                   VIOLATION_TOL, MAX_ITER, STALL)
+                                   VIOLATION_TOL, MAX_ITER, STALL, threads=threads)
         if done is not None:
             params, (value, grads, lam, phi, active, _, sweeps) = done
             loss = calls.CompiledLoss.apply(calls.scalar(value), grads, *params)
@@ -217,12 +218,12 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
 
 def prediction_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
                     warm_start: torch.Tensor | None = None, residual: bool = False,
-                    arrays: str = "auto") -> LossInfo:
+                    arrays: str = "auto", threads: int | None = None) -> LossInfo:
     """The fast path of :func:`prediction_loss_info` on validated tensors (see
     :func:`violation_fast`); ``warm_start`` ``(B, n_lam)``: the free sets."""
     if calls.use_compiled(model, x, arrays):
         done = calls.call_on_model("prediction", model, x, u, x_next, warm_start, model.n_lam,
-                                   LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL)
+                                   LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL, threads=threads)
         if done is not None:
             params, (value, grads, lam, w, free, _, sweeps, n_deg) = done
             loss = calls.CompiledLoss.apply(calls.scalar(value), grads, *params)
@@ -260,14 +261,15 @@ def _check_solver(solver: str, warm_start: Any) -> str:
     return "scs" if solver == "cvxpylayers-scs" else "clarabel"
 
 
-def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual) -> LossInfo:
+def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual, threads) -> LossInfo:
     cone_solver = _check_solver(solver, warm_start)
+    calls.resolve_threads(threads)
     check_positive("eps", eps)
     if not (solver == "fast" and calls.ready(model, x, u, x_next)):
         x, u, x_next = as_transitions(model, x, u, x_next)
     if solver == "fast":
         return violation_fast(model, x, u, x_next, gamma=gamma, eps=eps, warm_start=warm_start,
-                              residual=residual)
+                              residual=residual, threads=threads)
     F, C = model.F, model.C  # gamma < sigma_min(F + F^T) is checked by parameter_values
     q = x @ model.D.mT + u @ model.E.mT + model.c
     r = x @ model.A.mT + u @ model.B.mT + model.d - x_next
@@ -293,6 +295,7 @@ def violation_loss(
     eps: float = 1e-4,
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
+    threads: int | None = None,
 ) -> torch.Tensor:
     r"""Violation-based loss ``L_eps`` (eq. (9)), averaged over the batch.
 
@@ -310,11 +313,16 @@ def violation_loss(
         warm_start: first guess of the fast solver's active sets, ``LossInfo.active`` of an
             earlier call on the same samples (:func:`violation_loss_info`). The value and
             gradients do not depend on it (to round-off); the solver's work does.
+        threads: threads of the fast solver on a large batch (float64 CPU): a batch of at
+            least ``2 * lcs_cvx._kernels.calls.MIN_CHUNK`` samples is split into that many
+            parts solved at once (the same numbers to a few ulps); default
+            ``torch.get_num_threads()``, which ``OMP_NUM_THREADS`` and ``torch.set_num_threads``
+            set.
 
     Returns:
         Scalar tensor; its gradients w.r.t. the model's parameters are Lemma 3's.
     """
-    return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual=False).loss
+    return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, False, threads).loss
 
 
 def violation_loss_info(
@@ -326,18 +334,21 @@ def violation_loss_info(
     eps: float = 1e-4,
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
+    threads: int | None = None,
 ) -> LossInfo:
     """:func:`violation_loss` (same arguments) with its diagnostics: a :class:`LossInfo` whose
     ``loss`` is the differentiable scalar and ``max_residual`` every sample's KKT residual."""
-    return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual=True)
+    return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, True, threads)
 
 
-def _prediction(model, x, u, x_next, solver, warm_start, residual) -> LossInfo:
+def _prediction(model, x, u, x_next, solver, warm_start, residual, threads) -> LossInfo:
     cone_solver = _check_solver(solver, warm_start)
+    calls.resolve_threads(threads)
     if not (solver == "fast" and calls.ready(model, x, u, x_next)):
         x, u, x_next = as_transitions(model, x, u, x_next)
     if solver == "fast":
-        return prediction_fast(model, x, u, x_next, warm_start=warm_start, residual=residual)
+        return prediction_fast(model, x, u, x_next, warm_start=warm_start, residual=residual,
+                               threads=threads)
     F = model.F
     q = x @ model.D.mT + u @ model.E.mT + model.c
     decl = convex_lcp_problem(model.n_lam)
@@ -360,6 +371,7 @@ def prediction_loss(
     x_next: Any,
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
+    threads: int | None = None,
 ) -> torch.Tensor:
     r"""Prediction-based loss ``L_pred`` (eq. (6)), averaged over the batch.
 
@@ -372,10 +384,10 @@ def prediction_loss(
     set (Lemma 1); on the ``"cvxpylayers"`` paths through diffcp on the declared problem (P).
 
     Args:
-        model, x, u, x_next, solver, warm_start: as in :func:`violation_loss` (``warm_start``
+        model, x, u, x_next, solver, warm_start, threads: as in :func:`violation_loss` (``warm_start``
             ``(B, n_lam)``: the free sets, :func:`prediction_loss_info`'s ``active``).
     """
-    return _prediction(model, x, u, x_next, solver, warm_start, residual=False).loss
+    return _prediction(model, x, u, x_next, solver, warm_start, False, threads).loss
 
 
 def prediction_loss_info(
@@ -385,21 +397,23 @@ def prediction_loss_info(
     x_next: Any,
     solver: str = "fast",
     warm_start: torch.Tensor | None = None,
+    threads: int | None = None,
 ) -> LossInfo:
     """:func:`prediction_loss` (same arguments) with its diagnostics: a :class:`LossInfo` whose
     ``loss`` is the differentiable scalar, ``w = F lam + q`` and ``max_residual``
     every sample's LCP residual."""
-    return _prediction(model, x, u, x_next, solver, warm_start, residual=True)
+    return _prediction(model, x, u, x_next, solver, warm_start, True, threads)
 
 
 def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, width: int,
-                    options: tuple, loss_fn: Any, gamma: float | None = None
+                    options: tuple, loss_fn: Any, gamma: float | None = None, threads: int | None = None
                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """The compiled kernel's value and gradients where it runs, else autograd through ``loss_fn``
     (the same numbers to round-off; ``loss_fn`` checks its own arguments); ``gamma``: the
     violation loss's, checked against the model's ``F`` (Lemma 2)."""
     if calls.ready(model, x, u, x_next, one_model=True):
-        done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options, gamma=gamma)
+        done = calls.call_on_model(kernel_fn, model, x, u, x_next, None, width, *options, gamma=gamma,
+                                   threads=threads)
         if done is not None:
             out = done[1]
             return calls.scalar(out[0]), dict(zip(PARAMETER_NAMES, out[1], strict=True))
@@ -412,7 +426,8 @@ def _value_and_grad(model: Any, x: Any, u: Any, x_next: Any, kernel_fn: Any, wid
 
 
 def violation_value_and_grad(model: Any, x: Any, u: Any, x_next: Any, gamma: float = 1e-2,
-                             eps: float = 1e-4) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                             eps: float = 1e-4, threads: int | None = None
+                             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """:func:`violation_loss` (fast path) and its gradient in every parameter, in one call and
     without autograd: what one training step needs.
 
@@ -421,23 +436,27 @@ def violation_value_and_grad(model: Any, x: Any, u: Any, x_next: Any, gamma: flo
     the numbers of ``violation_loss(...).backward()``, to round-off. One model's float64 CPU
     tensors run the compiled kernel (:mod:`lcs_cvx._kernels.compiled`, solve, loss and gradient
     in one call); anything else (other dtypes and devices, inputs to convert) the same loss
-    through autograd.
+    through autograd. ``threads``: as :func:`violation_loss`'s.
     """
     check_positive("eps", eps)
     check_positive("gamma", gamma)
+    calls.resolve_threads(threads)
     return _value_and_grad(
         model, x, u, x_next, "violation", 2 * model.n_lam,
         (gamma, eps, VIOLATION_TOL, MAX_ITER, STALL),
-        lambda: violation_loss(model, x, u, x_next, gamma=gamma, eps=eps), gamma=gamma)
+        lambda: violation_loss(model, x, u, x_next, gamma=gamma, eps=eps, threads=threads), gamma=gamma,
+        threads=threads)
 
 
-def prediction_value_and_grad(model: Any, x: Any, u: Any, x_next: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def prediction_value_and_grad(model: Any, x: Any, u: Any, x_next: Any, threads: int | None = None
+                              ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """:func:`prediction_loss` (fast path) and its gradient in every parameter (Lemma 1's), in
     one call and without autograd; as :func:`violation_value_and_grad`."""
+    calls.resolve_threads(threads)
     return _value_and_grad(
         model, x, u, x_next, "prediction", model.n_lam,
         (LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL),
-        lambda: prediction_loss(model, x, u, x_next))
+        lambda: prediction_loss(model, x, u, x_next, threads=threads), threads=threads)
 
 
 def regularizer(model: Any, reg: float = 1e-5) -> torch.Tensor:

@@ -101,3 +101,49 @@ def test_time_fills_the_minimum_timed_window(monkeypatch):
     bench.median_time(fn, repeats=2)
     assert len(calls) > 100  # ~0.1 s of calls, not 2 repeats of a few
     assert clock.now - calls[2] >= 0.1  # the repeats after the set-up and warm-up calls
+
+
+def test_throughput_tiny(short_timing):
+    """The batch-size curve: a row per (loss, batch) with a positive rate, threads and dtype as
+    asked (a batch large enough to be split across the two threads included)."""
+    import torch
+
+    from lcs_cvx._kernels.calls import MIN_CHUNK
+    from lcs_cvx.bench import run_throughput
+
+    threads = torch.get_num_threads()
+    try:
+        table = run_throughput([(3, 1, 2)], batches=(16, 2 * MIN_CHUNK), threads=2, repeats=1)
+    finally:
+        torch.set_num_threads(threads)
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()[2:]]
+    assert [(r[1], r[5]) for r in rows] == [("violation", "16"), ("violation", f"{2 * MIN_CHUNK:,}"),
+                                           ("prediction", "16"), ("prediction", f"{2 * MIN_CHUNK:,}")]
+    assert all(r[2] == "cpu" and r[3] == "float64" and r[4] == "2" for r in rows)
+    assert all(float(r[6].replace(",", "")) > 0 for r in rows)
+
+
+def test_cli_throughput_and_its_device_errors(capsys, monkeypatch):
+    """``lcs-cvx bench --throughput`` prints the table; ``--device`` names what it expected where
+    the machine has no such device or the solver comparison cannot run there (exit 2)."""
+    import torch
+
+    from lcs_cvx import bench
+    from lcs_cvx.cli import main
+
+    monkeypatch.setattr(bench, "WARMUP_S", 0.0)
+    monkeypatch.setattr(bench, "MIN_TIMED_S", 0.0)
+    threads = torch.get_num_threads()
+    try:
+        assert main(["bench", "--throughput", "--sizes", "3,1,2", "--batches", "8,16", "--repeats", "1",
+                     "--losses", "violation"]) == 0
+    finally:
+        torch.set_num_threads(threads)
+    out = capsys.readouterr().out
+    assert out.count("| (3, 1, 2) | violation | cpu | float64 | 1 |") == 2 * 2  # progress lines and table
+    if not torch.cuda.is_available():
+        assert main(["bench", "--throughput", "--device", "cuda"]) == 2
+        assert "--device: expected a device this machine has" in capsys.readouterr().err
+    assert main(["bench", "--device", "cuda"]) == 2
+    assert "--device: the solver comparison runs on the CPU" in capsys.readouterr().err
+    assert main(["bench", "--throughput", "--device", "tpu"]) == 2

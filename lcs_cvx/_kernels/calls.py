@@ -10,8 +10,10 @@ the compiled kernels through :func:`call_on_model` and :func:`compiled_call`.
 from __future__ import annotations
 
 import operator
+import os
 import weakref
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -21,8 +23,8 @@ from .._checks import LCSInputError, as_transitions
 from ..system import PARAMETER_NAMES
 from .pivoting import check_warm_start
 
-__all__ = ["COLD", "CompiledLoss", "as_arrays", "call_on_model", "compiled", "compiled_call", "parameter_arrays",
-           "ready", "scalar", "use_compiled"]
+__all__ = ["COLD", "MIN_CHUNK", "CompiledLoss", "as_arrays", "call_on_model", "chunks", "compiled", "compiled_call",
+           "model_arrays", "parameter_arrays", "ready", "resolve_threads", "scalar", "use_compiled"]
 
 
 def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
@@ -40,10 +42,11 @@ def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
     return ok
 
 
-def as_arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
-    """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous)."""
-    return [np.ascontiguousarray(t.detach().numpy() if t.requires_grad else t.numpy())
-            for t in tensors]
+def as_arrays(*tensors: torch.Tensor | np.ndarray) -> list[np.ndarray]:
+    """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous);
+    arrays pass through."""
+    return [np.ascontiguousarray(t if isinstance(t, np.ndarray) else t.detach().numpy() if t.requires_grad
+                                 else t.numpy()) for t in tensors]
 
 
 def scalar(value: float) -> torch.Tensor:
@@ -77,11 +80,11 @@ def compiled() -> Any:
 def parameter_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray]]:
     """The model's parameters (``A, B, C, d, D, E, G, H, c``) and arrays on their memory, made
     once per model and made again when a parameter is replaced or moved to other storage."""
-    params, arrays, _ = _model_arrays(model)
+    params, arrays, _ = model_arrays(model)
     return params, arrays
 
 
-def _model_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray], np.ndarray]:
+def model_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray], np.ndarray]:
     """:func:`parameter_arrays` and the model's ``stiffness`` as a 0-dim array on its buffer."""
     table = model.__dict__.get("_parameters", {})  # a torch Module's own table: no __getattr__
     params = [table[k] if k in table else getattr(model, k) for k in PARAMETER_NAMES]
@@ -98,43 +101,121 @@ def _model_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray], np.
     return params, found, s
 
 
-def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor,
-                  u: torch.Tensor, x_next: torch.Tensor, warm_start: torch.Tensor | None, width: int,
-                  *options: Any) -> tuple[int, tuple]:
+#: The fewest samples a thread of a compiled call is given: below ``2 * MIN_CHUNK`` a call runs on
+#: the calling thread alone, where starting a thread would cost more than it saves.
+MIN_CHUNK = 4096
+
+#: The pool the chunks of a call run on (made on first use; the compiled kernels release the
+#: GIL, so the threads run in parallel).
+_POOL: ThreadPoolExecutor | None = None
+
+
+def resolve_threads(threads: int | None) -> int:
+    """``threads``, or by default ``torch.get_num_threads()`` (``torch.set_num_threads``, or
+    ``OMP_NUM_THREADS`` when the process started); an :class:`LCSInputError` names anything but
+    an integer >= 1."""
+    if threads is None:
+        return torch.get_num_threads()
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise LCSInputError(f"threads: expected an integer >= 1 (or None: torch.get_num_threads()), "
+                            f"received {threads!r}")
+    return int(threads)
+
+
+def chunks(N: int, threads: int | None) -> list[tuple[int, int]]:
+    """The row ranges ``[(start, stop), ...]`` a call of ``N`` samples is split into: at most
+    ``threads`` (:func:`resolve_threads`), each of at least :data:`MIN_CHUNK` samples, of equal
+    sizes to one sample."""
+    k = max(1, min(resolve_threads(threads), N // MIN_CHUNK))
+    bounds = [N * i // k for i in range(k + 1)]
+    return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=max(1, (os.cpu_count() or 1) - 1),
+                                   thread_name_prefix="lcs_cvx")
+    return _POOL
+
+
+#: How the outputs of one kernel's chunks combine, by position after ``(value, grads)``:
+#: ``"rows"`` concatenated, ``"max"``, ``"sum"``; position 5 is the count of unconverged samples.
+_COMBINE = {"rows": lambda parts: np.concatenate(parts), "max": max, "sum": sum}
+_OUTPUTS = {"violation": ("rows", "rows", "rows", "sum", "max"),
+            "prediction": ("rows", "rows", "rows", "sum", "max", "sum")}
+
+
+def _combine(name: str, outs: list[tuple], sizes: list[int]) -> tuple:
+    """One call's outputs from its chunks' (``sizes`` samples each): the mean value and its
+    gradients as the chunks' means weighted by their shares of the batch (equal to one call's to
+    a few ulps: only the order of the sums differs), per-sample arrays concatenated, counts added
+    (an unconverged count of -1, non-finite data, wins), sweeps their maximum."""
+    N = sum(sizes)
+    w = [n / N for n in sizes]
+    value = sum(wk * out[0] for wk, out in zip(w, outs, strict=True))
+    grads = tuple(sum(wk * out[1][i] for wk, out in zip(w, outs, strict=True)) for i in range(len(outs[0][1])))
+    rest = [_COMBINE[rule]([out[2 + i] for out in outs]) for i, rule in enumerate(_OUTPUTS[name])]
+    if any(out[5] < 0 for out in outs):
+        rest[3] = -1
+    return (value, grads, *rest)
+
+
+def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor | np.ndarray,
+                  u: torch.Tensor | np.ndarray, x_next: torch.Tensor | np.ndarray,
+                  warm_start: torch.Tensor | np.ndarray | None, width: int, *options: Any,
+                  threads: int | None = None, tensors: bool = True) -> tuple[int, tuple]:
     """``fn`` (:func:`.compiled.violation` or ``.prediction``) on one model's
     parameter arrays ``params`` (``A, B, C, d, D, E, G, H, c``) and a batch; returns its status
     (0; 1: a sample did not converge, and the caller runs the array kernels, which end it with
     the reference solvers; -1: the data are not finite) and its outputs, the gradients as
-    tensors."""
+    tensors (``tensors=False``: as the kernel's arrays; the data and ``warm_start`` may then be
+    arrays too, the trainer's one-call step). A batch of at least ``2 * MIN_CHUNK`` samples is split into row ranges
+    (:func:`chunks`) solved on ``threads`` threads at once and combined (:func:`_combine`)."""
     A, B, C, d, D, E, G, H, c = params
     warm = COLD
-    if warm_start is not None:
+    if isinstance(warm_start, np.ndarray):
+        warm = warm_start
+    elif warm_start is not None:
         check_warm_start(warm_start, (x.shape[0], width))
         warm = np.ascontiguousarray(warm_start.numpy())
-    out = fn(A, B, C, d, D, E, c, G, H, stiffness, *as_arrays(x, u, x_next), *options, warm)
+    xa, ua, xna = as_arrays(x, u, x_next)
+    parts = chunks(x.shape[0], threads) if x.shape[0] >= 2 * MIN_CHUNK else [(0, x.shape[0])]
+
+    def run(rows: tuple[int, int]) -> tuple:
+        a, b = rows
+        own = warm[a:b] if warm.shape[0] else warm
+        return fn(A, B, C, d, D, E, c, G, H, stiffness, xa[a:b], ua[a:b], xna[a:b], *options, own)
+
+    if len(parts) == 1:
+        out = run(parts[0])
+    else:
+        pending = [_pool().submit(run, rows) for rows in parts[1:]]
+        first = run(parts[0])
+        out = _combine(fn.__name__, [first] + [p.result() for p in pending], [b - a for a, b in parts])
     status = out[5]
     if status:
         return (-1 if status < 0 else 1), out
-    return 0, (out[0], tuple(map(torch.from_numpy, out[1]))) + out[2:]
+    return 0, (out[0], tuple(map(torch.from_numpy, out[1]))) + out[2:] if tensors else out
 
 
 def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
                   warm_start: torch.Tensor | None, width: int, *options: Any,
-                  gamma: float | None = None) -> tuple | None:
+                  gamma: float | None = None, threads: int | None = None) -> tuple | None:
     """:func:`compiled_call` of the kernel ``name`` (``"violation"`` or ``"prediction"``) on the
     model: ``(params, outputs)``, or None where the array kernels take over. Non-finite data
     raise :func:`lcs_cvx._checks.as_transitions`'s error (the kernel checks them: the public
     losses skip that check for tensors ready for it). ``gamma``: also check Lemma 2's
     ``gamma < sigma_min(F + F^T)`` (:func:`lcs_cvx._checks.check_gamma`, needed only from
-    ``2 s`` on)."""
-    params, arrays, stiffness = _model_arrays(model)
+    ``2 s`` on); ``threads``: as :func:`compiled_call`'s."""
+    params, arrays, stiffness = model_arrays(model)
     s = float(stiffness)
     if gamma is not None and not gamma < 2.0 * s:  # F + F^T >= 2 s I: below, nothing to check
         from ..problems import check_gamma
 
         check_gamma(model.F, gamma)
     status, out = compiled_call(getattr(compiled(), name), arrays, s, x, u, x_next, warm_start, width,
-                                *options)
+                                *options, threads=threads)
     if status < 0:
         as_transitions(model, x, u, x_next)  # names the non-finite input
     return None if status else (params, out)

@@ -29,6 +29,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_ints(text: str) -> list[int]:
+    """``"200,2000"`` -> ``[200, 2000]``, each an integer >= 1."""
+    try:
+        out = [int(v.replace("_", "")) for v in text.split(",") if v.strip()]
+    except ValueError:
+        out = []
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(f"expected integers >= 1, comma-separated, received {text!r}")
+    return out
+
+
 def seed(text: str) -> int:
     try:
         value = int(text)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .. import LCSInputError
-from ._args import positive_int, reraise_for, sizes
+from ._args import positive_int, positive_ints, reraise_for, sizes
 
 __all__ = ["configure_bench", "run_bench"]
 
@@ -23,7 +23,16 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="also write the markdown table to this file")
     p.add_argument("--lcp", action="store_true",
                    help="instead: batched LCP solve rate vs Clarabel (n_lam 4, 10, 20; batch 200, 50,000)")
-    p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+    p.add_argument("--threads", type=positive_int, default=1,
+                   help="CPU threads: torch's, and the compiled kernels' on large batches (default: 1)")
+    p.add_argument("--throughput", action="store_true",
+                   help="instead: one-call loss + gradient throughput against the batch size "
+                        "(--batches, --device, --dtype, --threads; sizes default (10, 4, 4))")
+    p.add_argument("--batches", type=positive_ints, default=None,
+                   help="batch sizes of --throughput, comma-separated (default: 200 to 1,000,000)")
+    p.add_argument("--device", default="cpu", help="device of --throughput: cpu (default) or cuda")
+    p.add_argument("--dtype", choices=("float64", "float32"), default="float64",
+                   help="dtype of --throughput (default: float64)")
 
 
 def run_bench(args: argparse.Namespace) -> int:
@@ -31,7 +40,23 @@ def run_bench(args: argparse.Namespace) -> int:
     from ..bench import DEFAULT_SIZES, format_table, run_lcp_bench
     from ..bench import run_bench as bench_rows
 
-    if args.lcp:
+    if args.device != "cpu" and not args.throughput:
+        raise LCSInputError(f"--device: the solver comparison runs on the CPU (its reference paths are "
+                            f"CVXPY's); expected cpu, or --throughput, received {args.device!r}")
+    if args.throughput:
+        import torch
+
+        from ..bench import THROUGHPUT_BATCHES, run_throughput
+
+        if args.device.startswith("cuda") and not torch.cuda.is_available():
+            raise LCSInputError(f"--device: expected a device this machine has, received {args.device!r} "
+                                "(torch.cuda.is_available() is False)")
+        if args.device != "cpu" and not args.device.startswith("cuda"):
+            raise LCSInputError(f"--device: expected cpu or cuda[:N], received {args.device!r}")
+        table = run_throughput(args.sizes or ((10, 4, 4),), args.losses, args.batches or THROUGHPUT_BATCHES,
+                               device=args.device, threads=args.threads, dtype=getattr(torch, args.dtype),
+                               repeats=args.repeats, progress=lambda line: print(line, flush=True))
+    elif args.lcp:
         table = run_lcp_bench(repeats=args.repeats)
     else:
         rows = bench_rows(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,

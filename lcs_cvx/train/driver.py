@@ -27,6 +27,7 @@ from typing import Any
 import torch
 
 from .._checks import LCSInputError
+from .._kernels.calls import resolve_threads
 from ..data import Dataset
 from ..io import atomic_write
 from ..metrics import relative_error
@@ -159,6 +160,7 @@ def fit(
     resume: bool = False,
     progress: bool = True,
     ensemble: bool = False,
+    threads: int | None = None,
     **overrides: Any,
 ) -> FitResult:
     """Learn the LCS ``model`` from ``train`` (in place): minimise ``L(theta) + omega ||C||_F^2``.
@@ -188,6 +190,11 @@ def fit(
             re-initialisation of saturated units, and without callbacks; a checkpoint is written
             when they have all finished (a killed run restarts the unfinished ones), and the first
             restart that diverges raises at once.
+        threads: threads of the compiled kernels on large batches (float64 CPU; see
+            :func:`lcs_cvx.violation_loss`): a batch of at least ``2 *
+            lcs_cvx._kernels.calls.MIN_CHUNK`` samples is solved in that many parts at once, the
+            same numbers to round-off. Default ``torch.get_num_threads()`` (``OMP_NUM_THREADS``,
+            ``torch.set_num_threads``); not part of the options (a checkpoint resumes with any).
         **overrides: flat options (:data:`lcs_cvx.train.FLAT_OPTIONS`: ``loss``, ``optimizer``,
             ``iterations``, ``lr``, ``gamma``, ``eps``, ``reg``, ``seed``, ...) or whole groups
             (``adam=AdamOptions(...)``), applied on top of ``options`` or ``recipe``.
@@ -207,6 +214,7 @@ def fit(
     if not isinstance(model, LCS):
         raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
     check_learnable(model)
+    resolve_threads(threads)
     opts = fit_options(options, recipe, overrides)
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
     opts = resolve_keep_best(opts, split.trajectories is not None and split.holdout is not None)
@@ -297,7 +305,7 @@ def fit(
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
                                windows=windows, scaling=scaling,
-                               validate=holdout_score if holdout is not None else None)
+                               validate=holdout_score if holdout is not None else None, threads=threads)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:

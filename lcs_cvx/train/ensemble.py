@@ -39,6 +39,7 @@ from ..scaling import Scaling, fold_back, in_user_coordinates
 from ..stacked import StackedLCS, prediction_losses, violation_losses
 from ..system import LCS
 from .inputs import check_data, fit_options, resolve_keep_best
+from .onecall import adam_update_from_grads
 from .options import FitOptions
 from .phases import AdamPhase, divergence
 from .result import FitResult
@@ -250,7 +251,7 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
         value = info.loss + obj.reg * (ens.C**2).sum((1, 2))
         adam.zero_grad()
         value.sum().backward()
-        adam.step()
+        adam_update_from_grads(adam)  # the update of fit's steps (on CPU, compiled)
         losses = value.detach().tolist()
         with torch.no_grad():
             finite_F = torch.isfinite(ens.F).all(2).all(1).tolist()

@@ -30,6 +30,7 @@ from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
 from ..simulation_error import simulation_error
 from ..system import LCS
+from .onecall import adam_step, adam_update_from_grads
 from .options import FitOptions
 from .state import Outcome, TrainState
 
@@ -44,15 +45,19 @@ def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteratio
     adam.zero_grad()
     value.backward()
     mask_gradients_(model)
-    adam.step()
+    adam_update_from_grads(adam)
     project_(model)
     loss = float(value.detach())
     with torch.no_grad():
         finite_F = bool(torch.isfinite(model.F).all())
+    _check_divergence(iteration, loss, finite_F, lr)
+    return loss
+
+
+def _check_divergence(iteration: int, loss: float, finite_F: bool, lr: float) -> None:
     error = divergence(iteration, loss, finite_F, lr)
     if error is not None:
         raise error
-    return loss
 
 
 def divergence(iteration: int, loss: float, finite_F: bool, lr: float, label: str = "") -> SolverError | None:
@@ -128,12 +133,22 @@ class AdamPhase(Phase):
         if a.reinit_saturated and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations:
             reinit_saturated(state)
         idx = state.next_batch(min(a.batch_size, len(state.train)))
+        if state.arrays is not None:  # one call: loss, gradient and update without autograd
+            done = adam_step(state.adam, state.work, obj.loss, *state.batch_arrays(idx),
+                             state.warm_start_array(idx), gamma=obj.gamma, eps=eps, reg=obj.reg,
+                             threads=state.threads)
+            if done is not None:
+                loss, finite_F, active = done
+                state.remember(idx, active)
+                _check_divergence(state.iteration + 1, loss, finite_F, lr)
+                return Outcome(loss, eps, lr)
         x, u, x_next = state.batch(idx)
         warm = state.warm_start(idx)
         if obj.loss == "violation":
-            info = violation_fast(state.work, x, u, x_next, gamma=obj.gamma, eps=eps, warm_start=warm)
+            info = violation_fast(state.work, x, u, x_next, gamma=obj.gamma, eps=eps, warm_start=warm,
+                                  threads=state.threads)
         else:
-            info = prediction_fast(state.work, x, u, x_next, warm_start=warm)
+            info = prediction_fast(state.work, x, u, x_next, warm_start=warm, threads=state.threads)
         state.remember(idx, info.active)
         value = info.loss + regularizer(state.work, obj.reg)
         loss = _adam_step(state.adam, state.work, value, state.iteration + 1, lr)
@@ -254,7 +269,14 @@ class PolishPhase(Phase):
     def step(self, state: TrainState) -> Outcome:
         p, obj = self.options.polish, self.options.objective
         idx = state.next_batch(min(p.batch_size, len(state.train)))
-        info = prediction_fast(state.model, *state.batch(idx))
+        if state.arrays is not None:  # one call, as Adam's steps
+            done = adam_step(state.polish_adam, state.model, "prediction", *state.batch_arrays(idx), None,
+                             gamma=obj.gamma, eps=obj.eps, reg=obj.reg, threads=state.threads)
+            if done is not None:
+                loss, finite_F, _ = done
+                _check_divergence(state.iteration + 1, loss, finite_F, p.lr)
+                return Outcome(loss, obj.eps, p.lr)
+        info = prediction_fast(state.model, *state.batch(idx), threads=state.threads)
         value = info.loss + regularizer(state.model, obj.reg)
         loss = _adam_step(state.polish_adam, state.model, value, state.iteration + 1, p.lr)
         return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.fallback_residual)

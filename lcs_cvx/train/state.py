@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 from ..data import Dataset
@@ -24,6 +25,7 @@ from ..resizing import add_units
 from ..scaling import Scaling
 from ..simulation_error import Windows
 from ..system import LCS, PARAMETER_NAMES
+from .onecall import data_arrays
 from .options import FitOptions
 from .phase_options import extra_units
 
@@ -52,9 +54,13 @@ class TrainState:
     def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
                  restart: int, score: Callable[[LCS], float] | None = None,
                  windows: Windows | None = None, scaling: Scaling | None = None,
-                 validate: Callable[[LCS], float] | None = None) -> None:
+                 validate: Callable[[LCS], float] | None = None, threads: int | None = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
+        # the compiled kernels' threads, and the training data as arrays for the one-call steps
+        # (:mod:`lcs_cvx.train.onecall`; None where they are not float64 CPU tensors)
+        self.threads = threads
+        self.arrays = data_arrays(train)
         # the simulation-error phase: windows of the training trajectories (user's units) and the
         # coordinates the model is learned in
         self.windows, self.scaling = windows, scaling
@@ -90,6 +96,7 @@ class TrainState:
         # sample's next visit; the loss does not depend on them, the solver's work does
         self.active: torch.Tensor | None = None
         self.seen = torch.zeros(len(train), dtype=torch.bool)
+        self._views: tuple | None = None
 
     @property
     def iteration(self) -> int:
@@ -110,13 +117,39 @@ class TrainState:
         d = self.train
         return d.x[idx], d.u[idx], d.x_next[idx]
 
+    def batch_arrays(self, idx: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`batch` as arrays (with :attr:`arrays` only)."""
+        rows = idx.numpy()
+        return tuple(a.take(rows, axis=0) for a in self.arrays)
+
     def warm_start(self, idx: torch.Tensor) -> torch.Tensor | None:
         """The active sets of the samples ``idx`` from their last visit (None unless all were seen)."""
         return self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
 
-    def remember(self, idx: torch.Tensor, active: torch.Tensor) -> None:
+    def _tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(active, seen)`` as arrays on their tensors' memory (made again when either tensor
+        is replaced, by :meth:`load_state_dict`)."""
+        if self._views is None or self._views[0] is not self.active or self._views[1] is not self.seen:
+            self._views = (self.active, self.seen, self.active.numpy(), self.seen.numpy())
+        return self._views[2], self._views[3]
+
+    def warm_start_array(self, idx: torch.Tensor) -> np.ndarray | None:
+        """:meth:`warm_start` as an array."""
+        if self.active is None:
+            return None
+        rows = idx.numpy()
+        active, seen = self._tables()
+        return active.take(rows, axis=0) if seen.take(rows).all() else None
+
+    def remember(self, idx: torch.Tensor, active: torch.Tensor | np.ndarray) -> None:
         if self.active is None:
             self.active = torch.zeros(len(self.train), active.shape[1], dtype=torch.bool)
+        if isinstance(active, np.ndarray):
+            rows = idx.numpy()
+            table, seen = self._tables()
+            table[rows] = active
+            seen[rows] = True
+            return
         self.active[idx] = active.to(self.active.device)
         self.seen[idx] = True
 

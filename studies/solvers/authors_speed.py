@@ -23,6 +23,14 @@ and the gradient agree (``lam`` to the QP solver's accuracy): the two sides comp
 Timing: one torch thread, both sides interleaved (one authors' call, then the package's calls for
 as long, per repeat), ``repeats`` repeats after a warm-up, median; samples/s = batch / median.
 
+A training step (``--steps``, the "training step" columns): one step of the authors' training
+loop as their Fig. 1 scripts run it (``evaluations/*/run_train.py``: a random minibatch of
+``batch`` drawn by ``np.random.permutation``, ``learner.step``, their ``Adam.step`` on
+``theta``), timed over ``STEP_CALLS`` steps per repeat, against one step of
+:func:`lcs_cvx.fit` with ``recipe="paper"`` on ``STEP_DATA`` samples (the wall time of
+``fit(..., iterations=STEP_ITERATIONS)`` over its iterations: the data checks, the minibatch, the
+warm starts, the loss and gradient, Adam, the records), interleaved the same way.
+
     python -m studies.solvers.authors_speed --authors /path/to/Learning-LCS \
         --out studies/results/solvers [--sizes fig1|paper|N_X,N_U,N_LAM ...] [--batch 200]
 
@@ -70,6 +78,8 @@ FIG1_SIZES = (
 PAPER_SIZES = [(10, 4, 4), (10, 4, 10), (10, 4, 20), (128, 4, 10)]
 LOSSES = ("violation", "prediction")
 GAMMA, EPS = 1e-2, 1e-4  # the authors' (gamma, eps) of Fig. 1(a), (b)
+#: The training-step timing: the data of one run, the authors' steps per repeat, fit's iterations
+STEP_DATA, STEP_CALLS, STEP_ITERATIONS = 20_000, 5, 500
 
 
 def model_for(n_x: int, n_u: int, n_lam: int, seed: int = 0) -> tuple[lcs_cvx.LCS, lcs_cvx.Transitions]:
@@ -122,7 +132,46 @@ def learners(lcs_learning, n_x: int, n_u: int, n_lam: int, stiffness: float):
     return {"violation": vn, "prediction": pn}
 
 
-def run_row(lcs_learning, size, loss: str, batch: int, repeats: int, seed: int = 0) -> dict:
+def training_steps(lcs_learning, optim, model: lcs_cvx.LCS, data, loss: str, batch: int,
+                   repeats: int) -> dict:
+    """Seconds per training step, the authors' loop against :func:`lcs_cvx.fit`'s (module
+    docstring), medians of ``repeats`` interleaved repeats."""
+    train = lcs_cvx.Dataset(data.x[:STEP_DATA], data.u[:STEP_DATA], data.x_next[:STEP_DATA])
+    xa, ua, xna = (t.numpy() for t in (train.x, train.u, train.x_next))
+    learner = learners(lcs_learning, model.n_x, model.n_u, model.n_lam, float(model.stiffness))[loss]
+    adam = optim.Adam()
+    theta = [authors_theta(model)]
+    rng = np.random.default_rng(0)
+
+    def theirs():  # the body of their training loop
+        rows = rng.permutation(len(xa))[:batch]
+        out = learner.step(xa[rows], ua[rows], xna[rows], theta[0])
+        theta[0] = adam.step(theta[0], out[1])
+
+    kw = {"gamma": GAMMA / 2, "eps": 2 * EPS} if loss == "violation" else {}
+
+    def ours() -> float:
+        start = lcs_cvx.LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness))
+        start.load_state_dict(model.state_dict())
+        t0 = time.perf_counter()
+        lcs_cvx.fit(start, train, recipe="paper", loss=loss, iterations=STEP_ITERATIONS,
+                    batch_size=batch, progress=False, **kw)
+        return (time.perf_counter() - t0) / STEP_ITERATIONS
+
+    theirs(), ours()
+    t_theirs, t_ours = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(STEP_CALLS):
+            theirs()
+        t_theirs.append((time.perf_counter() - t0) / STEP_CALLS)
+        t_ours.append(ours())
+    authors, package = statistics.median(t_theirs), statistics.median(t_ours)
+    return {"authors_step_s": authors, "fit_step_s": package, "step_ratio": authors / package}
+
+
+def run_row(lcs_learning, size, loss: str, batch: int, repeats: int, seed: int = 0,
+            optim=None) -> dict:
     n_x, n_u, n_lam = size
     model, data = model_for(n_x, n_u, n_lam, seed)
     x, u, xn = data.x[:batch], data.u[:batch], data.x_next[:batch]
@@ -183,22 +232,30 @@ def run_row(lcs_learning, size, loss: str, batch: int, repeats: int, seed: int =
             times.append(el / n)
     authors = batch / statistics.median(t_theirs)
     package, package_vg = batch / statistics.median(t_ours), batch / statistics.median(t_vg)
+    steps = training_steps(lcs_learning, optim, model, data, loss, batch, repeats) if optim else {}
     return {"n_x": n_x, "n_u": n_u, "n_lam": n_lam, "loss": loss, "batch": batch,
             "authors_samples_per_s": authors, "package_samples_per_s": package,
             "ratio": package / authors, "value_and_grad_samples_per_s": package_vg,
-            "value_and_grad_ratio": package_vg / authors, **agreement}
+            "value_and_grad_ratio": package_vg / authors, **agreement, **steps}
+
+
+def _step_cells(r: dict) -> str:
+    if "step_ratio" not in r:
+        return "– | – | –"
+    return f"{1e3 * r['authors_step_s']:.2f} | {1e3 * r['fit_step_s']:.3f} | {r['step_ratio']:,.0f}×"
 
 
 def table(rows: list[dict]) -> str:
     lines = ["| (n_x, n_u, n_λ) | loss | authors (`step`) | lcs_cvx `*_value_and_grad` | ratio | "
-             "lcs_cvx loss + `backward()` | ratio | max Δλ | rel. Δloss | rel. Δgradient |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "lcs_cvx loss + `backward()` | ratio | max Δλ | rel. Δloss | rel. Δgradient | "
+             "training step: authors (ms) | `fit` (ms) | ratio |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| ({r['n_x']}, {r['n_u']}, {r['n_lam']}) | {r['loss']} | "
                      f"{r['authors_samples_per_s']:,.0f} | {r['value_and_grad_samples_per_s']:,.0f} | "
                      f"{r['value_and_grad_ratio']:,.0f}× | {r['package_samples_per_s']:,.0f} | "
                      f"{r['ratio']:,.0f}× | {r['lam_err']:.1e} | {r['loss_rel_err']:.1e} | "
-                     f"{r['grad_rel_err']:.1e} |")
+                     f"{r['grad_rel_err']:.1e} | {_step_cells(r)} |")
     return "\n".join(lines)
 
 
@@ -227,11 +284,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch", type=int, default=200)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--name", default="authors_speed")
+    ap.add_argument("--steps", action=argparse.BooleanOptionalAction, default=True,
+                    help="also time a training step against the authors' (default on)")
+    ap.add_argument("--redo", action="store_true", help="measure the chosen rows again (replacing them)")
     args = ap.parse_args(argv)
     if not (args.authors / "lcs" / "lcs_learning.py").is_file():
         raise SystemExit(f"--authors: expected a folder with lcs/lcs_learning.py, received {args.authors}")
     sys.path.insert(0, str(args.authors))
     from lcs import lcs_learning  # the authors' code, from the user's checkout
+    from lcs import optim as authors_optim
 
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -240,11 +301,12 @@ def main(argv: list[str] | None = None) -> None:
     for size in parse_sizes(args.sizes):
         for loss in args.losses:
             key = (*size, loss, args.batch)
-            if key in done:
+            if key in done and not args.redo:
                 continue
-            row = run_row(lcs_learning, size, loss, args.batch, args.repeats)
+            row = run_row(lcs_learning, size, loss, args.batch, args.repeats,
+                          optim=authors_optim if args.steps else None)
             done[key] = row
-            with jsonl.open("a") as f:
+            with jsonl.open("a") as f:  # a later line of the same key replaces an earlier one
                 f.write(json.dumps(row) + "\n")
             print(table([row]).splitlines()[-1], flush=True)
     rows = sorted(done.values(), key=lambda r: (r["loss"], r["n_lam"] if r["n_x"] == 10 else 99, r["n_x"]))

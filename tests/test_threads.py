@@ -1,0 +1,94 @@
+"""Large batches across threads (lcs_cvx/_kernels/calls.py): a compiled call of at least
+``2 * MIN_CHUNK`` samples is split into row ranges solved at once and combined. Each sample is
+solved by the same operations in either case, except the batch products (BLAS blocks a part
+otherwise than the whole), and the mean loss and its gradients are the parts' means weighted
+back together (another order of the sums): equal to round-off, never ``==``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from helpers import make_problem, rel_err
+
+import lcs_cvx
+from lcs_cvx import LCSInputError
+from lcs_cvx._kernels.calls import MIN_CHUNK, chunks, resolve_threads
+from lcs_cvx.losses import prediction_fast, violation_fast
+from lcs_cvx.system import PARAMETER_NAMES
+
+GAMMA, EPS = 1e-2, 1e-3
+
+
+def test_chunks_split_rows_evenly_above_the_threshold():
+    assert chunks(2 * MIN_CHUNK, 4) == [(0, MIN_CHUNK), (MIN_CHUNK, 2 * MIN_CHUNK)]
+    assert chunks(2 * MIN_CHUNK - 1, 4) == [(0, 2 * MIN_CHUNK - 1)]  # a part below MIN_CHUNK: one
+    parts = chunks(10 * MIN_CHUNK + 3, 3)
+    sizes = [b - a for a, b in parts]
+    assert len(parts) == 3 and parts[0][0] == 0 and parts[-1][1] == 10 * MIN_CHUNK + 3
+    assert max(sizes) - min(sizes) <= 1 and all(parts[i][1] == parts[i + 1][0] for i in range(2))
+    assert chunks(5 * MIN_CHUNK, 1) == [(0, 5 * MIN_CHUNK)]
+
+
+def test_threads_default_to_torchs_and_bad_counts_are_named():
+    assert resolve_threads(None) == torch.get_num_threads() and resolve_threads(3) == 3
+    model, data = make_problem(n_lam=2, n=10, seed=0)
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(LCSInputError, match="^threads: expected an integer >= 1"):
+            lcs_cvx.violation_loss(model, data.x, data.u, data.x_next, threads=bad)
+    with pytest.raises(LCSInputError, match="^threads:"):
+        lcs_cvx.prediction_value_and_grad(model, data.x, data.u, data.x_next, threads=0)
+    with pytest.raises(LCSInputError, match="^threads:"):
+        lcs_cvx.fit(model, data, iterations=1, progress=False, threads=0)
+
+
+@pytest.mark.parametrize("loss", ["violation", "prediction"])
+def test_two_threads_give_one_threads_numbers(loss):
+    """A batch of ``2 MIN_CHUNK + 37`` samples on one thread and on two (two parts): the same
+    solutions and active sets, the value and every gradient to round-off."""
+    model, data = make_problem(n_lam=4, n=2 * MIN_CHUNK + 37, model="perturbed", seed=3)
+    fn = violation_fast if loss == "violation" else prediction_fast
+    kw = {"gamma": GAMMA, "eps": EPS} if loss == "violation" else {}
+    out = {}
+    for threads in (1, 2):
+        model.zero_grad()
+        info = fn(model, data.x, data.u, data.x_next, threads=threads, **kw)
+        info.loss.backward()
+        out[threads] = (info, {k: getattr(model, k).grad.clone() for k in PARAMETER_NAMES})
+    (one, g1), (two, g2) = out[1], out[2]
+    assert torch.equal(one.active, two.active)
+    assert float((one.lam - two.lam).abs().max()) <= 1e-12 * (1 + float(one.lam.abs().max()))
+    assert float(two.loss.detach()) == pytest.approx(float(one.loss.detach()), rel=1e-12, abs=0)
+    for name in PARAMETER_NAMES:
+        assert rel_err(g2[name], g1[name]) <= 1e-11, name
+    # the one-call API: value and gradients, the same way
+    vg = getattr(lcs_cvx, f"{loss}_value_and_grad")
+    v1, d1 = vg(model, data.x, data.u, data.x_next, threads=1, **kw)
+    v2, d2 = vg(model, data.x, data.u, data.x_next, threads=2, **kw)
+    assert float(v2) == pytest.approx(float(v1), rel=1e-12, abs=0)
+    assert all(rel_err(d2[k], d1[k]) <= 1e-11 for k in PARAMETER_NAMES)
+
+
+def test_a_part_that_does_not_converge_hands_the_whole_batch_over(monkeypatch):
+    """With no pivoting sweep allowed, a split call reports its unconverged samples like a
+    whole one: the array kernels end them with the reference (FallbackWarning), the same counts."""
+    from lcs_cvx import FallbackWarning
+    from lcs_cvx import losses as losses_module
+
+    model, data = make_problem(n_lam=4, n=2 * MIN_CHUNK, model="perturbed", seed=1)
+    monkeypatch.setattr(losses_module, "MAX_ITER", 0)
+    counts = []
+    for threads in (1, 2):
+        with pytest.warns(FallbackWarning):
+            counts.append(violation_fast(model, data.x, data.u, data.x_next, gamma=GAMMA, eps=EPS,
+                                         threads=threads).n_fallback)
+    assert counts[0] == counts[1] > 0
+
+
+def test_non_finite_data_in_a_later_part_are_named():
+    model, data = make_problem(n_lam=3, n=2 * MIN_CHUNK + 5, seed=4)
+    x = data.x.clone()
+    x[-1, 0] = float("nan")
+    with pytest.raises(LCSInputError, match="^x: expected finite values"):
+        lcs_cvx.violation_value_and_grad(model, x, data.u, data.x_next, threads=2)
+    assert np.isfinite(float(lcs_cvx.violation_loss(model, data.x, data.u, data.x_next, threads=2).detach()))
