@@ -231,7 +231,7 @@ def run_throughput(
     losses: Iterable[str] = LOSSES,
     batches: Iterable[int] = THROUGHPUT_BATCHES,
     device: str = "cpu",
-    threads: int = 1,
+    threads: int | Iterable[int] = 1,
     dtype: torch.dtype = torch.float64,
     repeats: int = 5,
     gamma: float = 1e-2,
@@ -241,36 +241,57 @@ def run_throughput(
 ) -> str:
     """Throughput of the one-call loss and gradient (:func:`lcs_cvx.violation_value_and_grad`,
     :func:`lcs_cvx.prediction_value_and_grad`) against the batch size, on ``device`` in
-    ``dtype``, with ``threads`` threads (the compiled kernels' on the CPU, and torch's); a
-    mid-training model as in :func:`run_bench`. On a GPU each call is followed by
-    ``torch.cuda.synchronize()``. Returns a markdown table (samples/s)."""
+    ``dtype``, with each count of ``threads`` (the compiled kernels' on the CPU, and torch's); a
+    mid-training model as in :func:`run_bench`. The thread counts of one batch are timed side by
+    side: each repeat times one call of each in turn (after a warm-up of each), and the median
+    over at least ``repeats`` repeats and :data:`MIN_TIMED_S` is kept; ``× first`` is the speed-up
+    over the first count. On a GPU each call is followed by ``torch.cuda.synchronize()``.
+    Returns a markdown table (samples/s)."""
     from .losses import prediction_value_and_grad, violation_value_and_grad
 
-    torch.set_num_threads(threads)
+    counts = [threads] if isinstance(threads, int) else list(threads)
     dev = torch.device(device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    lines = ["| (n_x, n_u, n_λ) | loss | device | dtype | threads | batch | samples/s |",
-             "|---|---|---|---|---:|---:|---:|"]
+    lines = ["| (n_x, n_u, n_λ) | loss | device | dtype | threads | batch | samples/s | × first |",
+             "|---|---|---|---|---:|---:|---:|---:|"]
     batches = sorted(batches)
-    for n_x, n_u, n_lam in sizes:
-        truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
-        data = make_dataset(truth, max(batches), noise=1e-2, seed=seed + 1)
-        model = perturbed(truth, 0.05, seed + 2).to(device=dev, dtype=dtype)
-        x_all, u_all, xn_all = (t.to(device=dev, dtype=dtype) for t in (data.x, data.u, data.x_next))
-        for loss in losses:
-            for batch in batches:
-                x, u, xn = x_all[:batch], u_all[:batch], xn_all[:batch]
+    torch_threads = torch.get_num_threads()
+    try:
+        for n_x, n_u, n_lam in sizes:
+            truth = random_lcs(n_x, n_u, n_lam, stiffness=0.5, seed=seed)
+            data = make_dataset(truth, max(batches), noise=1e-2, seed=seed + 1)
+            model = perturbed(truth, 0.05, seed + 2).to(device=dev, dtype=dtype)
+            x_all, u_all, xn_all = (t.to(device=dev, dtype=dtype) for t in (data.x, data.u, data.x_next))
+            for loss in losses:
+                for batch in batches:
+                    x, u, xn = x_all[:batch], u_all[:batch], xn_all[:batch]
 
-                def call(x=x, u=u, xn=xn, loss=loss, model=model):
-                    if loss == "violation":
-                        violation_value_and_grad(model, x, u, xn, gamma=gamma, eps=eps, threads=threads)
-                    else:
-                        prediction_value_and_grad(model, x, u, xn, threads=threads)
-                    sync()
+                    def call(t: int, x=x, u=u, xn=xn, loss=loss, model=model) -> float:
+                        torch.set_num_threads(t)
+                        t0 = time.perf_counter()
+                        if loss == "violation":
+                            violation_value_and_grad(model, x, u, xn, gamma=gamma, eps=eps, threads=t)
+                        else:
+                            prediction_value_and_grad(model, x, u, xn, threads=t)
+                        sync()
+                        return time.perf_counter() - t0
 
-                rate = batch / median_time(call, repeats)
-                lines.append(f"| ({n_x}, {n_u}, {n_lam}) | {loss} | {dev.type} | {str(dtype).split('.')[-1]} | "
-                             f"{threads} | {batch:,} | {rate:,.0f} |")
-                if progress is not None:
-                    progress(lines[-1])
+                    times: dict[int, list[float]] = {t: [] for t in counts}
+                    warm_until = time.perf_counter() + WARMUP_S
+                    while time.perf_counter() < warm_until:
+                        for t in counts:
+                            call(t)
+                    start = time.perf_counter()
+                    while min(len(v) for v in times.values()) < repeats or time.perf_counter() - start < MIN_TIMED_S:
+                        for t in counts:
+                            times[t].append(call(t))
+                    rates = {t: batch / statistics.median(v) for t, v in times.items()}
+                    for t in counts:
+                        lines.append(f"| ({n_x}, {n_u}, {n_lam}) | {loss} | {dev.type} | "
+                                     f"{str(dtype).split('.')[-1]} | {t} | {batch:,} | {rates[t]:,.0f} | "
+                                     f"{rates[t] / rates[counts[0]]:.2f} |")
+                        if progress is not None:
+                            progress(lines[-1])
+    finally:
+        torch.set_num_threads(torch_threads)
     return "\n".join(lines)

@@ -314,8 +314,9 @@ def violation_loss(
             earlier call on the same samples (:func:`violation_loss_info`). The value and
             gradients do not depend on it (to round-off); the solver's work does.
         threads: threads of the fast solver on a large batch (float64 CPU): a batch of at
-            least ``2 * lcs_cvx._kernels.calls.MIN_CHUNK`` samples is split into that many
-            parts solved at once (the same numbers to a few ulps); default
+            least ``2 * lcs_cvx._kernels.calls.MIN_CHUNK`` samples is solved in parts of a few
+            thousand, shared among the threads; the parts depend on the batch only, so every
+            thread count gives the same numbers (and a whole call's to round-off). Default
             ``torch.get_num_threads()``, which ``OMP_NUM_THREADS`` and ``torch.set_num_threads``
             set.
 

@@ -113,14 +113,16 @@ def test_throughput_tiny(short_timing):
 
     threads = torch.get_num_threads()
     try:
-        table = run_throughput([(3, 1, 2)], batches=(16, 2 * MIN_CHUNK), threads=2, repeats=1)
+        table = run_throughput([(3, 1, 2)], batches=(16, 2 * MIN_CHUNK), threads=(1, 2), repeats=1)
     finally:
         torch.set_num_threads(threads)
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table.splitlines()[2:]]
-    assert [(r[1], r[5]) for r in rows] == [("violation", "16"), ("violation", f"{2 * MIN_CHUNK:,}"),
-                                           ("prediction", "16"), ("prediction", f"{2 * MIN_CHUNK:,}")]
-    assert all(r[2] == "cpu" and r[3] == "float64" and r[4] == "2" for r in rows)
+    big = f"{2 * MIN_CHUNK:,}"
+    assert [(r[1], r[5], r[4]) for r in rows] == [
+        (loss, batch, t) for loss in ("violation", "prediction") for batch in ("16", big) for t in ("1", "2")]
+    assert all(r[2] == "cpu" and r[3] == "float64" for r in rows)
     assert all(float(r[6].replace(",", "")) > 0 for r in rows)
+    assert all(r[7] == "1.00" for r in rows if r[4] == "1") and torch.get_num_threads() == threads
 
 
 def test_cli_throughput_and_its_device_errors(capsys, monkeypatch):
@@ -141,6 +143,9 @@ def test_cli_throughput_and_its_device_errors(capsys, monkeypatch):
         torch.set_num_threads(threads)
     out = capsys.readouterr().out
     assert out.count("| (3, 1, 2) | violation | cpu | float64 | 1 |") == 2 * 2  # progress lines and table
+    assert main(["bench", "--throughput", "--sizes", "3,1,2", "--batches", "8", "--repeats", "1",
+                 "--losses", "prediction", "--threads", "1,2"]) == 0
+    assert capsys.readouterr().out.count("| (3, 1, 2) | prediction | cpu | float64 |") == 2 * 2
     if not torch.cuda.is_available():
         assert main(["bench", "--throughput", "--device", "cuda"]) == 2
         assert "--device: expected a device this machine has" in capsys.readouterr().err

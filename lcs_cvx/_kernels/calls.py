@@ -9,6 +9,7 @@ the compiled kernels through :func:`call_on_model` and :func:`compiled_call`.
 
 from __future__ import annotations
 
+import functools
 import operator
 import os
 import weakref
@@ -101,8 +102,11 @@ def model_arrays(model: Any) -> tuple[list[torch.Tensor], list[np.ndarray], np.n
     return params, found, s
 
 
-#: The fewest samples a thread of a compiled call is given: below ``2 * MIN_CHUNK`` a call runs on
-#: the calling thread alone, where starting a thread would cost more than it saves.
+#: A compiled call of ``N >= 2 * MIN_CHUNK`` samples is solved in ``N // MIN_CHUNK`` parts of
+#: ``MIN_CHUNK`` to ``2 MIN_CHUNK - 1`` consecutive samples: a part's arrays stay in the caches
+#: and in memory the allocator reuses (one call of 1,000,000 samples ran at half the rate of
+#: calls of 50,000), and the parts are shared among the threads. The parts depend on ``N`` only,
+#: so every thread count gives the same numbers, bit for bit; a smaller call is one part.
 MIN_CHUNK = 4096
 
 #: The pool the chunks of a call run on (made on first use; the compiled kernels release the
@@ -122,13 +126,44 @@ def resolve_threads(threads: int | None) -> int:
     return int(threads)
 
 
-def chunks(N: int, threads: int | None) -> list[tuple[int, int]]:
-    """The row ranges ``[(start, stop), ...]`` a call of ``N`` samples is split into: at most
-    ``threads`` (:func:`resolve_threads`), each of at least :data:`MIN_CHUNK` samples, of equal
-    sizes to one sample."""
-    k = max(1, min(resolve_threads(threads), N // MIN_CHUNK))
+def chunks(N: int) -> list[tuple[int, int]]:
+    """The row ranges ``[(start, stop), ...]`` of the parts of a call of ``N`` samples
+    (:data:`MIN_CHUNK`): ``max(1, N // MIN_CHUNK)`` of them, of equal sizes to one sample."""
+    k = max(1, N // MIN_CHUNK)
     bounds = [N * i // k for i in range(k + 1)]
     return list(zip(bounds[:-1], bounds[1:], strict=True))
+
+
+@functools.cache
+def _kernel_blas() -> list[Any]:
+    """threadpoolctl's controllers of the BLAS the compiled kernels' matrix products call
+    (numba's ``np.dot`` goes through SciPy's BLAS: the one in SciPy's wheel, else every BLAS)."""
+    import scipy
+    from threadpoolctl import ThreadpoolController
+
+    libs = ThreadpoolController().select(user_api="blas").lib_controllers
+    home = os.path.dirname(os.path.abspath(scipy.__file__))
+    own = [lib for lib in libs if os.path.abspath(lib.filepath).startswith(home)]
+    return own or list(libs)
+
+
+class _OneBlasThread:
+    """The kernels' BLAS on one thread while a large call runs: its products are a small part of
+    the call, and a BLAS that spreads them over every core (as OpenBLAS does above a size) costs
+    more in hand-offs than it saves, and competes with the call's own threads (measured: one
+    call of 50,000 samples at (10, 4, 4) took 18 ms with SciPy's OpenBLAS on 2 threads, 10 ms
+    on 1). Restored on exit."""
+
+    def __enter__(self) -> None:
+        self.changed = [(lib, lib.get_num_threads()) for lib in _kernel_blas()]
+        for lib, before in self.changed:
+            if before != 1:
+                lib.set_num_threads(1)
+
+    def __exit__(self, *exc: object) -> None:
+        for lib, before in self.changed:
+            if before != 1:
+                lib.set_num_threads(before)
 
 
 def _pool() -> ThreadPoolExecutor:
@@ -139,26 +174,26 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL
 
 
-#: How the outputs of one kernel's chunks combine, by position after ``(value, grads)``:
-#: ``"rows"`` concatenated, ``"max"``, ``"sum"``; position 5 is the count of unconverged samples.
-_COMBINE = {"rows": lambda parts: np.concatenate(parts), "max": max, "sum": sum}
-_OUTPUTS = {"violation": ("rows", "rows", "rows", "sum", "max"),
-            "prediction": ("rows", "rows", "rows", "sum", "max", "sum")}
+#: How the outputs of one kernel's parts combine, by position after ``(value, grads)``: the
+#: first three are per-sample arrays (``rows``, written in place by the threads), then the count
+#: of unconverged samples (added; -1, non-finite data, wins), the sweeps (their maximum) and, for
+#: the prediction loss, the degenerate samples (added).
+_COUNTS = {"violation": (sum, max), "prediction": (sum, max, sum)}
 
 
-def _combine(name: str, outs: list[tuple], sizes: list[int]) -> tuple:
-    """One call's outputs from its chunks' (``sizes`` samples each): the mean value and its
-    gradients as the chunks' means weighted by their shares of the batch (equal to one call's to
-    a few ulps: only the order of the sums differs), per-sample arrays concatenated, counts added
-    (an unconverged count of -1, non-finite data, wins), sweeps their maximum."""
+def _combine(name: str, outs: list[tuple], sizes: list[int], rows: list[np.ndarray]) -> tuple:
+    """One call's outputs from its parts' (``sizes`` samples each, in order; their per-sample
+    arrays already in ``rows``): the mean value and its gradients as the parts' means weighted
+    by their shares of the batch, summed in the parts' order (equal to one whole call's to
+    round-off: the sums are taken in another order), and the counts."""
     N = sum(sizes)
     w = [n / N for n in sizes]
     value = sum(wk * out[0] for wk, out in zip(w, outs, strict=True))
     grads = tuple(sum(wk * out[1][i] for wk, out in zip(w, outs, strict=True)) for i in range(len(outs[0][1])))
-    rest = [_COMBINE[rule]([out[2 + i] for out in outs]) for i, rule in enumerate(_OUTPUTS[name])]
+    counts = [rule([out[5 + i] for out in outs]) for i, rule in enumerate(_COUNTS[name])]
     if any(out[5] < 0 for out in outs):
-        rest[3] = -1
-    return (value, grads, *rest)
+        counts[0] = -1
+    return (value, grads, *rows, *counts)
 
 
 def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor | np.ndarray,
@@ -170,8 +205,10 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     (0; 1: a sample did not converge, and the caller runs the array kernels, which end it with
     the reference solvers; -1: the data are not finite) and its outputs, the gradients as
     tensors (``tensors=False``: as the kernel's arrays; the data and ``warm_start`` may then be
-    arrays too, the trainer's one-call step). A batch of at least ``2 * MIN_CHUNK`` samples is split into row ranges
-    (:func:`chunks`) solved on ``threads`` threads at once and combined (:func:`_combine`)."""
+    arrays too, the trainer's one-call step). A batch of at least ``2 * MIN_CHUNK`` samples is
+    solved in parts (:func:`chunks`), shared among ``threads`` threads (consecutive parts to
+    each) and combined in their order (:func:`_combine`): the same numbers for every
+    ``threads``."""
     A, B, C, d, D, E, G, H, c = params
     warm = COLD
     if isinstance(warm_start, np.ndarray):
@@ -180,7 +217,7 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
         check_warm_start(warm_start, (x.shape[0], width))
         warm = np.ascontiguousarray(warm_start.numpy())
     xa, ua, xna = as_arrays(x, u, x_next)
-    parts = chunks(x.shape[0], threads) if x.shape[0] >= 2 * MIN_CHUNK else [(0, x.shape[0])]
+    parts = chunks(x.shape[0])
 
     def run(rows: tuple[int, int]) -> tuple:
         a, b = rows
@@ -190,9 +227,28 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
     if len(parts) == 1:
         out = run(parts[0])
     else:
-        pending = [_pool().submit(run, rows) for rows in parts[1:]]
-        first = run(parts[0])
-        out = _combine(fn.__name__, [first] + [p.result() for p in pending], [b - a for a, b in parts])
+        N, n = x.shape[0], C.shape[1]
+        widths = (n, n, width)  # lam, phi or w, and the active (free) sets
+        rows_out = [np.empty((N, k), dtype=np.bool_ if j == 2 else np.float64) for j, k in enumerate(widths)]
+
+        def run_all(group: list[tuple[int, int]]) -> list[tuple]:
+            """The parts ``group`` one after the other; each one's per-sample arrays copied into
+            ``rows_out`` (by this thread) and dropped."""
+            kept = []
+            for a, b in group:
+                out = run((a, b))
+                for j in range(3):
+                    rows_out[j][a:b] = out[2 + j]
+                kept.append(out[:2] + (None, None, None) + out[5:])
+            return kept
+
+        k = min(resolve_threads(threads), len(parts))
+        cut = [len(parts) * i // k for i in range(k + 1)]
+        groups = [parts[cut[i]:cut[i + 1]] for i in range(k)]
+        with _OneBlasThread():
+            pending = [_pool().submit(run_all, group) for group in groups[1:]]
+            outs = run_all(groups[0]) + [o for p in pending for o in p.result()]
+        out = _combine(fn.__name__, outs, [b - a for a, b in parts], rows_out)
     status = out[5]
     if status:
         return (-1 if status < 0 else 1), out

@@ -100,7 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse has printed its message (or --help)
         return exc.code if isinstance(exc.code, int) else 2
     threads = torch.get_num_threads()
-    torch.set_num_threads(getattr(args, "threads", 1))
+    wanted = getattr(args, "threads", 1)  # bench --throughput takes several counts: the first here
+    torch.set_num_threads(wanted[0] if isinstance(wanted, list) else wanted)
     try:
         return args.run(args)
     except LCSInputError as exc:

@@ -23,8 +23,9 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="also write the markdown table to this file")
     p.add_argument("--lcp", action="store_true",
                    help="instead: batched LCP solve rate vs Clarabel (n_lam 4, 10, 20; batch 200, 50,000)")
-    p.add_argument("--threads", type=positive_int, default=1,
-                   help="CPU threads: torch's, and the compiled kernels' on large batches (default: 1)")
+    p.add_argument("--threads", type=positive_ints, default=[1],
+                   help="CPU threads: torch's, and the compiled kernels' on large batches (default: 1); "
+                        "with --throughput, several comma-separated counts are timed side by side")
     p.add_argument("--throughput", action="store_true",
                    help="instead: one-call loss + gradient throughput against the batch size "
                         "(--batches, --device, --dtype, --threads; sizes default (10, 4, 4))")

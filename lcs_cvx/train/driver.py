@@ -190,11 +190,11 @@ def fit(
             re-initialisation of saturated units, and without callbacks; a checkpoint is written
             when they have all finished (a killed run restarts the unfinished ones), and the first
             restart that diverges raises at once.
-        threads: threads of the compiled kernels on large batches (float64 CPU; see
-            :func:`lcs_cvx.violation_loss`): a batch of at least ``2 *
-            lcs_cvx._kernels.calls.MIN_CHUNK`` samples is solved in that many parts at once, the
-            same numbers to round-off. Default ``torch.get_num_threads()`` (``OMP_NUM_THREADS``,
-            ``torch.set_num_threads``); not part of the options (a checkpoint resumes with any).
+        threads: threads of the compiled kernels on minibatches of at least ``2 *
+            lcs_cvx._kernels.calls.MIN_CHUNK`` samples (float64 CPU; see
+            :func:`lcs_cvx.violation_loss`): the same numbers for every count. Default
+            ``torch.get_num_threads()`` (``OMP_NUM_THREADS``, ``torch.set_num_threads``); not
+            part of the options (a checkpoint resumes with any).
         **overrides: flat options (:data:`lcs_cvx.train.FLAT_OPTIONS`: ``loss``, ``optimizer``,
             ``iterations``, ``lr``, ``gamma``, ``eps``, ``reg``, ``seed``, ...) or whole groups
             (``adam=AdamOptions(...)``), applied on top of ``options`` or ``recipe``.

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import operator
 import weakref
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -30,11 +31,13 @@ from .. import losses
 from .._kernels import calls
 from .._kernels.adam import adam_update
 from .._kernels.products import stiffness_matrix
+from .._kernels.training import PREDICTION, VIOLATION
+from .._kernels.training import adam_steps as _compiled_steps
 from ..parameter_constraints import project_
 from ..problems import check_gamma
 from ..system import LCS, PARAMETER_NAMES
 
-__all__ = ["adam_step", "adam_update_from_grads", "data_arrays"]
+__all__ = ["adam_step", "adam_steps", "adam_update_from_grads", "data_arrays"]
 
 #: Per optimiser: its state table and trainable parameters when last seen, and the flat views of
 #: their moments and step counts (made again when either changes, e.g. after loading a checkpoint).
@@ -155,3 +158,59 @@ def adam_step(adam: torch.optim.Adam, model: LCS, loss: str, x: np.ndarray, u: n
         project_(model)
     finite_F = bool(np.isfinite(stiffness_matrix(arrays[6], arrays[7], stiffness)).all())
     return value, finite_F, active
+
+
+def adam_steps(adam: torch.optim.Adam, model: LCS, loss: str, data: tuple[np.ndarray, np.ndarray, np.ndarray],
+               rows: np.ndarray, active: np.ndarray, seen: np.ndarray, *, gamma: float, eps: Sequence[float],
+               lr: Sequence[float], reg: float) -> tuple[int, np.ndarray, bool] | None:
+    """Steps ``s = 0 .. K - 1`` of :func:`adam_step` in one compiled call
+    (:func:`lcs_cvx._kernels.training.adam_steps`; the same numbers, bit for bit): minibatch
+    ``rows[s]`` ``(K, B)`` of ``data`` (``(x, u, x_next)`` arrays), ``eps[s]`` and learning rate
+    ``lr[s]``; the warm starts from, and the new active sets into, ``active (N, width)`` and
+    ``seen (N,)`` in place.
+
+    Returns ``(done, losses, diverged)`` (:func:`lcs_cvx._kernels.training.adam_steps`; the
+    group's learning rate left at the last step's), or None (nothing changed) where
+    :func:`adam_step` would return None for the first step."""
+    if model.A.dim() != 2 or model.A.dtype != torch.float64 or not model.A.is_cpu or not _plain_adam(adam):
+        return None
+    params, arrays, s = calls.model_arrays(model)
+    trainable = [p.requires_grad for p in params]
+    if not any(trainable):
+        return None
+    views = _views(adam, [p for p, t in zip(params, trainable, strict=True) if t])
+    if views is None:
+        return None
+    step0 = float(views[2][0][0])
+    if any(float(v[0]) != step0 for v in views[2]):
+        return None
+    stiffness = float(s)
+    if loss == "violation" and not gamma < 2.0 * stiffness:
+        check_gamma(model.F, gamma)
+    # Adam's state in PARAMETER_NAMES order; a fixed parameter's (never read) is a placeholder
+    it = iter(range(len(views[0])))
+    slot = [next(it) if t else None for t in trainable]
+    exp_avgs = tuple(views[0][j] if j is not None else a.reshape(-1) * 0.0 for j, a in zip(slot, arrays, strict=True))
+    exp_avg_sqs = tuple(views[1][j] if j is not None else a.reshape(-1) * 0.0 for j, a in zip(slot, arrays, strict=True))
+    counts = tuple(views[2][j] if j is not None else np.zeros(1, np.float32) for j in slot)
+    masks = tuple(model.masks[name].numpy().reshape(-1) if name in model.masks else np.ones(a.size, np.bool_)
+                  for name, a in zip(PARAMETER_NAMES, arrays, strict=True))
+    group = adam.param_groups[0]
+    beta1, beta2 = group["betas"]
+    t = [step0 + 1.0 + k for k in range(len(rows))]  # each step's bias corrections, as torch computes them
+    step_sizes = np.array([lr_k / (1 - beta1**t_k) for lr_k, t_k in zip(lr, t, strict=True)])
+    bc2 = np.array([(1 - beta2**t_k) ** 0.5 for t_k in t])
+    A, B, C, d, D, E, G, H, c = arrays
+    done, values, diverged = _compiled_steps(
+        VIOLATION if loss == "violation" else PREDICTION, A, B, C, d, D, E, c, G, H, stiffness, *data,
+        np.ascontiguousarray(rows), active, seen, gamma, np.asarray(eps, dtype=np.float64), _tolerance(loss),
+        losses.MAX_ITER, losses.STALL, losses.DEGENERATE_TOL, float(reg), masks, np.array(trainable),
+        exp_avgs, exp_avg_sqs, counts, beta1, beta2, group["eps"], step_sizes, bc2, step0)
+    if done:
+        group["lr"] = lr[done - 1]
+    return int(done), values, bool(diverged)
+
+
+def _tolerance(loss: str) -> float:
+    """The fast losses' pivoting tolerance of ``loss``."""
+    return losses.VIOLATION_TOL if loss == "violation" else losses.LCP_TOL

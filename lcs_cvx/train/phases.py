@@ -21,16 +21,18 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 import torch
 
 from .._checks import SolverError
+from .._kernels.calls import MIN_CHUNK
 from ..losses import prediction_fast, regularizer, violation_fast
 from ..parameter_constraints import free_entries, mask_gradients_, project_
 from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
 from ..simulation_error import simulation_error
 from ..system import LCS
-from .onecall import adam_step, adam_update_from_grads
+from .onecall import adam_step, adam_steps, adam_update_from_grads
 from .options import FitOptions
 from .state import Outcome, TrainState
 
@@ -94,6 +96,10 @@ class Phase:
     def step(self, state: TrainState) -> Outcome:
         raise NotImplementedError
 
+    def steps(self, state: TrainState, limit: int) -> list[Outcome]:
+        """At least one and at most ``limit`` steps (default: one, :meth:`step`)."""
+        return [self.step(state)]
+
 
 class AdamPhase(Phase):
     """Minibatch Adam with the learning-rate and ``eps`` schedules, re-initialisation of
@@ -124,13 +130,50 @@ class AdamPhase(Phase):
         c = 0.5 * (1.0 + math.cos(math.pi * it / max(1, a.iterations)))
         return a.lr * (a.lr_floor + (1.0 - a.lr_floor) * c)
 
+    def _reinit_at(self, it: int) -> bool:
+        a = self.options.adam
+        return a.reinit_saturated and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations
+
+    def steps(self, state: TrainState, limit: int) -> list[Outcome]:
+        """Up to ``limit`` steps in one compiled call (:func:`lcs_cvx.train.onecall.adam_steps`,
+        the numbers of :meth:`step`'s, bit for bit), up to the next re-initialisation of
+        saturated units; one :meth:`step` where that does not apply (another dtype or device,
+        the first step, a re-initialisation, a minibatch solved in parts) or where the first
+        step's minibatch needs the reference solvers."""
+        a, obj = self.options.adam, self.options.objective
+        it0 = state.steps["adam"]
+        size = min(a.batch_size, len(state.train))
+        if (state.arrays is None or state.active is None or limit < 2 or self._reinit_at(it0)
+                or size >= 2 * MIN_CHUNK):  # a minibatch solved in parts (calls.chunks): one step a call
+            return [self.step(state)]
+        limit = next((j for j in range(1, limit) if self._reinit_at(it0 + j)), limit)
+        before = (state.perm, state.pos, state.generator.get_state())
+        rows = np.stack([state.next_batch(size).numpy() for _ in range(limit)])
+        eps = [self.eps_at(it0 + j) for j in range(limit)]
+        lr = [self.lr_at(it0 + j) for j in range(limit)]
+        active, seen = state.warm_tables()
+        done = adam_steps(state.adam, state.work, obj.loss, state.arrays, rows, active, seen, gamma=obj.gamma,
+                          eps=eps, lr=lr, reg=obj.reg)
+        n = 0 if done is None else done[0]
+        if n < limit:  # the minibatches of the steps not made are drawn again by the next steps
+            state.perm, state.pos = before[0], before[1]
+            state.generator.set_state(before[2])
+            for _ in range(n):
+                state.next_batch(size)
+        if n == 0:
+            return [self.step(state)]
+        _, losses, diverged = done
+        if diverged:
+            _check_divergence(state.iteration + n, float(losses[n - 1]), False, lr[n - 1])
+        return [Outcome(float(losses[j]), eps[j], lr[j]) for j in range(n)]
+
     def step(self, state: TrainState) -> Outcome:
         a, obj = self.options.adam, self.options.objective
         it = state.steps["adam"]
         eps, lr = self.eps_at(it), self.lr_at(it)
         for group in state.adam.param_groups:
             group["lr"] = lr
-        if a.reinit_saturated and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations:
+        if self._reinit_at(it):
             reinit_saturated(state)
         idx = state.next_batch(min(a.batch_size, len(state.train)))
         if state.arrays is not None:  # one call: loss, gradient and update without autograd
@@ -350,12 +393,17 @@ def run_phases(
     for phase in phases(state.options):
         n = phase.length(state)
         while state.steps[phase.key] < n:
-            out = phase.step(state)
-            state.steps[phase.key] += 1
+            # the steps up to the next record, checkpoint or the phase's end, which a phase may
+            # make in one call
             k = state.steps[phase.key]
-            state.add(out)
-            if bar is not None and phase.counted:
-                bar.update(1)
+            stop = min([n] + [(k // every + 1) * every for every in (phase.record_every, phase.checkpoint_every)
+                              if every])
+            for out in phase.steps(state, stop - k):
+                state.steps[phase.key] += 1
+                k = state.steps[phase.key]
+                state.add(out)
+                if bar is not None and phase.counted:
+                    bar.update(1)
             if phase.record_every is not None and (k % phase.record_every == 0 or k == n):
                 rec = state.record(phase.name(state), out.eps, out.lr, elapsed())
                 if bar is not None:

@@ -126,7 +126,7 @@ class TrainState:
         """The active sets of the samples ``idx`` from their last visit (None unless all were seen)."""
         return self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
 
-    def _tables(self) -> tuple[np.ndarray, np.ndarray]:
+    def warm_tables(self) -> tuple[np.ndarray, np.ndarray]:
         """``(active, seen)`` as arrays on their tensors' memory (made again when either tensor
         is replaced, by :meth:`load_state_dict`)."""
         if self._views is None or self._views[0] is not self.active or self._views[1] is not self.seen:
@@ -138,7 +138,7 @@ class TrainState:
         if self.active is None:
             return None
         rows = idx.numpy()
-        active, seen = self._tables()
+        active, seen = self.warm_tables()
         return active.take(rows, axis=0) if seen.take(rows).all() else None
 
     def remember(self, idx: torch.Tensor, active: torch.Tensor | np.ndarray) -> None:
@@ -146,7 +146,7 @@ class TrainState:
             self.active = torch.zeros(len(self.train), active.shape[1], dtype=torch.bool)
         if isinstance(active, np.ndarray):
             rows = idx.numpy()
-            table, seen = self._tables()
+            table, seen = self.warm_tables()
             table[rows] = active
             seen[rows] = True
             return

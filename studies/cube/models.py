@@ -78,6 +78,11 @@ class Budget:
     val_stride: int = 2
 
 
+#: The smoke run's budgets (a check in about a minute).
+SMOKE_BUDGET = Budget(lcs_iterations=60, rollout_iterations=10, rollout_horizon=5, mlp_steps=100,
+                      mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(MLP_GRID[0],), val_stride=1)
+
+
 @dataclass(frozen=True)
 class Spec:
     """A model of the study: ``fit(train, validation, budget, path) -> (stepper, info)`` writes

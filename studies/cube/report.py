@@ -11,8 +11,12 @@ from typing import Any
 import numpy as np
 import torch
 
+from lcs_cvx.datasets import CUBE_DT, cube_tosses
+from lcs_cvx.metrics import AffineMap, affine_lstsq
+
 from . import models as M
 from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout, rollouts
+from .tosses import DATE, MACHINE, SPLIT_SEED, study_parts, subset
 
 __all__ = ["write_report", "target_check", "linear_floor", "ROLLOUT_METRICS"]
 
@@ -84,8 +88,6 @@ def linear_floor(test: Any) -> dict[str, dict[str, float]]:
     """The rollout errors (:func:`.metrics.rollouts`) of the affine map fitted by least squares
     on the test tosses themselves (an oracle no user has: the best affine map of these tosses at
     one step)."""
-    from lcs_cvx.metrics import AffineMap, affine_lstsq
-
     amap = AffineMap(affine_lstsq(test.to_transitions()).W)
     return rollouts(lambda x: amap.step(x, x.new_zeros(x.shape[0], 0)), test.xs, (10, 30))
 
@@ -240,16 +242,10 @@ def _rollout_figure(out: str, records: list[dict[str, Any]], test_xs: list[torch
 
 def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bool = False,
                  wall: float = 0.0) -> None:
-    from lcs_cvx.datasets import CUBE_DT, cube_tosses
-
-    from .study import DATE, MACHINE, SMOKE_BUDGET, SPLIT_SEED, split, subset
-
     data = cube_tosses()
-    parts = split(len(data))
-    if smoke:
-        parts = {"train": parts["train"], "validation": parts["validation"][:20], "test": parts["test"][:20]}
+    parts = study_parts(len(data), smoke)
     test = subset(data, parts["test"])
-    budget = SMOKE_BUDGET if smoke else M.Budget()
+    budget = M.SMOKE_BUDGET if smoke else M.Budget()
     sizes = sorted({r["size"] for r in records})
     names = list(dict.fromkeys(r["model"] for r in records))
     suffix = "_smoke" if smoke else ""

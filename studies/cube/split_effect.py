@@ -2,7 +2,7 @@ r"""What splitting by toss changes: ``select_n_lam`` on the cube tosses with the
 drawn as random transitions (neighbouring samples of one toss on both sides) or as whole tosses.
 
 The training tosses are the first ``--tosses`` of the cube study's training half
-(:func:`studies.cube.study.split`); the test tosses are its test quarter. For each split,
+(:func:`studies.cube.tosses.split`); the test tosses are its test quarter. For each split,
 ``lcs_cvx.select_n_lam`` over ``n_lam`` in (2, 4, 8) with the library's default options and 20 %
 held out (the user's call, the data given as a :class:`lcs_cvx.Dataset` of transitions or as
 :class:`lcs_cvx.Trajectories`; the simulation-error phase and the best iterate, defaults with
@@ -33,7 +33,7 @@ import torch  # noqa: E402
 import lcs_cvx  # noqa: E402
 from lcs_cvx.datasets import cube_tosses  # noqa: E402
 
-from .study import DATE, MACHINE, split, subset  # noqa: E402
+from .tosses import DATE, MACHINE, split, subset  # noqa: E402
 
 __all__ = ["run", "main"]
 

@@ -36,7 +36,6 @@ from typing import Any
 for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import lcs_cvx  # noqa: E402
@@ -44,29 +43,14 @@ from lcs_cvx.datasets import cube_tosses  # noqa: E402
 
 from . import models as M  # noqa: E402
 from .metrics import one_step, rollouts  # noqa: E402
+from .report import write_report  # noqa: E402
+from .tosses import DATE, MACHINE, SPLIT_SEED, split, study_parts, subset  # noqa: E402
 
-__all__ = ["SIZES", "SPLIT_SEED", "split", "subset", "run", "main"]
+__all__ = ["SIZES", "SPLIT_SEED", "DATE", "MACHINE", "split", "subset", "run", "main"]
 
 #: Training sizes (tosses) of the learning curve; 275 is all of the training half.
 SIZES = (2, 4, 8, 16, 32, 64, 128, 275)
-SPLIT_SEED = 0
-MACHINE = "2-core x86-64 VM, 1 torch thread"
-DATE = "2026-11-26"
 HORIZONS = (10, 30)
-SMOKE_BUDGET = M.Budget(lcs_iterations=60, rollout_iterations=10, rollout_horizon=5, mlp_steps=100,
-                        mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(M.MLP_GRID[0],), val_stride=1)
-
-
-def split(n_tosses: int, seed: int = SPLIT_SEED) -> dict[str, list[int]]:
-    """Toss indices ``{"train": 50 %, "validation": 25 %, "test": the rest}`` of a seeded
-    permutation (disjoint, together every toss)."""
-    perm = np.random.default_rng(seed).permutation(n_tosses).tolist()
-    a, b = n_tosses // 2, n_tosses // 2 + (n_tosses - n_tosses // 2 + 1) // 2
-    return {"train": perm[:a], "validation": perm[a:b], "test": perm[b:]}
-
-
-def subset(data: lcs_cvx.Trajectories, idx: list[int]) -> lcs_cvx.Trajectories:
-    return lcs_cvx.Trajectories([data.xs[i] for i in idx], [data.us[i] for i in idx])
 
 
 def _read(path: str) -> dict[tuple[int, str], dict[str, Any]]:
@@ -94,10 +78,8 @@ def run(out: str, sizes: list[int], smoke: bool = False, only: list[str] | None 
     torch.set_num_threads(1)
     os.makedirs(out, exist_ok=True)
     data = cube_tosses()
-    parts = split(len(data))
-    if smoke:
-        parts = {"train": parts["train"], "validation": parts["validation"][:20], "test": parts["test"][:20]}
-    budget = SMOKE_BUDGET if smoke else M.Budget()
+    parts = study_parts(len(data), smoke)
+    budget = M.SMOKE_BUDGET if smoke else M.Budget()
     train_all, val, test = (subset(data, parts[k]) for k in ("train", "validation", "test"))
     path = os.path.join(out, "cube_smoke.jsonl" if smoke else "cube.jsonl")
     done = _read(path)
@@ -143,8 +125,6 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     records = run(args.out, sizes, smoke=args.smoke, only=only)
     if not args.no_report:
-        from .report import write_report
-
         cmd = "python -m studies.cube.study --out " + args.out + (" --smoke" if args.smoke else "") + (
             f" --sizes {args.sizes}" if args.sizes else "") + (f" --models {args.models}" if args.models else "")
         write_report(args.out, records, cmd=cmd, smoke=args.smoke, wall=time.perf_counter() - t0)

@@ -79,7 +79,7 @@ PAPER_SIZES = [(10, 4, 4), (10, 4, 10), (10, 4, 20), (128, 4, 10)]
 LOSSES = ("violation", "prediction")
 GAMMA, EPS = 1e-2, 1e-4  # the authors' (gamma, eps) of Fig. 1(a), (b)
 #: The training-step timing: the data of one run, the authors' steps per repeat, fit's iterations
-STEP_DATA, STEP_CALLS, STEP_ITERATIONS = 20_000, 5, 500
+STEP_DATA, STEP_CALLS, STEP_ITERATIONS = 20_000, 5, 2000
 
 
 def model_for(n_x: int, n_u: int, n_lam: int, seed: int = 0) -> tuple[lcs_cvx.LCS, lcs_cvx.Transitions]:
