@@ -4,9 +4,9 @@ criterion that training can refine on, and the checks of a learned model's rollo
 A window is ``H`` recorded steps ``x_s, u_s, ..., u_{s+H-1}, x_{s+H}`` of one trajectory. The
 model rolls out from the recorded ``x_s`` under the recorded inputs,
 
-.. math::
-
-    \hat x_{h+1} = A \hat x_h + B u_{s+h} + C \lambda(\hat x_h, u_{s+h}) + d,\quad \hat x_0 = x_s,
+$$
+\hat x_{h+1} = A \hat x_h + B u_{s+h} + C \lambda(\hat x_h, u_{s+h}) + d,\quad \hat x_0 = x_s,
+$$
 
 with ``lambda`` the exact LCP solution (its gradient the implicit function's, Lemma 1, through
 :meth:`lcs_cvx.LCS.step`), and the loss is the mean over windows, steps and coordinates of

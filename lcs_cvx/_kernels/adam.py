@@ -4,12 +4,12 @@ The update of :class:`torch.optim.Adam` (no weight decay, no AMSGrad; Kingma and
 Algorithm 1), element by element, in the order of operations of torch's single-tensor
 implementation, on arrays that share memory with the parameters and the optimiser's state:
 
-.. math::
-
-    m \leftarrow m + (1 - \beta_1)(g - m), \qquad
-    v \leftarrow \beta_2 v + (1 - \beta_2)\, g\, g, \qquad
-    p \leftarrow p - \alpha_t\, \frac{m}{\sqrt{v} / \sqrt{1 - \beta_2^t} + \epsilon},
-    \qquad \alpha_t = \frac{\mathrm{lr}}{1 - \beta_1^t}.
+$$
+m \leftarrow m + (1 - \beta_1)(g - m), \qquad
+v \leftarrow \beta_2 v + (1 - \beta_2)\, g\, g, \qquad
+p \leftarrow p - \alpha_t\, \frac{m}{\sqrt{v} / \sqrt{1 - \beta_2^t} + \epsilon},
+\qquad \alpha_t = \frac{\mathrm{lr}}{1 - \beta_1^t}.
+$$
 
 (``lerp`` with a weight of at least 1/2 is written ``g - (g - m) beta_1``, as torch writes it.)
 torch may fuse a multiply and an add into one instruction on some processors and not on others,

@@ -5,12 +5,14 @@ complementarity set.
 With ``delta^0`` (zero, or the previous plan shifted by one step) and ``w^0 = 0``, each of the
 ``K = admm_iterations`` iterations ``i`` does
 
-.. math::
-
-    z^{i+1} &= \\arg\\min_z\\ \\text{cost}(z) + \\textstyle\\sum_k (z_k - \\delta^i_k + w^i_k)^\\top
-        \\rho^i G_k (z_k - \\delta^i_k + w^i_k) \\quad\\text{s.t. the dynamics} \\\\
-    \\delta^{i+1}_k &= \\Pi_{U_k}(z^{i+1}_k + w^i_k) \\\\
-    w^{i+1} &= (w^i + z^{i+1} - \\delta^{i+1}) / \\rho_s, \\qquad \\rho^{i+1} = \\rho_s \\rho^i
+$$
+\\begin{aligned}
+z^{i+1} &= \\arg\\min_z\\ \\text{cost}(z) + \\textstyle\\sum_k (z_k - \\delta^i_k + w^i_k)^\\top
+    \\rho^i G_k (z_k - \\delta^i_k + w^i_k) \\quad\\text{s.t. the dynamics} \\\\
+\\delta^{i+1}_k &= \\Pi_{U_k}(z^{i+1}_k + w^i_k) \\\\
+w^{i+1} &= (w^i + z^{i+1} - \\delta^{i+1}) / \\rho_s, \\qquad \\rho^{i+1} = \\rho_s \\rho^i
+\\end{aligned}
+$$
 
 (the QP step of :mod:`lcs_cvx.control.qp`, the projection of :mod:`lcs_cvx.control.projection`,
 the loop in the kernel :mod:`lcs_cvx._kernels.c3`; the scaled dual of C3's code: ``G`` grows by

@@ -5,10 +5,10 @@ Over a horizon of ``N`` steps C3 plans ``z_k = (x_k, lam_k, u_k)`` (``k = 0 .. N
 ``eta_k = D x_k + E u_k + F lam_k + c`` appended for the ``"c3+"`` projection) and ``x_N``, and
 minimises
 
-.. math::
-
-    \\sum_{k<N} (x_k - x_k^d)^\\top Q_k (x_k - x_k^d) + u_k^\\top R_k u_k
-    + (x_N - x_N^d)^\\top Q_N (x_N - x_N^d)
+$$
+\\sum_{k<N} (x_k - x_k^d)^\\top Q_k (x_k - x_k^d) + u_k^\\top R_k u_k
++ (x_N - x_N^d)^\\top Q_N (x_N - x_N^d)
+$$
 
 subject to the dynamics of eq. (1), ``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k + d_k``. The
 consensus weights ``G_k`` (QP step) and ``U_k`` (projection step) act on ``z_k``.

@@ -1,10 +1,10 @@
 """The projection step of C3: per step of the horizon, the point ``c_k = z_k + w_k`` projected
 onto the complementarity set of the LCS in the ``U_k``-metric,
 
-.. math::
-
-    \\delta_k = \\arg\\min_\\delta\\ (\\delta - c_k)^\\top U_k (\\delta - c_k)
-    \\quad\\text{s.t.}\\quad 0 \\le \\lambda \\perp D_k x + E_k u + F_k \\lambda + c_k \\ge 0 .
+$$
+\\delta_k = \\arg\\min_\\delta\\ (\\delta - c_k)^\\top U_k (\\delta - c_k)
+\\quad\\text{s.t.}\\quad 0 \\le \\lambda \\perp D_k x + E_k u + F_k \\lambda + c_k \\ge 0 .
+$$
 
 The steps are independent, so every method projects all of them (and all initial states) at once:
 

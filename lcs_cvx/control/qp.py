@@ -2,10 +2,10 @@
 
 For targets ``t_k`` (``delta_k - w_k``) and a consensus scale ``rho`` it solves
 
-.. math::
-
-    \\min_{z, x_N}\\ \\text{cost}(x, u) + \\sum_{k<N} (z_k - t_k)^\\top \\rho G_k (z_k - t_k)
-    \\quad\\text{s.t.}\\quad x_0 = x^0,\\ x_{k+1} = A_k x_k + B_k u_k + C_k \\lambda_k + d_k
+$$
+\\min_{z, x_N}\\ \\text{cost}(x, u) + \\sum_{k<N} (z_k - t_k)^\\top \\rho G_k (z_k - t_k)
+\\quad\\text{s.t.}\\quad x_0 = x^0,\\ x_{k+1} = A_k x_k + B_k u_k + C_k \\lambda_k + d_k
+$$
 
 (plus ``eta_k = D_k x_k + E_k u_k + F_k lam_k + c_k`` for ``"c3+"``, ``lam_0`` fixed to the LCP
 solution at ``x0`` when ``E = 0``, and optional box bounds on ``x``, ``u``, ``lam``).

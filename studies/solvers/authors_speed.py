@@ -305,13 +305,16 @@ def main(argv: list[str] | None = None) -> None:
                 continue
             row = run_row(lcs_learning, size, loss, args.batch, args.repeats,
                           optim=authors_optim if args.steps else None)
+            row["date"] = str(datetime.date.today())
             done[key] = row
             with jsonl.open("a") as f:  # a later line of the same key replaces an earlier one
                 f.write(json.dumps(row) + "\n")
             print(table([row]).splitlines()[-1], flush=True)
     rows = sorted(done.values(), key=lambda r: (r["loss"], r["n_lam"] if r["n_x"] == 10 else 99, r["n_x"]))
+    dates = sorted({r.get("date", "undated") for r in rows})
     head = (f"`python -m studies.solvers.authors_speed --authors PATH --out {args.out}`, "
-            f"{datetime.date.today()}, {platform.machine()} {os.cpu_count()}-core machine, one torch "
+            f"rows measured {', '.join(dates)} (the date of each in the .jsonl), "
+            f"{platform.machine()} {os.cpu_count()}-core machine, one torch "
             f"thread, batch {args.batch}, median of {args.repeats} interleaved repeats; casadi "
             f"{__import__('casadi').__version__}, lcs_cvx {lcs_cvx.__version__}.\n\n")
     (args.out / f"{args.name}.md").write_text(head + table(rows) + "\n")
