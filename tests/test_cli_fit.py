@@ -440,7 +440,8 @@ def test_fit_reports_fallbacks_in_one_line(files, tmp_path, capsys, monkeypatch)
     assert main(argv) == 0
     assert "fallbacks" not in _facts(capsys.readouterr().out)
     real = phases.violation_fast
-    monkeypatch.setattr(phases, "adam_step", lambda *a, **k: None)  # every step through violation_fast
+    monkeypatch.setattr(phases, "adam_steps", lambda *a, **k: None)  # every step through violation_fast
+    monkeypatch.setattr(phases, "adam_step", lambda *a, **k: None)
     monkeypatch.setattr(phases, "violation_fast", lambda *a, **k: dataclasses.replace(
         real(*a, **k), n_fallback=1, fallback_residual=2e-8))
     assert main(argv) == 0

@@ -148,28 +148,47 @@ def test_unconverged_batches_take_the_autograd_step(monkeypatch):
     assert adam_step(adam, model, "violation", x, u, x_next, None, gamma=GAMMA, eps=EPS, reg=REG) is None
 
 
-@pytest.mark.parametrize("recipe", ["paper", "polish"])
-def test_fit_on_the_one_call_path_is_the_autograd_fit(recipe, monkeypatch):
+@pytest.mark.parametrize("off", [("adam_steps",), ("adam_steps", "adam_step")],
+                         ids=["one-call-steps", "autograd-steps"])
+@pytest.mark.parametrize("recipe", ["paper", "polish", "masked"])
+def test_fit_in_stretches_is_the_fit_step_by_step(recipe, off, monkeypatch):
     """A whole ``fit`` (Adam with warm starts and the learning-rate and eps schedules; with
-    ``"polish"``, the prediction-loss polish too) on the one-call path and with it switched
-    off. The autograd steps' update is the same compiled Adam (``adam_update_from_grads``) on
-    the same gradients (the kernel's, times 1.0, plus ``reg (2 C)``: the same operations in the
-    same order), so the parameters are equal bit for bit; the recorded losses add the
-    regulariser's value through NumPy on one path and torch on the other (a few ulps)."""
+    ``"polish"``, the prediction-loss polish too; with ``"masked"``, a fixed parameter and a mask)
+    as it runs, many compiled steps to a call (``adam_steps``), against the same fit with its
+    steps one call each (``adam_step``) and with autograd steps. All make the same operations
+    in the same order: the kernel's gradient (times 1.0 through autograd) plus ``reg (2 C)``,
+    masked entries zeroed, the same compiled Adam update (``adam_update_from_grads`` for the
+    autograd steps). So the parameters are equal bit for bit; the recorded losses add the
+    regulariser's value through NumPy, numba or torch (a few ulps)."""
     truth = lcs_cvx.random_lcs(4, 2, 3, seed=0)
     train = lcs_cvx.make_dataset(truth, 1000, noise=0.01, seed=1)
-    kw = ({"recipe": "paper", "iterations": 150} if recipe == "paper" else
+    kw = ({"recipe": "paper", "iterations": 150} if recipe != "polish" else
           {"iterations": 100, "polish_iterations": 40, "lr_schedule": "cosine", "eps_start": 1e-1})
-    fast = lcs_cvx.LCS(4, 2, 3, seed=2)
+
+    def model() -> lcs_cvx.LCS:
+        m = lcs_cvx.LCS(4, 2, 3, seed=2)
+        if recipe == "masked":
+            m.fix(B=torch.zeros(4, 2, dtype=F64))
+            m.mask(D=torch.tensor([[True, False, True, True]] * 3))
+        return m
+
+    made = []  # the steps each compiled call made: the stretches do run
+    real = phases.adam_steps
+    monkeypatch.setattr(phases, "adam_steps", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
+    fast = model()
     r_fast = lcs_cvx.fit(fast, train, progress=False, eval_every=10, **kw)
-    monkeypatch.setattr(phases, "adam_step", lambda *a, **k: None)
-    slow = lcs_cvx.LCS(4, 2, 3, seed=2)
+    assert made and all(m is not None for m in made) and sum(m[0] for m in made) >= 90
+    for name in off:
+        monkeypatch.setattr(phases, name, lambda *a, **k: None)
+    slow = model()
     r_slow = lcs_cvx.fit(slow, train, progress=False, eval_every=10, **kw)
     assert [h["phase"] for h in r_fast.history] == [h["phase"] for h in r_slow.history]
     for a, b in zip(r_fast.history, r_slow.history, strict=True):
         assert a["loss"] == pytest.approx(b["loss"], rel=1e-13)
     for name in PARAMETER_NAMES:
         assert torch.equal(getattr(fast, name), getattr(slow, name)), name
+    if recipe == "masked":
+        assert not bool(fast.B.detach().any()) and not bool(fast.D.detach()[:, 1].any())
 
 
 def test_autograd_steps_update_as_the_one_call_steps():
