@@ -44,7 +44,6 @@ all of them at the end. The fitted affine/MLP models are cached in ``OUT/mujoco_
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -56,6 +55,18 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 import torch
+from threadpoolctl import threadpool_limits
+
+import lcs_cvx
+from lcs_cvx import LCS, solve_lcp
+from lcs_cvx.control import C3
+from lcs_cvx.control.costs import dare
+from studies.physics.models import AffineModel
+from studies.physics.mpc_example import LCSMPC, simulate, success
+from studies.physics.plant import Physics, sample_transitions
+
+from . import harness
+from .dynamics import MLPDynamics, fit_mlp_dynamics
 
 __all__ = ["starts", "handwritten_lcs", "active_mode_dynamics", "fit_mlp_dynamics", "MPPI", "CONTROLLERS", "main"]
 
@@ -90,9 +101,6 @@ def handwritten_lcs(physics: Any = None, dt: float | None = None) -> Any:
     ``m_eff (k r + b r')`` on a penetration ``r``, ``m_eff = 1 / (J M^{-1} J^T)``:
     ``0 <= lam_left _|_ (tip + w) + (b / k) tip' + lam_left / (m_eff k) >= 0`` (and mirrored on
     the right), ``w = wall_distance - tip_radius``, ``tip = x_c + L theta``. ``E = 0``."""
-    from lcs_cvx import LCS
-    from studies.physics.plant import Physics
-
     p = physics or Physics()
     dt = p.control_period if dt is None else dt
     mc, mp, L, g = p.cart_mass, p.pole_mass, p.pole_length, 9.81
@@ -124,8 +132,6 @@ def active_mode_dynamics(matrices: dict[str, np.ndarray], x: np.ndarray | None =
                          ) -> tuple[np.ndarray, np.ndarray]:
     """``(A_S, B_S)``: the LCS's affine dynamics in the mode ``S`` active at ``x`` (default the
     origin, ``u = 0``): ``lam_S = -F_SS^{-1} (D_S x + E_S u + c_S)``."""
-    from lcs_cvx import solve_lcp
-
     m = {k: np.asarray(v, dtype=np.float64) for k, v in matrices.items()}
     x = np.zeros(m["A"].shape[0]) if x is None else np.asarray(x, dtype=np.float64)
     lam = solve_lcp(m["F"], (m["D"] @ x + m["c"])[None, :]).lam.numpy()[0]
@@ -145,95 +151,31 @@ def affine_lcs_matrices(W: np.ndarray) -> dict[str, np.ndarray]:
             "D": np.zeros((1, n_x)), "E": np.zeros((1, n_u)), "F": np.eye(1), "c": np.ones(1)}
 
 
-class MLPDynamics(torch.nn.Module):
-    """``x' = x + s_y f((x - m_x) / s_x, u / s_u) + m_y`` with ``f`` a tanh MLP (float32); the
-    sizes ``n_x``, ``n_u`` are those of ``stats`` (``mx``, ``su``)."""
-
-    def __init__(self, stats: dict[str, np.ndarray], hidden: int = 64) -> None:
-        super().__init__()
-        n_x, n_u = len(stats["mx"]), len(stats["su"])
-        self.net = torch.nn.Sequential(torch.nn.Linear(n_x + n_u, hidden), torch.nn.Tanh(),
-                                       torch.nn.Linear(hidden, hidden), torch.nn.Tanh(), torch.nn.Linear(hidden, n_x))
-        for k, v in stats.items():
-            self.register_buffer(k, torch.as_tensor(np.asarray(v), dtype=torch.float32))
-
-    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        z = torch.cat([(x - self.mx) / self.sx, u / self.su], -1)
-        return x + self.net(z) * self.sy + self.my
-
-
-def fit_mlp_dynamics(x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *, iterations: int = 4000,
-                     batch: int = 256, lr: float = 3e-3, seed: int = 0) -> tuple[MLPDynamics, float]:
-    """Adam on the mean squared error of the normalised state increment, 10 % held out; returns
-    the model (the iterate with the lowest held-out error, checked every 200 iterations) and
-    that error."""
-    torch.manual_seed(seed)
-    dx = x_next - x
-    stats = {"mx": x.mean(0), "sx": x.std(0) + 1e-9, "su": u.std(0) + 1e-9, "my": dx.mean(0), "sy": dx.std(0) + 1e-9}
-    model = MLPDynamics(stats)
-    X, U_, Y = (torch.as_tensor(a, dtype=torch.float32) for a in (x, u, x_next))
-    n_val = max(1, len(X) // 10)
-    perm = torch.randperm(len(X))
-    val, tr = perm[:n_val], perm[n_val:]
-    sy = model.sy
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    best, best_state = math.inf, None
-    for it in range(iterations):
-        for gr in opt.param_groups:
-            gr["lr"] = lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * it / iterations)))
-        idx = tr[torch.randint(0, len(tr), (batch,))]
-        loss = (((model(X[idx], U_[idx]) - Y[idx]) / sy) ** 2).sum(-1).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        if (it + 1) % 200 == 0 or it + 1 == iterations:
-            with torch.no_grad():
-                h = float((((model(X[val], U_[val]) - Y[val]) / sy) ** 2).sum(-1).mean())
-            if h < best:
-                best, best_state = h, {k: v.clone() for k, v in model.state_dict().items()}
-    if best_state is not None:
-        model.load_state_dict(best_state)
-    return model, best
-
-
-class MPPI:
-    """Model-predictive path integral control on a batched model ``x' = f(x, u)`` (torch).
-
-    ``samples`` input sequences ``u = mean + sigma * noise`` (clipped to ``|u| <= u_max``) over
-    ``horizon`` steps, cost ``sum_k x_k' Q x_k + r u_k^2 + x_N' (terminal Q) x_N``; the new mean is
-    the average weighted by ``exp(-(cost - min cost) / temperature)``, repeated ``iterations``
-    times per control step; the mean is shifted by one step between calls."""
+class MPPI(harness.MPPI):
+    """MPPI (:class:`studies.control.harness.MPPI`) on a batched model ``x' = f(x, u)`` (torch)
+    with the cost ``sum_k x_k' Q x_k + r u_k^2 + x_N' (terminal Q) x_N`` and ``|u| <= u_max``."""
 
     def __init__(self, model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], *, horizon: int = 15,
                  samples: int = 256, sigma: float = 2.0, temperature: float = 1.0, iterations: int = 1,
                  q: tuple[float, ...] = Q_STAGE, r: float = 0.01, terminal: float = 10.0, u_max: float = U_MAX,
                  seed: int = 0) -> None:
-        self.model, self.H, self.K = model, horizon, samples
-        self.sigma, self.temperature, self.iterations = sigma, temperature, iterations
+        self.model = model
         self.q = torch.tensor(q, dtype=torch.float32)
-        self.r, self.terminal, self.u_max = r, terminal, u_max
-        self.gen = torch.Generator().manual_seed(seed)
-        self.mean = torch.zeros(horizon)
+        self.r, self.terminal = r, terminal
+        super().__init__(self._cost, n_u=0, horizon=horizon, samples=samples, sigma=sigma,
+                         temperature=temperature, iterations=iterations, u_max=u_max, seed=seed)
 
-    @torch.no_grad()
+    def _cost(self, x0: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
+        xs = x0.expand(self.K, 4)
+        cost = torch.zeros(self.K)
+        for k in range(self.H):
+            cost += (xs**2 * self.q).sum(-1) + self.r * us[:, k] ** 2
+            xs = self.model(xs, us[:, k:k + 1])
+        cost += self.terminal * (xs**2 * self.q).sum(-1)
+        return cost
+
     def __call__(self, x: np.ndarray) -> float:
-        x0 = torch.as_tensor(np.asarray(x), dtype=torch.float32)
-        for _ in range(self.iterations):
-            noise = torch.randn(self.K, self.H, generator=self.gen) * self.sigma
-            noise[0] = 0.0  # keep the mean itself among the samples
-            us = (self.mean + noise).clamp(-self.u_max, self.u_max)
-            xs = x0.expand(self.K, 4)
-            cost = torch.zeros(self.K)
-            for k in range(self.H):
-                cost += (xs**2 * self.q).sum(-1) + self.r * us[:, k] ** 2
-                xs = self.model(xs, us[:, k:k + 1])
-            cost += self.terminal * (xs**2 * self.q).sum(-1)
-            cost = torch.nan_to_num(cost, nan=1e9, posinf=1e9)
-            w = torch.softmax(-(cost - cost.min()) / self.temperature, 0)
-            self.mean = (w[:, None] * us).sum(0)
-        u0 = float(self.mean[0])
-        self.mean = torch.cat([self.mean[1:], self.mean[-1:]])
-        return u0
+        return float(self.plan(x))
 
 
 # ----------------------------------------------------------------------------- controllers
@@ -253,10 +195,6 @@ class C3Wrapper:
 
 def _c3_learned(name: str, R: float, active_qn: bool) -> Callable[[dict[str, Any]], Any]:
     def make(ctx: dict[str, Any]) -> Any:
-        import lcs_cvx
-        from lcs_cvx.control import C3
-        from lcs_cvx.control.costs import dare
-
         model = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz"))
         qn: Any = "dare"  # the mode active at the target
         if not active_qn:
@@ -267,21 +205,14 @@ def _c3_learned(name: str, R: float, active_qn: bool) -> Callable[[dict[str, Any
 
 
 def _c3_hand(ctx: dict[str, Any]) -> Any:
-    from lcs_cvx.control import C3
-
     return C3Wrapper(C3(handwritten_lcs(), 10, Q=list(Q_STAGE), R=[0.3], QN="dare"))
 
 
 def _lcsmpc_learned(ctx: dict[str, Any]) -> Any:
-    import lcs_cvx
-    from studies.physics.mpc_example import LCSMPC
-
     return LCSMPC(lcs_cvx.load_model(os.path.join(MODELS, "lcs_violation_nlam8.npz")).to_matrices())
 
 
 def _qp_affine(ctx: dict[str, Any]) -> Any:
-    from studies.physics.mpc_example import LCSMPC
-
     return LCSMPC(affine_lcs_matrices(ctx["affine_W"]), use_contacts=False)
 
 
@@ -308,9 +239,6 @@ MPPI_SETTINGS = {"horizon": 15, "samples": 512, "sigma": 2.0, "temperature": 0.3
 
 def _context(out: str, smoke: bool, n_transitions: int) -> dict[str, Any]:
     """The fitted affine and MLP models (cached under ``out``)."""
-    from studies.physics.models import AffineModel
-    from studies.physics.plant import sample_transitions
-
     cache = os.path.join(out, "mujoco_closed_loop_cache" + ("_smoke" if smoke else ""))
     os.makedirs(cache, exist_ok=True)
     data_path = os.path.join(cache, f"transitions_{n_transitions}.npz")
@@ -338,43 +266,26 @@ def _context(out: str, smoke: bool, n_transitions: int) -> dict[str, Any]:
 
 
 def run_one(name: str, ctx: dict[str, Any], x0: np.ndarray, steps: int, last: int) -> dict[str, Any]:
-    from studies.physics.mpc_example import simulate, success
-
+    """One closed-loop run of controller ``name`` from ``x0`` in MuJoCo
+    (:func:`studies.physics.mpc_example.simulate`) and its record."""
     ctrl = CONTROLLERS[name](ctx)
-    times: list[float] = []
-
-    def timed(x: np.ndarray) -> float:
-        t = time.perf_counter()
-        u = float(ctrl(x))
-        times.append(time.perf_counter() - t)
-        return u
-
+    timed = harness.Timed(ctrl)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        run = simulate(None if ctrl is None else timed, x0, steps)
+        run = simulate(None if ctrl is None else lambda x: float(timed(x)), x0, steps)
     xf = run["x"][-1]
     rec = {"controller": name, "x0": [float(v) for v in x0], "steps": steps,
            "success": success(run, last), "final_abs_theta": float(abs(xf[1])), "final_abs_x_c": float(abs(xf[0])),
            "final_error": float(np.linalg.norm(xf)), "max_abs_theta": float(np.abs(run["x"][:, 1]).max()),
            "contact_steps_last": int(run["contact"][-last:].any(axis=1).sum()),
-           "ms_per_step_median": float(1e3 * np.median(times)) if times else 0.0,
-           "max_abs_u": float(np.abs(run["u"]).max())}
-    if isinstance(ctrl, C3Wrapper):
-        rec["plan_violation_median"] = float(np.median(ctrl.violation))
+           "ms_per_step_median": 0.0, "max_abs_u": float(np.abs(run["u"]).max())}
+    rec.update(timed.summary())
     return rec
-
-
-def _key(rec: dict[str, Any]) -> tuple[str, int]:
-    return rec["controller"], int(rec["start"])
 
 
 def main(argv: list[str] | None = None) -> int:
     """The study, with one BLAS thread: C3's constructor solves dense KKT systems (one per ADMM
     level), and with BLAS threads competing for the two cores it took 2 to 20 s instead of 0.1 s."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        return _main(argv)
     with threadpool_limits(1):
         return _main(argv)
 
@@ -392,38 +303,18 @@ def _main(argv: list[str] | None = None) -> int:
     if args.smoke:
         args.starts, args.seconds, args.transitions = 2, 0.8, 1000
     os.makedirs(args.out, exist_ok=True)
-    from studies.physics.plant import Physics
 
     period = Physics().control_period
     steps = int(round(args.seconds / period))
     last = min(int(round(1.0 / period)), steps)
-    path = os.path.join(args.out, "mujoco_closed_loop.jsonl")
-    done: dict[tuple[str, int], dict[str, Any]] = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            for line in f:
-                if line.strip():
-                    rec = json.loads(line)
-                    if rec.get("steps") == steps:
-                        done[_key(rec)] = rec
     names = list(CONTROLLERS) if not args.only else args.only
-    x0s = starts(args.starts)
     t0 = time.perf_counter()
-    ctx: dict[str, Any] | None = None
-    for name in names:
-        for i, x0 in enumerate(x0s):
-            if (name, i) in done:
-                continue
-            if ctx is None:
-                ctx = _context(args.out, args.smoke, args.transitions)
-            rec = run_one(name, ctx, x0, steps, last)
-            rec["start"] = i
-            done[(name, i)] = rec
-            with open(path, "a") as f:
-                f.write(json.dumps(rec) + "\n")
-            print(f"{name:45s} start {i:3d}: success={rec['success']} |θ_T|={rec['final_abs_theta']:.3f} "
-                  f"{rec['ms_per_step_median']:.2f} ms", file=sys.stderr, flush=True)
-    records = [done[(n, i)] for n in names for i in range(args.starts) if (n, i) in done]
+    records, ctx = harness.run_units(
+        os.path.join(args.out, "mujoco_closed_loop.jsonl"), names, starts(args.starts), steps,
+        lambda: _context(args.out, args.smoke, args.transitions),
+        lambda name, ctx, x0: run_one(name, ctx, x0, steps, last),
+        lambda rec: (f"success={rec['success']} |θ_T|={rec['final_abs_theta']:.3f} "
+                     f"{rec['ms_per_step_median']:.2f} ms"))
     write_report(records, names, args, steps, last, time.perf_counter() - t0, ctx)
     return 0
 

@@ -42,7 +42,7 @@ its centre and the box at rest at the goal; ``R`` on ``u``; terminal ``QN_FACTOR
 - ``QP MPC, affine model``: linear MPC on the least-squares affine model with the pose appended
   (CVXPY, Clarabel, ``|u| <= 10`` as a constraint, horizon 10);
 - ``MPPI, MLP model``: sampling MPC (:class:`MPPI`) on a tanh MLP of the dynamics
-  (:func:`fit_mlp_dynamics`, the recipe of :mod:`studies.control.mujoco_closed_loop` for a
+  (:func:`studies.control.dynamics.fit_mlp_dynamics`, as in :mod:`studies.control.mujoco_closed_loop`, for a
   2-input, 5-state model). The affine and MLP models learn from ``--transitions`` samples of
   :func:`studies.physics.pusher_plant.sample_transitions` (the pusher study's sampling, seed 0).
 
@@ -57,7 +57,6 @@ all of them at the end. The fitted affine and MLP models are cached in
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -66,10 +65,19 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
+import cvxpy as cp
 import numpy as np
 import torch
+from threadpoolctl import threadpool_limits
 
-from .mujoco_closed_loop import MLPDynamics, fit_mlp_dynamics
+import lcs_cvx
+from lcs_cvx import LCS
+from lcs_cvx.control import C3
+from studies.physics.models import AffineModel
+from studies.physics.pusher_plant import PusherSlider, sample_transitions
+
+from . import harness
+from .dynamics import MLPDynamics, fit_mlp_dynamics
 
 __all__ = ["starts", "augment", "displacement", "compose", "to_local", "handwritten_lcs",
            "MPPI", "CONTROLLERS", "main"]
@@ -165,8 +173,6 @@ def augment(m: dict[str, Any], dt: float = DT, theta: float = 0.0) -> dict[str, 
 
 
 def _as_lcs(m: dict[str, np.ndarray]) -> Any:
-    from lcs_cvx import LCS
-
     return LCS.from_matrices(**m)
 
 
@@ -244,8 +250,6 @@ class C3Controller:
 
 
 def _build_c3(m: dict[str, np.ndarray], **kw: Any) -> Any:
-    from lcs_cvx.control import C3
-
     Q = np.diag(Q_STAGE)
     opts = {"Q": Q, "R": list(R_STAGE), "QN": QN_FACTOR * Q, "projection": "c3+", "admm_iterations": 10}
     opts.update(kw)
@@ -254,8 +258,6 @@ def _build_c3(m: dict[str, np.ndarray], **kw: Any) -> Any:
 
 def _c3_learned(name: str) -> Callable[[dict[str, Any]], Any]:
     def make(ctx: dict[str, Any]) -> Any:
-        import lcs_cvx
-
         key = ("c3", name)
         if key not in ctx["cache"]:
             m = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz")).to_matrices()
@@ -280,8 +282,6 @@ class AffineMPC:
     plan, shifted, if it fails)."""
 
     def __init__(self, W: np.ndarray, horizon: int = HORIZON) -> None:
-        import cvxpy as cp
-
         am = affine_matrices(W)
         m = augment({**am, "C": np.zeros((5, 1)), "D": np.zeros((1, 5)), "E": np.zeros((1, 2)),
                      "F": np.eye(1), "c": np.ones(1)})
@@ -300,8 +300,6 @@ class AffineMPC:
         self.failures = 0
 
     def __call__(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-        import cvxpy as cp
-
         self.x0.value = np.concatenate([x, np.zeros(3)])
         self.xd.value = _x_des(target)
         try:
@@ -321,53 +319,40 @@ def _qp_affine(ctx: dict[str, Any]) -> Any:
     return AffineMPC(ctx["affine_W"])
 
 
-class MPPI:
-    """Model-predictive path integral control on a batched model ``x' = f(x, u)`` (torch) with
-    the pose rolled out exactly (:func:`compose`, batched).
-
-    ``samples`` input sequences ``u = mean + sigma * noise`` (clipped to ``|u| <= U_MAX``) over
-    ``horizon`` steps, the study's cost (:data:`Q_STAGE`, :data:`R_STAGE`, ``QN_FACTOR``); the
-    new mean is the average weighted by ``exp(-(cost - min cost) / temperature)``, repeated
-    ``iterations`` times per control step; the mean is shifted by one step between calls."""
+class MPPI(harness.MPPI):
+    """MPPI (:class:`studies.control.harness.MPPI`) on a batched model ``x' = f(x, u)`` (torch)
+    with the pose rolled out exactly (:func:`compose`, batched), the study's cost
+    (:data:`Q_STAGE`, :data:`R_STAGE`, ``QN_FACTOR``) about the target, and ``|u| <= U_MAX``."""
 
     def __init__(self, model: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], *, horizon: int = 15,
                  samples: int = 256, sigma: float = 3.0, temperature: float = 1.0, iterations: int = 1,
                  seed: int = 0) -> None:
-        self.model, self.H, self.K = model, horizon, samples
-        self.sigma, self.temperature, self.iterations = sigma, temperature, iterations
+        self.model = model
         self.q = torch.tensor(Q_STAGE, dtype=torch.float32)
         self.r = torch.tensor(R_STAGE, dtype=torch.float32)
-        self.gen = torch.Generator().manual_seed(seed)
-        self.mean = torch.zeros(horizon, 2)
+        super().__init__(self._cost, n_u=2, horizon=horizon, samples=samples, sigma=sigma,
+                         temperature=temperature, iterations=iterations, u_max=U_MAX, seed=seed)
 
-    @torch.no_grad()
-    def __call__(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
-        x0 = torch.as_tensor(np.asarray(x), dtype=torch.float32)
-        xd = torch.as_tensor(_x_des(target), dtype=torch.float32)
-        for _ in range(self.iterations):
-            noise = torch.randn(self.K, self.H, 2, generator=self.gen) * self.sigma
-            noise[0] = 0.0  # keep the mean itself among the samples
-            us = (self.mean + noise).clamp(-U_MAX, U_MAX)
-            xs = x0.expand(self.K, 5)
-            pose = torch.zeros(self.K, 3)
-            cost = torch.zeros(self.K)
-            for k in range(self.H):
-                z = torch.cat([xs, pose], -1)
-                cost += ((z - xd) ** 2 * self.q).sum(-1) + (us[:, k] ** 2 * self.r).sum(-1)
-                xn = self.model(xs, us[:, k])
-                dxy = DT * us[:, k] - (xn[:, 0:2] - xs[:, 0:2])
-                c, s = torch.cos(pose[:, 2]), torch.sin(pose[:, 2])
-                pose = torch.stack([pose[:, 0] + c * dxy[:, 0] - s * dxy[:, 1],
-                                    pose[:, 1] + s * dxy[:, 0] + c * dxy[:, 1], pose[:, 2] + DT * xn[:, 4]], -1)
-                xs = xn
+    def _cost(self, x0: torch.Tensor, us: torch.Tensor, xd: torch.Tensor) -> torch.Tensor:
+        xs = x0.expand(self.K, 5)
+        pose = torch.zeros(self.K, 3)
+        cost = torch.zeros(self.K)
+        for k in range(self.H):
             z = torch.cat([xs, pose], -1)
-            cost += QN_FACTOR * ((z - xd) ** 2 * self.q).sum(-1)
-            cost = torch.nan_to_num(cost, nan=1e9, posinf=1e9)
-            w = torch.softmax(-(cost - cost.min()) / self.temperature, 0)
-            self.mean = (w[:, None, None] * us).sum(0)
-        u0 = self.mean[0].numpy().astype(np.float64)
-        self.mean = torch.cat([self.mean[1:], self.mean[-1:]])
-        return u0
+            cost += ((z - xd) ** 2 * self.q).sum(-1) + (us[:, k] ** 2 * self.r).sum(-1)
+            xn = self.model(xs, us[:, k])
+            dxy = DT * us[:, k] - (xn[:, 0:2] - xs[:, 0:2])
+            c, s = torch.cos(pose[:, 2]), torch.sin(pose[:, 2])
+            pose = torch.stack([pose[:, 0] + c * dxy[:, 0] - s * dxy[:, 1],
+                                pose[:, 1] + s * dxy[:, 0] + c * dxy[:, 1], pose[:, 2] + DT * xn[:, 4]], -1)
+            xs = xn
+        z = torch.cat([xs, pose], -1)
+        cost += QN_FACTOR * ((z - xd) ** 2 * self.q).sum(-1)
+        return cost
+
+    def __call__(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
+        xd = torch.as_tensor(_x_des(target), dtype=torch.float32)
+        return self.plan(x, xd).numpy().astype(np.float64)
 
 
 def _mppi_mlp(ctx: dict[str, Any]) -> Any:
@@ -391,9 +376,6 @@ MPPI_SETTINGS = {"horizon": 15, "samples": 256, "sigma": 3.0, "temperature": 1.0
 
 def _context(out: str, smoke: bool, n_transitions: int) -> dict[str, Any]:
     """The fitted affine and MLP models (cached under ``out``), and a cache of built C3s."""
-    from studies.physics.models import AffineModel
-    from studies.physics.pusher_plant import sample_transitions
-
     cache = os.path.join(out, "pusher_closed_loop_cache" + ("_smoke" if smoke else ""))
     os.makedirs(cache, exist_ok=True)
     w_path = os.path.join(cache, f"affine_{n_transitions}.npz")
@@ -419,8 +401,6 @@ def _context(out: str, smoke: bool, n_transitions: int) -> dict[str, Any]:
 def simulate(ctrl: Callable[[np.ndarray, np.ndarray], np.ndarray] | None, start: np.ndarray, steps: int
              ) -> dict[str, np.ndarray]:
     """One run in MuJoCo from ``start`` (a row of :func:`starts`): states, world poses, inputs."""
-    from studies.physics.pusher_plant import PusherSlider
-
     sim = PusherSlider()
     sim.reset(TOUCH - float(start[0]), float(start[1]))
     origin = np.array([0.0, 0.0, float(start[2])])
@@ -444,15 +424,10 @@ def simulate(ctrl: Callable[[np.ndarray, np.ndarray], np.ndarray] | None, start:
 
 
 def run_one(name: str, ctx: dict[str, Any], start: np.ndarray, steps: int) -> dict[str, Any]:
+    """One closed-loop run of controller ``name`` from ``start`` in MuJoCo (:func:`simulate`)
+    and its record."""
     ctrl = CONTROLLERS[name](ctx)
-    times: list[float] = []
-
-    def timed(x: np.ndarray, target: np.ndarray) -> np.ndarray:
-        t = time.perf_counter()
-        u = ctrl(x, target)
-        times.append(time.perf_counter() - t)
-        return u
-
+    timed = harness.Timed(ctrl)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         run = simulate(None if ctrl is None else timed, start, steps)
@@ -464,24 +439,15 @@ def run_one(name: str, ctx: dict[str, Any], start: np.ndarray, steps: int) -> di
            "final_position_error": pos_err, "final_heading_error": head_err,
            "min_position_error": float(np.linalg.norm(run["pose"][:, :2] - goal[:2], axis=1).min()),
            "final_abs_p_y": float(abs(run["x"][-1, 1])),
-           "ms_per_step_median": float(1e3 * np.median(times)) if times else 0.0,
+           "ms_per_step_median": 0.0,
            "max_abs_u": float(np.abs(run["u"]).max()),
            "path": [[round(float(p[0]), 3), round(float(p[1]), 3), round(float(p[2]), 4)] for p in run["pose"][::2]]}
-    if isinstance(ctrl, C3Controller):
-        rec["plan_violation_median"] = float(np.median(ctrl.violation))
+    rec.update(timed.summary())
     return rec
-
-
-def _key(rec: dict[str, Any]) -> tuple[str, int]:
-    return rec["controller"], int(rec["start"])
 
 
 def main(argv: list[str] | None = None) -> int:
     """The study, with one BLAS thread (C3's constructor solves dense KKT systems)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        return _main(argv)
     with threadpool_limits(1):
         return _main(argv)
 
@@ -500,34 +466,14 @@ def _main(argv: list[str] | None = None) -> int:
         args.starts, args.seconds, args.transitions = 2, 0.5, 1000
     os.makedirs(args.out, exist_ok=True)
     steps = int(round(args.seconds / DT))
-    path = os.path.join(args.out, "pusher_closed_loop.jsonl")
-    done: dict[tuple[str, int], dict[str, Any]] = {}
-    if os.path.exists(path):
-        with open(path) as f:
-            for line in f:
-                if line.strip():
-                    rec = json.loads(line)
-                    if rec.get("steps") == steps:
-                        done[_key(rec)] = rec
     names = list(CONTROLLERS) if not args.only else args.only
-    params = starts(args.starts)
     t0 = time.perf_counter()
-    ctx: dict[str, Any] | None = None
-    for name in names:
-        for i, st in enumerate(params):
-            if (name, i) in done:
-                continue
-            if ctx is None:
-                ctx = _context(args.out, args.smoke, args.transitions)
-            rec = run_one(name, ctx, st, steps)
-            rec["start"] = i
-            done[(name, i)] = rec
-            with open(path, "a") as f:
-                f.write(json.dumps(rec) + "\n")
-            print(f"{name:40s} start {i:3d}: success={rec['success']} pos {rec['final_position_error']:.2f} cm "
-                  f"head {rec['final_heading_error']:.3f} rad {rec['ms_per_step_median']:.2f} ms",
-                  file=sys.stderr, flush=True)
-    records = [done[(n, i)] for n in names for i in range(args.starts) if (n, i) in done]
+    records, ctx = harness.run_units(
+        os.path.join(args.out, "pusher_closed_loop.jsonl"), names, starts(args.starts), steps,
+        lambda: _context(args.out, args.smoke, args.transitions),
+        lambda name, ctx, st: run_one(name, ctx, st, steps),
+        lambda rec: (f"success={rec['success']} pos {rec['final_position_error']:.2f} cm "
+                     f"head {rec['final_heading_error']:.3f} rad {rec['ms_per_step_median']:.2f} ms"))
     if ctx is None:  # every run was done: the cached models, for the report's description
         ctx = _context(args.out, args.smoke, args.transitions)
     write_report(records, names, args, steps, time.perf_counter() - t0, ctx)
