@@ -86,7 +86,7 @@ def test_augmented_model_rotates_the_slider_frame_displacement(theta):
         np.testing.assert_allclose(z_next[5:], expected, rtol=0, atol=1e-12)
         np.testing.assert_allclose(study.compose(pose, delta), expected, rtol=0, atol=1e-12)
         # the LCS built from the matrices (what C3 plans with) reproduces them
-        M = study._as_lcs(aug).to_matrices()
+        M = study.as_lcs(aug).to_matrices()
         np.testing.assert_allclose(np.asarray(M["F"]), aug["F"], atol=1e-10)
 
 
