@@ -24,7 +24,7 @@ def test_violation_qp_is_eps_times_the_objective(small) -> None:
     """1/2 z^T Q z + p^T z + eps const = eps * (V)'s objective at every z = (lam, phi)."""
     model, x, u, xn = small
     with torch.no_grad():
-        F, C, q, r = dp._terms(model, x, u, xn)
+        F, C, q, r = dp.terms(model, x, u, xn)
         Q, p = dp.violation_qp(C, F, q, r, dp.GAMMA, dp.EPS)
         z = torch.rand(len(x), 6, generator=torch.Generator().manual_seed(0), dtype=q.dtype)
         quad = 0.5 * torch.einsum("bi,ij,bj->b", z, Q, z) + (p * z).sum(1)

@@ -64,8 +64,9 @@ from lcs_cvx.losses import regularizer  # noqa: E402
 from lcs_cvx.study.cells import expand, setup_cell  # noqa: E402
 from lcs_cvx.study.config import load_config  # noqa: E402
 
-from . import differentiable_paths as dp  # noqa: E402
+from . import differentiable_paths_cells as dp  # noqa: E402
 from . import records  # noqa: E402
+from .differentiable_paths_report import versions  # noqa: E402
 
 DATE = time.strftime("%Y-%m-%d")
 MACHINE = dp.MACHINE
@@ -284,7 +285,7 @@ def report(done: dict, out: Path, stem: str, plan: dict, paths, smoke: bool) -> 
         f"`{stem}.jsonl`).  ",
         f"Date: {DATE}. Machine: {MACHINE} ({platform.machine()}, Python "
         f"{platform.python_version()}).  ",
-        f"Versions: {dp.versions()}.",
+        f"Versions: {versions()}.",
         "",
         f"Fig. 1(a) cells n_λ ∈ {list(plan['n_lams'])} (n_x = 10, n_u = 4, stiffness 0.5, "
         f"noise 1e-2; the seeds of `studies/configs/fig1a_n_lam.toml`, trials 0–{trials - 1}); "
