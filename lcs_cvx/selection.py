@@ -32,14 +32,19 @@ from .system import DEFAULT_STIFFNESS, LCS
 from .train.driver import fit
 from .trajectories import Trajectories
 
-__all__ = ["Selection", "select_n_lam", "choose"]
+__all__ = ["Selection", "select_n_lam", "choose", "EXACT_ERROR"]
+
+#: Held-out relative errors at or below this count as equal in :func:`choose`: a model there
+#: reproduces the held-out data to within its training's round-off, and which candidate is
+#: lowest is decided by that round-off (it changed with the processor on a noise-free log).
+EXACT_ERROR = 1e-9
 
 
 def choose(errors: Mapping[int, float], tolerance: float = 0.1) -> int:
     """The parsimony rule: the smallest ``n_lam`` whose held-out relative error is within
-    ``(1 + tolerance)`` of the lowest,
+    ``(1 + tolerance)`` of the lowest, or at most :data:`EXACT_ERROR`,
 
-        n* = min { n : e(n) <= (1 + tolerance) min_m e(m) }.
+        n* = min { n : e(n) <= max((1 + tolerance) min_m e(m), EXACT_ERROR) }.
 
     Why not simply the lowest error: once ``n_lam`` reaches the number of units the data need,
     more units fit the data as well but no better -- the extra ones are saturated or duplicate
@@ -47,7 +52,9 @@ def choose(errors: Mapping[int, float], tolerance: float = 0.1) -> int:
     (initialisation, batches, the held-out sample), and the arg-min among them is a coin toss
     that leans to the largest model. A model with fewer units has fewer hybrid modes, solves
     its LCP faster and is easier to read; within ``tolerance`` of the best it predicts as well.
-    ``tolerance=0`` is the plain arg-min (ties going to the smaller ``n_lam``).
+    ``tolerance=0`` is the plain arg-min (ties going to the smaller ``n_lam``) above
+    :data:`EXACT_ERROR`; below it, every candidate predicts the held-out data exactly but for
+    round-off, whose ratios mean nothing.
 
     Args:
         errors: ``{n_lam: held-out relative error}``; errors that are NaN or inf (a diverged
@@ -63,6 +70,8 @@ def choose(errors: Mapping[int, float], tolerance: float = 0.1) -> int:
         2
         >>> choose({1: 0.30, 2: 0.0104, 4: 0.0100, 8: 0.0101}, tolerance=0.0)
         4
+        >>> choose({1: 2e-11, 2: 8e-11, 3: 7e-13})  # all exact but for round-off
+        1
     """
     _check_tolerance(tolerance)
     if not isinstance(errors, Mapping) or not errors:
@@ -82,7 +91,7 @@ def choose(errors: Mapping[int, float], tolerance: float = 0.1) -> int:
         raise LCSInputError(
             f"errors: expected at least one finite error, received {values!r} (every run diverged)"
         )
-    bound = (1.0 + float(tolerance)) * min(finite.values())
+    bound = max((1.0 + float(tolerance)) * min(finite.values()), EXACT_ERROR)
     return min(n for n, e in finite.items() if e <= bound)
 
 

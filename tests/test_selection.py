@@ -35,6 +35,9 @@ from lcs_cvx.selection import Selection, choose
         ({8: 0.5, 4: 0.5, 2: 0.5}, 0.0, 2),  # a tie goes to the smaller n_lam, in any order
         ({3: 0.2, 1: 0.2}, 0.0, 1),
         ({1: 0.0, 2: 0.0}, 0.1, 1),  # exact fits (noiseless data): the smallest
+        ({1: 2e-11, 2: 8e-11, 3: 7e-13}, 0.1, 1),  # exact but for round-off (EXACT_ERROR): the smallest
+        ({1: 2e-11, 2: 8e-11, 3: 7e-13}, 0.0, 1),
+        ({1: 2e-9, 2: 1e-9, 3: 1e-12}, 0.1, 2),  # above EXACT_ERROR the ratio decides
         ({1: 0.9, 2: 0.01}, 100.0, 1),  # a huge tolerance: always the smallest
         ({5: 0.1}, 0.1, 5),
         ({1: math.nan, 2: 0.5, 4: math.inf}, 0.1, 2),  # diverged runs are never chosen
