@@ -32,7 +32,7 @@ import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs" / "tutorials").glob("*.md"))]
+PAGES = [ROOT / "README.md", ROOT / "docs" / "index.md", *sorted((ROOT / "docs" / "tutorials").glob("*.md"))]
 REFERENCE = ROOT / "docs" / "reference"
 
 SKIP = "<!-- skip-test -->"
@@ -283,6 +283,26 @@ def test_site_builds_strict(tmp_path):
     )
     assert run.returncode == 0, run.stdout + run.stderr
     assert (tmp_path / "site" / "reference" / "systems" / "index.html").is_file()
+    # the docstrings' Sphinx roles are links to the API pages, with no "~" left showing
+    training = (tmp_path / "site" / "reference" / "training" / "index.html").read_text(encoding="utf-8")
+    assert 'href="../data/#lcs_cvx.Trajectories"><code>' in training
+    pages = [p.read_text(encoding="utf-8") for p in (tmp_path / "site").rglob("*.html")]
+    assert not any("~lcs_cvx" in page for page in pages)
+    assert not any("<autoref" in page for page in pages)  # every one resolved or dropped
+
+
+def test_sphinx_roles_become_optional_cross_references():
+    """The hook turns ``:class:`~lcs_cvx.x.Name``` into a cross-reference showing ``Name`` (Sphinx's
+    ``~``), a bare name into one to ``lcs_cvx.name``; mkdocs-autorefs resolves them afterwards."""
+    sys.path.insert(0, str(ROOT / "docs" / "hooks"))
+    try:
+        import sphinx_roles
+    finally:
+        sys.path.pop(0)
+    out = sphinx_roles.on_page_content(
+        ":class:<code>~lcs_cvx.trajectories.Trajectories</code> and :func:<code>fit</code>; .. math:: x")
+    assert out == ('<autoref identifier="lcs_cvx.trajectories.Trajectories" optional><code>Trajectories</code>'
+                   '</autoref> and <autoref identifier="lcs_cvx.fit" optional><code>fit</code></autoref>; x')
 
 
 # -- what the documents say -----------------------------------------------------------------------
