@@ -289,6 +289,11 @@ def test_site_builds_strict(tmp_path):
     pages = [p.read_text(encoding="utf-8") for p in (tmp_path / "site").rglob("*.html")]
     assert not any("~lcs_cvx" in page for page in pages)
     assert not any("<autoref" in page for page in pages)  # every one resolved or dropped
+    # the studies' result files a page names are on the site, and the names link to them
+    assert (tmp_path / "site" / "results" / "control" / "cartpole_c3.md.html").is_file()
+    solver = (tmp_path / "site" / "choosing-a-solver" / "index.html").read_text(encoding="utf-8")
+    assert ('<a href="../results/solvers/authors_speed.md.html"><code>studies/results/solvers/authors_speed.md'
+            in solver)
 
 
 def test_sphinx_roles_become_optional_cross_references():
