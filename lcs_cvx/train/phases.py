@@ -164,7 +164,9 @@ class AdamPhase(Phase):
             return [self.step(state)]
         _, losses, diverged = done
         if diverged:
-            _check_divergence(state.iteration + n, float(losses[n - 1]), False, lr[n - 1])
+            with torch.no_grad():
+                finite_F = bool(torch.isfinite(state.work.F).all())
+            _check_divergence(state.iteration + n, float(losses[n - 1]), finite_F, lr[n - 1])
         return [Outcome(float(losses[j]), eps[j], lr[j]) for j in range(n)]
 
     def step(self, state: TrainState) -> Outcome:
