@@ -26,11 +26,9 @@ from .lcp import solve_lcp as solve_lcp
 from .losses import LossInfo as LossInfo
 from .losses import prediction_loss as prediction_loss
 from .losses import prediction_loss_info as prediction_loss_info
-from .losses import prediction_value_and_grad as prediction_value_and_grad
 from .losses import regularizer as regularizer
 from .losses import violation_loss as violation_loss
 from .losses import violation_loss_info as violation_loss_info
-from .losses import violation_value_and_grad as violation_value_and_grad
 from .metrics import affine_error as affine_error
 from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
@@ -54,6 +52,8 @@ from .train import fit as fit
 from .train import fit_ensemble as fit_ensemble
 from .trajectories import Trajectories as Trajectories
 from .trajectories import rollout_error as rollout_error
+from .value_and_grad import prediction_value_and_grad as prediction_value_and_grad
+from .value_and_grad import violation_value_and_grad as violation_value_and_grad
 
 __all__ = [
     "AdamOptions",

@@ -247,7 +247,7 @@ def run_throughput(
     over at least ``repeats`` repeats and :data:`MIN_TIMED_S` is kept; ``× first`` is the speed-up
     over the first count. On a GPU each call is followed by ``torch.cuda.synchronize()``.
     Returns a markdown table (samples/s)."""
-    from .losses import prediction_value_and_grad, violation_value_and_grad
+    from .value_and_grad import prediction_value_and_grad, violation_value_and_grad
 
     counts = [threads] if isinstance(threads, int) else list(threads)
     dev = torch.device(device)

@@ -20,8 +20,9 @@ from helpers import lemma3_gradients, make_problem, rel_err
 import lcs_cvx
 from lcs_cvx import FallbackWarning, LCSInputError
 from lcs_cvx import losses as losses_module
-from lcs_cvx.losses import prediction_fast, violation_fast, violation_value_and_grad
+from lcs_cvx.losses import prediction_fast, violation_fast
 from lcs_cvx.system import PARAMETER_NAMES
+from lcs_cvx.value_and_grad import violation_value_and_grad
 
 GAMMA, EPS = 1e-2, 1e-3
 SIZES = [(4, 2, 1), (5, 2, 4), (6, 3, 12), (40, 4, 6)]

@@ -54,6 +54,7 @@ def test_the_compiled_update_is_torchs_adam(beta1):
         for p, q, mk, vk, s in zip(p_ref, p_new, m, v, steps, strict=True):
             st = adam.state[p]
             assert _rel(q, p.detach()) <= 1e-14 and _rel(mk, st["exp_avg"]) <= 1e-14
+            # the step counts are small integers in float32: exact
             assert _rel(vk, st["exp_avg_sq"]) <= 1e-14 and float(s[0]) == float(st["step"]) == t
     # a parameter whose count is not one behind the step: nothing changes, False
     before = p_new[0].clone()
@@ -113,7 +114,7 @@ def test_steps_are_the_autograd_steps(loss, constrained):
     for p, q in zip(model.parameters(), ref.parameters(), strict=True):
         if q.requires_grad:
             assert _rel(a_new.state[p]["exp_avg"], a_ref.state[q]["exp_avg"]) <= 1e-9
-            assert float(a_new.state[p]["step"]) == float(a_ref.state[q]["step"]) == 11
+            assert float(a_new.state[p]["step"]) == float(a_ref.state[q]["step"]) == 11  # integer counts
     if constrained:
         assert torch.equal(model.B.detach(), fixed_B) and not model.B.requires_grad
         assert bool((model.C.detach()[~model.masks["C"]] == 0).all())

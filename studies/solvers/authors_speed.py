@@ -61,12 +61,8 @@ import torch  # noqa: E402
 
 import lcs_cvx  # noqa: E402
 from lcs_cvx.data import make_dataset, random_lcs  # noqa: E402
-from lcs_cvx.losses import (  # noqa: E402
-    prediction_loss,
-    prediction_value_and_grad,
-    violation_loss,
-    violation_value_and_grad,
-)
+from lcs_cvx.losses import prediction_loss, violation_loss  # noqa: E402
+from lcs_cvx.value_and_grad import prediction_value_and_grad, violation_value_and_grad  # noqa: E402
 
 from . import records  # noqa: E402
 

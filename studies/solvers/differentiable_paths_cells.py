@@ -3,30 +3,26 @@ the data, the QPs of (P) and (V), every path's loss, solution and gradient, and 
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import math
 import os
+import statistics
+import sys
+import time
+import warnings
+from collections.abc import Callable
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
+import torch
 
-import contextlib  # noqa: E402
-import functools  # noqa: E402
-import math  # noqa: E402
-import statistics  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-from collections.abc import Callable  # noqa: E402
-
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-import lcs_cvx  # noqa: E402
-from lcs_cvx.bench import median_time, perturbed  # noqa: E402
-from lcs_cvx.layers import lcp_layer, violation_layer  # noqa: E402
-from lcs_cvx.lcp import active_set_solve  # noqa: E402
-from lcs_cvx.losses import prediction_fast, violation_fast  # noqa: E402
-from lcs_cvx.problems import convex_lcp_problem, violation_problem  # noqa: E402
-from lcs_cvx.system import LCS, PARAMETER_NAMES  # noqa: E402
+import lcs_cvx
+from lcs_cvx.bench import median_time, perturbed
+from lcs_cvx.layers import lcp_layer, violation_layer
+from lcs_cvx.lcp import active_set_solve
+from lcs_cvx.losses import prediction_fast, violation_fast
+from lcs_cvx.problems import convex_lcp_problem, violation_problem
+from lcs_cvx.system import LCS, PARAMETER_NAMES
 
 DATE = time.strftime("%Y-%m-%d")
 MACHINE = "x86_64 2-core VM, one torch thread, the other core busy with other work"

@@ -3,18 +3,13 @@ its tables, summary and figure from the rows' records."""
 
 from __future__ import annotations
 
-import os
+import platform
+from importlib.metadata import version
+from pathlib import Path
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import lcs_cvx
 
-import platform  # noqa: E402
-from importlib.metadata import version  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import lcs_cvx  # noqa: E402
-
-from .differentiable_paths_cells import (  # noqa: E402
+from .differentiable_paths_cells import (
     DATE,
     EPS,
     GAMMA,

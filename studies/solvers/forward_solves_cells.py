@@ -4,25 +4,20 @@ setting, solver), solved sample by sample through the declared CVXPY problem."""
 
 from __future__ import annotations
 
-import os
+import math
+import time
+import warnings
+from dataclasses import dataclass
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import cvxpy as cp
+import numpy as np
+import torch
 
-import math  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
-
-import cvxpy as cp  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-import lcs_cvx  # noqa: E402
-from lcs_cvx.lcp import lcp_residual  # noqa: E402
-from lcs_cvx.problems import CLARABEL_OPTIONS, convex_lcp_problem, violation_problem  # noqa: E402
-from lcs_cvx.system import LCS  # noqa: E402
-from lcs_cvx.violation import (  # noqa: E402
+import lcs_cvx
+from lcs_cvx.lcp import lcp_residual
+from lcs_cvx.problems import CLARABEL_OPTIONS, convex_lcp_problem, violation_problem
+from lcs_cvx.system import LCS
+from lcs_cvx.violation import (
     solve_violation_brute,
     solve_violation_fast,
     violation_kkt_residual,

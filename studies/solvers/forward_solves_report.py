@@ -4,20 +4,15 @@ cells' records (:mod:`studies.solvers.forward_solves_cells`)."""
 
 from __future__ import annotations
 
-import os
+import importlib.metadata
+import math
+import subprocess
+import sys
+from pathlib import Path
 
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
 
-import importlib.metadata  # noqa: E402
-import math  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-from .forward_solves_cells import (  # noqa: E402
+from .forward_solves_cells import (
     ACCURATE,
     MACHINE,
     N_SAMPLES,
