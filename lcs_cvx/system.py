@@ -99,9 +99,11 @@ class LCS(nn.Module):
     ``theta = {A, B, C, d, D, E, G, H, c}``:
 
     $$
-    x' = A x + B u + C \lambda + d, \qquad
-    0 \le \lambda \perp D x + E u + F \lambda + c \ge 0, \qquad
-    F = G G^\top + H - H^\top + s I.
+    \begin{aligned}
+    x' &= A x + B u + C \lambda + d, \qquad
+    0 \le \lambda \perp D x + E u + F \lambda + c \ge 0, \\
+    F &= G G^\top + H - H^\top + s I.
+    \end{aligned}
     $$
 
     Args:
