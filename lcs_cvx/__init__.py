@@ -11,6 +11,7 @@ import importlib as _importlib
 from ._checks import FallbackWarning as FallbackWarning
 from ._checks import LayerAccuracyWarning as LayerAccuracyWarning
 from ._checks import LCSInputError as LCSInputError
+from ._checks import PlanGapWarning as PlanGapWarning
 from ._checks import SolverError as SolverError
 from ._version import __version__ as __version__
 from .data import Dataset as Dataset
@@ -67,6 +68,7 @@ __all__ = [
     "FitOptions",
     "FitResult",
     "LayerAccuracyWarning",
+    "PlanGapWarning",
     "LCPSolution",
     "LCS",
     "LCSInputError",

@@ -42,6 +42,11 @@ class FallbackWarning(RuntimeWarning):
     """The fast solver did not converge on some samples; a reference solver solved them."""
 
 
+class PlanGapWarning(RuntimeWarning):
+    """A controller's plan is not what its model does: the model's own rollout under the plan's
+    inputs (``Plan.x_model``) ends far from the planned states (``Plan.x``)."""
+
+
 class LayerAccuracyWarning(RuntimeWarning):
     """A cvxpylayers solve came back inaccurate (diffcp does not check its cone solver's status)."""
 

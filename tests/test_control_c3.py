@@ -18,11 +18,16 @@ def cartpole():
 
 
 def controller(P, projection, **kw):
-    G, U = P.weights[projection]
+    """C3 with C3's published weights for ``projection``. Without the plan-gap check: from ``x0``
+    the published projections plan with wall forces the model does not produce (a gap of 0.84
+    at the first solve for ``"c3+"``), and these tests are of C3 itself; the check has its own."""
+    G, U = P.weights["c3+" if projection in ("lcp", "auto") else projection]
+    kw.setdefault("gap_tol", None)
     return C3(P.model, P.horizon, Q=P.Q, R=P.R, QN="dare", G=G, U=U, projection=projection, **kw)
 
 
-@pytest.mark.parametrize("projection, options", [("c3+", {}), ("qp", {}), ("miqp", {"projection_solver": "enumerate"})])
+@pytest.mark.parametrize("projection, options", [("c3+", {}), ("qp", {}), ("miqp", {"projection_solver": "enumerate"}),
+                                                 ("lcp", {}), ("auto", {})])
 def test_c3_cartpole_end_to_end(cartpole, projection, options):
     """C3's end-to-end test: from x0 = (0.1, -0.5, 0.5, -0.4), closing the loop on the exact LCS
     brings every coordinate within 0.1 of zero and keeps it there for 30 steps. (The "miqp"
@@ -181,6 +186,10 @@ def test_the_torch_back_end_plans_as_numpy(cartpole):
     b = controller(P, "c3+", arrays="torch").solve(X0)
     for name in ("x", "u", "lam", "delta", "primal_residual", "complementarity"):
         assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-10), name
+    a, b = controller(P, "auto").solve(X0), controller(P, "auto", arrays="torch").solve(X0)
+    assert a.projection == b.projection
+    for name in ("x", "x_model", "u", "lam", "gap", "cost"):
+        assert torch.allclose(getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-9), name
     with pytest.raises(lcs_cvx.LCSInputError, match="arrays: expected one of"):
         controller(P, "c3+", arrays="jax")
 
@@ -227,3 +236,91 @@ def test_warm_start_from_a_given_delta(cartpole):
     assert float(again.primal_residual[0]) < float(plan.primal_residual[0])
     with pytest.raises(lcs_cvx.LCSInputError, match=r"warm_start: expected a Plan or a finite delta of shape \(5, 9\)"):
         ctrl.solve(cartpole.x0, warm_start=np.zeros((4, 9)))
+
+
+def learned_like(seed=0, n_x=4, n_u=1, n_lam=3):
+    """A model with a learned model's traits: dense F, E not zero, units active at the origin."""
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((n_lam, n_lam))
+    return lcs_cvx.LCS.from_matrices(
+        A=np.eye(n_x) + 0.05 * rng.standard_normal((n_x, n_x)), B=0.1 * rng.standard_normal((n_x, n_u)),
+        C=0.1 * rng.standard_normal((n_x, n_lam)), d=0.05 * rng.standard_normal(n_x),
+        D=rng.standard_normal((n_lam, n_x)), E=rng.standard_normal((n_lam, n_u)),
+        F=M @ M.T + 0.5 * np.eye(n_lam), c=-np.abs(rng.standard_normal(n_lam)))
+
+
+def test_a_plan_carries_the_models_own_rollout_its_gap_and_cost(cartpole):
+    """x_model is eq. (1) stepped with the LCP's forces under the plan's inputs (LCS.step), gap
+    its largest distance to the planned states, cost the horizon cost of that rollout."""
+    P = cartpole
+    ctrl = controller(P, "c3+")
+    plan = ctrl.solve(P.x0)
+    x = torch.as_tensor(P.x0)[None]
+    states = [x[0]]
+    for k in range(P.horizon):
+        x = P.model.step(x, plan.u[k][None]).detach()
+        states.append(x[0])
+    rollout = torch.stack(states)
+    assert torch.allclose(plan.x_model, rollout, rtol=0, atol=1e-12)
+    assert float(plan.gap) == pytest.approx(float((rollout - plan.x).abs().max()), rel=1e-12)
+    Q, R, QN = np.diag(P.Q), np.diag(P.R), ctrl.QN
+    xs, us = rollout.numpy(), plan.u.numpy()
+    cost = sum(xs[k] @ Q @ xs[k] + us[k] @ R @ us[k] for k in range(P.horizon)) + xs[-1] @ QN @ xs[-1]
+    assert float(plan.cost) == pytest.approx(cost, rel=1e-12)
+    assert plan.projection == "c3+"
+
+
+def test_auto_applies_the_plan_whose_model_rollout_costs_less():
+    """Per initial state, "auto" returns the "c3+" or the "lcp" plan, whichever the model's own
+    rollout says costs less (the same ADMM as each projection alone)."""
+    model = learned_like(seed=1)
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (8, 4)))
+    kw = dict(Q=np.ones(4), R=np.ones(1), gap_tol=None)
+    auto = C3(model, 6, projection="auto", **kw).solve(X0)
+    each = {p: C3(model, 6, projection=p, **kw).solve(X0) for p in ("c3+", "lcp")}
+    assert set(auto.projection) == {"c3+", "lcp"}  # both win somewhere on this model
+    for b in range(8):
+        best = min(each, key=lambda p: float(each[p].cost[b]))
+        assert auto.projection[b] == best
+        for name in ("u", "x", "x_model", "lam", "delta"):
+            assert torch.allclose(getattr(auto, name)[b], getattr(each[best], name)[b], rtol=0, atol=1e-12), name
+
+
+def test_the_lcp_projection_plans_forces_the_model_produces():
+    """On a model with a learned model's traits, the per-unit "c3+" projection plans states the
+    model does not reach (a PlanGapWarning, counted); "lcp" plans ones it does (no warning)."""
+    model = learned_like(seed=1)
+    x0 = np.array([1.0, -1.0, 0.5, 0.5])
+    kw = dict(Q=np.ones(4), R=0.1 * np.ones(1), gap_tol=0.1)  # the gap is 0.2 of the states' scale
+    per_unit = C3(model, 8, projection="c3+", **kw)
+    with pytest.warns(lcs_cvx.PlanGapWarning, match="disagree with the model"):
+        plan = per_unit.solve(x0)
+    assert per_unit.gap_warnings == 1
+    own = C3(model, 8, projection="lcp", **kw).solve(x0)  # the suite turns a warning into an error
+    assert float(own.gap) < 0.2 * float(plan.gap)
+    assert float(own.complementarity) < float(plan.complementarity)
+
+
+def test_gap_tol_is_checked():
+    model = learned_like()
+    with pytest.raises(lcs_cvx.LCSInputError, match="gap_tol: expected a finite number > 0"):
+        C3(model, 3, Q=np.ones(4), R=np.ones(1), gap_tol=-1.0)
+    with pytest.raises(lcs_cvx.LCSInputError, match="projection: expected one of"):
+        C3(model, 3, Q=np.ones(4), R=np.ones(1), projection="lcp+")
+
+
+@pytest.mark.parametrize("projection", ["c3+", "auto"])
+def test_bounded_inputs_on_the_fast_path_plan_as_the_declared_problem(cartpole, projection):
+    """C3's cart-pole with |u| bounded at 60 % of its unbounded peak: the fast path (no CVXPY)
+    plans what the declared CVXPY problem plans, to 1e-6, and meets the bound."""
+    P = cartpole
+    peak = float(controller(P, "c3+").solve(P.x0).u.abs().max())
+    bound = (-0.6 * peak, 0.6 * peak)
+    fast = controller(P, projection, u_bounds=bound)
+    slow = controller(P, projection, u_bounds=bound, qp_path="cvxpy")
+    assert fast.qp.path == "fast"
+    for x0 in (P.x0, np.array([0.3, 0.2, -0.4, 0.6])):
+        a, b = fast.solve(x0), slow.solve(x0)
+        assert float(a.u.abs().max()) <= 0.6 * peak + 1e-9
+        for name in ("x", "u", "lam"):
+            assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-6), name

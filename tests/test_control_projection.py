@@ -1,6 +1,7 @@
 """The projection step of C3 (lcs_cvx.control.projection): "c3+" against brute-force
-enumeration of its 2^n_lam choices, "miqp" against the enumeration of the sign patterns
-(project_enumerate), "qp" feasible for the LCS's constraints, and the named errors."""
+enumeration of its 2^n_lam choices, "lcp" against enumerated LCP solutions, "miqp" against
+the enumeration of the sign patterns (project_enumerate), "qp" feasible for the LCS's
+constraints, and the named errors."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from lcs_cvx._kernels.arrays import array_ops
 from lcs_cvx.control import project_enumerate
 from lcs_cvx.control.costs import Horizon, Layout, weight_matrix
 from lcs_cvx.control.projection import Projection
+from lcs_cvx.lcp import solve_lcp_unchecked
 
 XP = array_ops(torch.zeros(1))
 
@@ -42,6 +44,40 @@ def c3plus_by_enumeration(c, lay, w_lam, w_eta):
         if cost < best_cost - 1e-14:
             best, best_cost = d, cost
     return best, best_cost
+
+
+def lcp_of(F, q):
+    """The LCP solution by enumeration (the test oracle of lcs_cvx.solve_lcp)."""
+    return lcs_cvx.solve_lcp(torch.as_tensor(F), torch.as_tensor(q)[None], method="brute").lam[0].numpy()
+
+
+@pytest.mark.parametrize("varying", [False, True])
+def test_the_lcp_projection_keeps_x_and_u_and_sets_the_models_own_forces(varying):
+    """"lcp": x_k and u_k as given, lam_k the LCP solution at (x_k, u_k) (checked against
+    enumeration), eta_k = D x_k + E u_k + F lam_k + c: on the complementarity set. A time-varying
+    horizon (a list of models) projects step by step, a fixed one all steps in one call."""
+    N = 3
+    models = [random_model(n_lam=3, seed=s) for s in range(N)] if varying else random_model(n_lam=3)
+    hz = Horizon.of(models, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=True)
+    proj = Projection(hz, lay, weight_matrix("U", np.ones(lay.n_z), lay.n_z, N), "lcp")
+    assert proj.time_invariant is (not varying)
+
+    def lcp(k, q):
+        return solve_lcp_unchecked(torch.as_tensor(hz.F[k]), torch.as_tensor(np.ascontiguousarray(q))).lam.numpy()
+
+    c = np.random.default_rng(2).standard_normal((7, N, lay.n_z))
+    delta = proj.bind(XP, c, lcp)(c)
+    np.testing.assert_array_equal(delta[..., lay.x], c[..., lay.x])
+    np.testing.assert_array_equal(delta[..., lay.u], c[..., lay.u])
+    for b in range(7):
+        for k in range(N):
+            x, u = c[b, k, lay.x], c[b, k, lay.u]
+            q = hz.D[k] @ x + hz.E[k] @ u + hz.c[k]
+            lam = delta[b, k, lay.lam]
+            np.testing.assert_allclose(lam, lcp_of(hz.F[k], q), rtol=0, atol=1e-12)
+            np.testing.assert_allclose(delta[b, k, lay.eta], q + hz.F[k] @ lam, rtol=0, atol=1e-12)
+            assert lam.min() >= 0 and delta[b, k, lay.eta].min() >= -1e-12
 
 
 def test_c3plus_is_the_exact_projection_of_its_set():
@@ -172,7 +208,7 @@ def test_qp_projection_satisfies_the_constraints_of_its_relaxation():
 def test_projection_options_reach_the_solver(monkeypatch):
     model = random_model(n_lam=2, seed=7)
     ctrl = lcs_cvx.control.C3(model, 2, Q=np.ones(3), R=np.ones(1), projection="qp",
-                              projection_options={"tol_gap_abs": 1e-9})
+                              projection_options={"tol_gap_abs": 1e-9}, gap_tol=None)
     seen = []
     real = cp.Problem.solve
 

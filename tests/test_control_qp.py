@@ -4,6 +4,8 @@ as its closed form when contact plays no part."""
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -140,24 +142,93 @@ def test_dare_solves_the_riccati_equation():
     assert np.abs(P - rhs).max() < 1e-9 * np.abs(P).max()
 
 
-def test_box_bounds_hold_on_the_cvxpy_path_and_the_fast_path_refuses_them():
+def bounded_pair(model, N, with_eta, fix_lam0, bounds, seed=0):
+    """The fast and the declared QP step with the same weights and box ``bounds``."""
+    hz = Horizon.of(model, N)
+    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta)
+    rng = np.random.default_rng(seed)
+    Q = weight_matrix("Q", rng.uniform(0.5, 2, hz.n_x), hz.n_x, N)
+    R = weight_matrix("R", rng.uniform(0.5, 2, hz.n_u), hz.n_u, N)
+    QN = dare(hz.A[0], hz.B[0], Q[0], R[0])
+    G = weight_matrix("G", rng.uniform(0.1, 1, lay.n_z), lay.n_z, N)
+    rho = 2.0 ** np.arange(11)  # C3's default levels, up to 1024
+    box = Bounds.of(lay, **bounds)
+    kw = dict(fix_lam0=fix_lam0, bounds=box, solver="CLARABEL")
+    return hz, lay, QPStep(hz, lay, Q, R, QN, G, rho, path="fast", **kw), QPStep(hz, lay, Q, R, QN, G, rho, path="cvxpy", **kw)
+
+
+def fallback_rows(z, x0, lay):
+    """The initial states whose plan is C3's fallback: ``x_k = x0``, ``lam = u = eta = 0``."""
+    rest = np.delete(z, np.arange(lay.n_x), axis=2)
+    return np.all(rest == 0, axis=(1, 2)) & np.all(z[:, :, lay.x] == x0[:, None, :], axis=(1, 2))
+
+
+@pytest.mark.parametrize("with_eta, fix_lam0", [(True, False), (False, False), (True, True)])
+@pytest.mark.parametrize("bounds", [
+    {"u": (-0.3, 0.3)},
+    {"u": (-0.3, 0.3), "x": ([-0.5, -np.inf, -np.inf, -1.0], [0.5, np.inf, np.inf, 1.0])},
+    {"u": (-0.3, np.inf), "lam": (0.0, 0.5)},
+    {"x": (-0.6, 0.6)},  # every state bounded: more bounds than the QP has freedom
+], ids=["u", "u+x", "u+lam", "all-x"])
+def test_the_bounded_fast_step_solves_the_declared_problem(with_eta, fix_lam0, bounds):
+    """The fast path's bounded step (the unbounded map, then Goldfarb-Idnani on the bounded
+    coordinates) against the declared CVXPY problem with Clarabel at tight tolerances, at every
+    consensus level, where Clarabel solves it: 1e-6; both find the same infeasible states."""
+    model = random_model(n_lam=2, seed=3)
+    hz, lay, fast, slow = bounded_pair(model, 4, with_eta, fix_lam0, bounds)
+    rng = np.random.default_rng(1)
+    B = 6
+    x0 = 0.3 * rng.normal(size=(B, 4))
+    lam0 = 0.3 * np.abs(rng.normal(size=(B, 2))) if fix_lam0 else None
+    xd = 0.2 * rng.normal(size=(B, 5, 4))
+    target = rng.normal(size=(B, 4, lay.n_z))
+    xp = array_ops(torch.zeros(0), "numpy")
+    step_f, step_s = fast.bind(xp, x0, lam0, xd), slow.bind(xp, x0, lam0, xd)
+    compared = 0
+    for level in range(11):
+        z_f, xN_f, bad_f = step_f(level, target)
+        with warnings.catch_warnings():  # CVXPY's "may be inaccurate": counted as a failure below
+            warnings.simplefilter("ignore", UserWarning)
+            z_s, xN_s, bad_s = step_s(level, target)
+        y_f = np.concatenate([z_f.reshape(B, -1), xN_f], 1)
+        y_s = np.concatenate([z_s.reshape(B, -1), xN_s], 1)
+        # a failed state's plan is C3's fallback (x_k = x0, the rest 0): compare the others
+        fell_s, fell_f = fallback_rows(z_s, x0, lay), fallback_rows(z_f, x0, lay)
+        assert int(fell_s.sum()) == bad_s and int(fell_f.sum()) == bad_f
+        assert not (fell_f & ~fell_s).any()  # the fast path fails only where Clarabel does
+        both = ~fell_s
+        if both.any():
+            assert np.abs(y_f[both] - y_s[both]).max() <= 1e-6 * (1 + np.abs(y_s[both]).max())
+        compared += int(both.sum())
+        # the bounds hold on the fast path
+        for key, sl, steps in (("u", lay.u, range(4)), ("lam", lay.lam, range(1 if fix_lam0 else 0, 4))):
+            if key in bounds:
+                lo, hi = bounds[key]
+                v = z_f[:, list(steps), sl]
+                assert (v >= np.asarray(lo) - 1e-9).all() and (v <= np.asarray(hi) + 1e-9).all()
+    assert compared >= 30
+
+
+def test_box_bounds_hold_on_both_paths_and_the_fast_one_is_the_default():
     model = random_model(n_lam=2)
-    with pytest.raises(lcs_cvx.LCSInputError, match="qp_path"):
-        C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1), qp_path="fast")
-    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1))
-    assert ctrl.qp.path == "cvxpy"
-    free = C3(model, 3, Q=np.ones(4), R=np.ones(2))
+    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1), gap_tol=None)
+    assert ctrl.qp.path == "fast"
+    declared = C3(model, 3, Q=np.ones(4), R=np.ones(2), u_bounds=(-0.1, 0.1), qp_path="cvxpy", gap_tol=None)
+    free = C3(model, 3, Q=np.ones(4), R=np.ones(2), gap_tol=None)
     x0 = np.array([1.0, -2.0, 0.5, 1.0])
     assert float(free.solve(x0).u.abs().max()) > 0.1  # the bound is active
-    assert float(ctrl.solve(x0).u.abs().max()) <= 0.1 + 1e-7
+    assert float(ctrl.solve(x0).u.abs().max()) <= 0.1 + 1e-9
+    assert float(declared.solve(x0).u.abs().max()) <= 0.1 + 1e-7
 
 
-def test_infeasible_bounds_are_named_and_an_infeasible_qp_falls_back_visibly():
+@pytest.mark.parametrize("path", ["fast", "cvxpy"])
+def test_infeasible_bounds_are_named_and_an_infeasible_qp_falls_back_visibly(path):
     model = random_model(n_lam=2)
     with pytest.raises(lcs_cvx.LCSInputError, match=r"x_bounds: infeasible bounds, lo\[1\]"):
         C3(model, 3, Q=np.ones(4), R=np.ones(2), x_bounds=([-1, 2, -1, -1], [1, 1, 1, 1]))
     # x_1 cannot reach a box 100 away in one step with |u| <= 1: every QP step fails
-    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), x_bounds=(100.0, 101.0), u_bounds=(-1, 1))
+    ctrl = C3(model, 3, Q=np.ones(4), R=np.ones(2), x_bounds=(100.0, 101.0), u_bounds=(-1, 1), qp_path=path,
+              projection="c3+", gap_tol=None)
     with pytest.warns(lcs_cvx.FallbackWarning, match="QP step"):
         plan = ctrl.solve(np.zeros(4))
     assert plan.qp_failures == ctrl.admm_iterations + 1

@@ -12,7 +12,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["active_set_maps", "admm", "affine_qp", "project_active_sets", "project_c3plus", "rollout", "violation"]
+import numpy as np
+
+from .._checks import SolverError
+from .box_qp import box_qp
+
+__all__ = ["active_set_maps", "admm", "affine_qp", "bounded_affine_qp", "model_rollout", "plan_cost",
+           "project_active_sets", "project_c3plus", "project_lcp", "step_values", "rollout", "violation"]
 
 
 def affine_qp(base: Any, Yt: Any, target: Any) -> tuple[Any, Any]:
@@ -22,6 +28,22 @@ def affine_qp(base: Any, Yt: Any, target: Any) -> tuple[Any, Any]:
     B, N, nz = target.shape
     y = base + target.reshape(B, N * nz) @ Yt
     return y[:, : N * nz].reshape(B, N, nz), y[:, N * nz:]
+
+
+def bounded_affine_qp(base: Any, Yt: Any, target: Any, S: Any, lo: Any, hi: Any, P_SS: Any, P_S_T: Any
+                      ) -> tuple[Any, Any, Any]:
+    """:func:`affine_qp` with the bounds ``lo <= y_S <= hi`` (NumPy): the unbounded solution
+    ``y*``, then ``y = y* + mu P_S^T`` with ``mu`` the bound multipliers
+    (:func:`lcs_cvx._kernels.box_qp.box_qp`; ``P_SS (m, m)``, ``P_S_T (m, n_y)``). Returns
+    ``z``, ``x_N`` and ``failed (B,)``: the initial states for which no choice meets the bounds."""
+    B, N, nz = target.shape
+    y = base + target.reshape(B, N * nz) @ Yt
+    mu, status = box_qp(P_SS, np.ascontiguousarray(y[:, S]), lo, hi, 20 * S.size + 100)
+    if (status == -2).any():
+        raise SolverError(f"C3's bounded QP step: the active-set method did not finish for "
+                          f"{int((status == -2).sum())} initial state(s)")
+    y = y + mu @ P_S_T
+    return y[:, : N * nz].reshape(B, N, nz), y[:, N * nz:], status < 0
 
 
 def rollout(x0: Any, u: Any, lam: Any, A: Any, B: Any, C: Any, d: Any) -> list[Any]:
@@ -53,6 +75,61 @@ def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqr
     out[..., lam] = xp.where(keep_eta, 0.0, xp.clamp_min(cl, 0.0))
     out[..., eta] = xp.where(keep_eta, xp.clamp_min(ce, 0.0), 0.0)
     return out
+
+
+def step_values(x: Any, u: Any, D: Any, E: Any, c: Any) -> Any:
+    """``D_k x_k + E_k u_k + c_k`` ``(B, N, m)`` for ``x (B, N, n_x)``, ``u (B, N, n_u)`` and
+    stacks ``D (N, m, n_x)``, ``E (N, m, n_u)``, ``c (N, m)``: the steps as the batch of one
+    product each."""
+    steps = lambda a: a.swapaxes(0, 1)  # noqa: E731  (B, N, m) <-> (N, B, m)
+    return steps(steps(x) @ D.swapaxes(1, 2) + steps(u) @ E.swapaxes(1, 2) + c[:, None, :])
+
+
+def project_lcp(xp: Any, c: Any, layout: Any, D: Any, E: Any, F: Any, cc: Any, lcp: Callable[[int, Any], Any],
+                time_invariant: bool) -> Any:
+    """``x_k``, ``u_k`` of ``c (B, N, n_z)`` kept, ``lam_k = LCP(F_k, q_k)`` with
+    ``q_k = D_k x_k + E_k u_k + c_k`` and ``eta_k = q_k + F_k lam_k``; ``lcp(k, q (M, n_lam))``
+    solves step ``k``'s LCP (every step at once with ``k = 0`` when ``time_invariant``)."""
+    B, N = c.shape[0], c.shape[1]
+    q = step_values(c[..., layout.x], c[..., layout.u], D, E, cc)
+    nl = q.shape[-1]
+    if time_invariant:
+        lam = lcp(0, xp.contiguous(q).reshape(B * N, nl)).reshape(B, N, nl)
+    else:
+        lam = xp.copy(q)
+        for k in range(N):
+            lam[:, k] = lcp(k, xp.contiguous(q[:, k]))
+    out = xp.copy(c)
+    out[..., layout.lam] = lam
+    out[..., layout.eta] = q + (lam.swapaxes(0, 1) @ F.swapaxes(1, 2)).swapaxes(0, 1)
+    return out
+
+
+def model_rollout(x0: Any, u: Any, mats: dict[str, Any], lcp: Callable[[int, Any], Any]) -> list[Any]:
+    """The model's own states under the inputs ``u (B, N, n_u)`` from ``x0 (B, n_x)``:
+    ``lam_k = LCP(F_k, D_k x_k + E_k u_k + c_k)``, ``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k +
+    d_k`` (eq. (1)); the ``N + 1`` states ``(B, n_x)``."""
+    A, Bm, C, d, D, E, c = (mats[k] for k in "ABCdDEc")
+    xs = [x0]
+    for k in range(A.shape[0]):
+        x, uk = xs[-1], u[:, k]
+        lam = lcp(k, x @ D[k].T + uk @ E[k].T + c[k])
+        xs.append(x @ A[k].T + uk @ Bm[k].T + lam @ C[k].T + d[k])
+    return xs
+
+
+def plan_cost(xs: list[Any], u: Any, x_des: Any, Q: Any, R: Any, QN: Any) -> Any:
+    """``sum_k (x_k - x^d_k)^T Q_k (x_k - x^d_k) + u_k^T R_k u_k + (x_N - x^d_N)^T Q_N (x_N -
+    x^d_N)`` per plan ``(B,)``: the horizon cost of :mod:`lcs_cvx.control.costs` on the states
+    ``xs`` (``N + 1`` of ``(B, n_x)``), ``u (B, N, n_u)``, ``x_des (B, N + 1, n_x)``."""
+    N = u.shape[1]
+    total = 0.0
+    for k in range(N + 1):
+        e = xs[k] - x_des[:, k]
+        total = total + ((e @ (Q[k] if k < N else QN)) * e).sum(-1)
+        if k < N:
+            total = total + ((u[:, k] @ R[k]) * u[:, k]).sum(-1)
+    return total
 
 
 def active_set_maps(metric: Any, rows: Any) -> list[tuple[Any, Any]]:

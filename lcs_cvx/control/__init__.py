@@ -11,8 +11,11 @@ from .examples import c3_cartpole as c3_cartpole
 from .projection import project_enumerate as project_enumerate
 from .qp import Bounds as Bounds
 from .qp import qp_problem as qp_problem
+from .relearn import Relearning as Relearning
+from .relearn import Round as Round
+from .relearn import relearn as relearn
 from .simulation import ClosedLoop as ClosedLoop
 from .simulation import closed_loop as closed_loop
 
 __all__ = ["C3", "Plan", "ClosedLoop", "closed_loop", "dare", "CartpoleProblem", "c3_cartpole",
-           "project_enumerate", "qp_problem", "Horizon", "Layout", "Bounds"]
+           "project_enumerate", "qp_problem", "Horizon", "Layout", "Bounds", "relearn", "Relearning", "Round"]

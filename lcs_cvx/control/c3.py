@@ -18,8 +18,15 @@ $$
 the loop in the kernel :mod:`lcs_cvx._kernels.c3`; the scaled dual of C3's code: ``G`` grows by
 ``rho_s = rho_scale`` and ``w`` shrinks by it), then
 a last QP step at ``rho^K`` returns the plan (its target is ``delta - w``; ``delta`` for
-``"c3+"``, as in C3+). When ``u`` does not enter the complementarity (``E = 0``), ``lam_0`` is fixed
-to the LCP solution at ``x0``.
+C3+'s layout, as in C3+). When ``u`` does not enter the complementarity (``E = 0``), ``lam_0`` is
+fixed to the LCP solution at ``x0``.
+
+Every plan is checked against the model: its inputs ``u`` are rolled out through eq. (1) with
+the model's own ``lam_k = LCP(F, D x_k + E u_k + c)`` (``Plan.x_model``), and the gap to the
+planned states is reported (``Plan.gap``, a :class:`lcs_cvx.PlanGapWarning` above ``gap_tol``).
+The default projection ``"auto"`` runs the ADMM with the ``"c3+"`` and the ``"lcp"`` projections
+(one QP step, two projections) and applies, per initial state, the plan whose model rollout
+costs less.
 """
 
 from __future__ import annotations
@@ -32,13 +39,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from .._checks import FallbackWarning, LCSInputError, as_batch, check_positive
+from .._checks import FallbackWarning, LCSInputError, PlanGapWarning, as_batch, check_positive
 from .._kernels.arrays import array_ops
-from .._kernels.c3 import admm, rollout, violation
+from .._kernels.c3 import admm, model_rollout, plan_cost, rollout, violation
 from ..lcp import solve_lcp_unchecked
 from ..system import LCS
 from .costs import (
     PROJECTIONS,
+    WITH_ETA,
     Horizon,
     Layout,
     OnDevice,
@@ -73,6 +81,14 @@ class Plan:
         qp_failures: QP steps that failed (``"cvxpy"`` path; counted over the whole batch) and fell
             back to C3's plan ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning`
             says so).
+        x_model: ``(N + 1, n_x)`` the model's own rollout under ``u``: ``lam_k`` the LCP
+            solution at ``(x_k, u_k)``, not the plan's ``lam`` (what the model predicts the plan
+            does).
+        gap: ``max_k |x_model_k - x_k|_inf``, the plan's disagreement with its model (a scalar;
+            ``(B,)`` for a batch).
+        cost: the horizon cost of ``x_model`` and ``u`` (the cost ``"auto"`` compares).
+        projection: the projection whose plan this is (``"c3+"`` or ``"lcp"`` under ``"auto"``;
+            a list for a batch).
     """
 
     x: torch.Tensor
@@ -84,6 +100,10 @@ class Plan:
     complementarity: torch.Tensor
     times: dict[str, float]
     qp_failures: int = 0
+    x_model: torch.Tensor | None = None
+    gap: torch.Tensor | None = None
+    cost: torch.Tensor | None = None
+    projection: str | list[str] | None = None
 
 
 class C3:
@@ -113,17 +133,22 @@ class C3:
             (``"qp"``, ``"miqp"``: 1000 on ``x``, 1 on ``lam``, and 1000 on ``u`` where ``u``
             enters the complementarity; ``"c3+"``: 1 on ``lam``, 10,000 on ``eta``; diagonal on
             ``(lam, eta)`` for ``"c3+"``).
-        projection: ``"c3+"`` (closed form), ``"qp"`` (C3's convex relaxation) or ``"miqp"``
-            (exact, big-M binaries; the ``control`` extra's SCIP).
+        projection: ``"auto"`` (default: the ADMM with ``"lcp"`` and with ``"c3+"``, the plan
+            whose model rollout costs less; ``"lcp"``'s on a tie to round-off), ``"lcp"`` (the model's own forces at the plan's
+            ``(x_k, u_k)``: works on learned models, whose dense ``F``, nonzero ``E`` and
+            built-in drift defeat a per-unit projection), ``"c3+"`` (closed form, per unit),
+            ``"qp"`` (C3's convex relaxation) or ``"miqp"`` (exact, big-M binaries; the
+            ``control`` extra's SCIP).
         admm_iterations: ``K``, the ADMM iterations before the last QP step.
         rho_scale: the growth of ``G`` per iteration (and the shrinking of the scaled dual).
         x_des: the target, ``(n_x,)`` or ``(N + 1, n_x)``; default the origin.
         x_bounds: box bounds ``(lo, hi)`` on ``x_1 .. x_N`` (scalars or ``(n_x,)``, ``+-inf`` for
-            none); they need ``qp_path="cvxpy"``.
+            none), inside the QP step on either path.
         u_bounds: box bounds on ``u_0 .. u_{N-1}``.
         lam_bounds: box bounds on ``lam_0 .. lam_{N-1}``.
-        qp_path: ``"fast"`` (default without bounds: the QP as an affine map, batched) or
-            ``"cvxpy"`` (the declared problem, default with bounds).
+        qp_path: ``"fast"`` (default: the QP as an affine map, batched; with bounds, plus a
+            small box QP per initial state solved exactly by active sets) or ``"cvxpy"`` (the
+            declared problem, re-solved per initial state).
         qp_solver: ``"CLARABEL"`` or ``"OSQP"`` (the ``"cvxpy"`` path).
         projection_solver: the CVXPY solver of ``"qp"`` (default Clarabel) or ``"miqp"``
             (default SCIP; Gurobi and other mixed-integer QP solvers CVXPY reaches are accepted;
@@ -137,22 +162,25 @@ class C3:
             C3 does), so a learned model whose ``E`` is merely small needs ``fix_lam0=True``.
         arrays: the array back-end of the solve (``"auto"``: NumPy for CPU tensors, torch on
             other devices; ``"torch"`` runs torch on the CPU too).
+        gap_tol: a :class:`lcs_cvx.PlanGapWarning` when a plan's ``gap`` passes
+            ``gap_tol (1 + max_k |x_model_k|_inf)``; ``ctrl.gap_warnings`` counts those plans
+            (None: no check; the gap is still in every plan).
     """
 
     def __init__(self, model: Any, horizon: int, *, Q: Any, R: Any, QN: Any = "dare", G: Any = None,
-                 U: Any = None, projection: str = "c3+", admm_iterations: int = 10, rho_scale: float = 2.0,
+                 U: Any = None, projection: str = "auto", admm_iterations: int = 10, rho_scale: float = 2.0,
                  x_des: Any = None, x_bounds: Any = None, u_bounds: Any = None, lam_bounds: Any = None,
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
                  projection_options: dict[str, Any] | None = None, warm_start: bool = True,
                  big_m: float = 1000.0, fix_lam0: bool | None = None,
-                 arrays: str = "auto"):
+                 arrays: str = "auto", gap_tol: float | None = 0.5):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
         self.horizon = Horizon.of(model, horizon)
         self.model = model if isinstance(model, LCS) else model[0]
         hz = self.horizon
         N = hz.N
-        self.layout = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=projection == "c3+")
+        self.layout = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta=projection in WITH_ETA)
         self.projection_name = projection
         self.admm_iterations = check_positive("admm_iterations", admm_iterations, integer=True)
         self.rho_scale = check_positive("rho_scale", rho_scale)
@@ -172,20 +200,24 @@ class C3:
         self.U = weight_matrix("U", U0 if U is None else U, self.layout.n_z, N)
         bounds = Bounds.of(self.layout, x=x_bounds, u=u_bounds, lam=lam_bounds)
         self.bounds = bounds
-        path = qp_path or ("cvxpy" if bounds.any() else "fast")
+        path = qp_path or "fast"
         if fix_lam0 is None:
             fix_lam0 = not hz.input_in_complementarity()
         self.fix_lam0 = bool(fix_lam0) and hz.n_lam > 0
         rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
         self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
                          bounds=bounds, path=path, solver=qp_solver)
-        self.project = Projection(hz, self.layout, self.U, projection, solver=projection_solver, big_m=big_m,
-                                  options=projection_options)
+        self.projections = [Projection(hz, self.layout, self.U, kind, solver=projection_solver, big_m=big_m,
+                                       options=projection_options)
+                            for kind in (("lcp", "c3+") if projection == "auto" else (projection,))]
+        self.gap_tol = None if gap_tol is None else check_positive("gap_tol", gap_tol)
+        self.gap_warnings = 0
         self.warm_start = warm_start
         array_ops(torch.zeros(0), arrays)  # checks the name
         self.arrays = arrays
         self.last_plan: Plan | None = None
         self._matrices = OnDevice({k: getattr(self.horizon, k) for k in "ABCdDEFc"})
+        self._weights = OnDevice({"Q": self.Q, "R": self.R, "QN": self.QN})
 
     def _target(self, x_des: Any) -> torch.Tensor:
         N, nx = self.horizon.N, self.horizon.n_x
@@ -225,11 +257,12 @@ class C3:
         """The plan from ``x0`` ``(n_x,)`` or a batch ``(B, n_x)``. ``warm_start``: a previous
         :class:`Plan` of the same batch size (its ``delta`` shifted by one step starts the ADMM),
         or a starting ``delta`` of the user's ``(N, n_z)`` or ``(B, N, n_z)``.
-        With ``qp_path="fast"`` and ``projection="c3+"`` the whole solve runs on ``x0``'s device."""
+        With ``qp_path="fast"``, no bounds and C3+'s layout (``"auto"``, ``"lcp"``, ``"c3+"``)
+        the whole solve runs on ``x0``'s device."""
         t_start = time.perf_counter()
         hz, lay = self.horizon, self.layout
         single = np.ndim(x0) == 1
-        fast = self.qp.path == "fast" and self.projection_name == "c3+"
+        fast = self.qp.path == "fast" and lay.with_eta and not self.bounds.any()
         X0 = as_batch("x0", x0, hz.n_x)
         if not fast:
             X0 = X0.cpu()
@@ -241,33 +274,91 @@ class C3:
             delta = X0.new_zeros(B, N, lay.n_z)
         x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))
         mats = self._matrices.on(xp, X0)
+        weights = self._weights.on(xp, X0)
+        lcp = self._lcp(xp, mats)
         t = time.perf_counter()
         lam0_a = self._lcp_at(xp, x0_a, mats) if self.fix_lam0 else None
-        t_lcp = time.perf_counter() - t
+        times = {"qp": 0.0, "projection": 0.0, "lcp": time.perf_counter() - t, "model": 0.0}
+        plans, failures = [], 0
         with xp.threads():
             qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a)
-            out = admm(xp, qp_step, self.project.bind(xp, x0_a), delta_a, self.admm_iterations,
-                       self.rho_scale, last_target_is_delta=lay.with_eta)
-            z = out["z"]
-            u, lam = z[..., lay.u], z[..., lay.lam]
-            # the plan's states: its inputs and forces through the dynamics (exact in them)
-            xs = rollout(x0_a, u, lam, *(mats[k] for k in "ABCd"))
-            comp = violation(xp, xs, u, lam, *(mats[k] for k in "DEFc"))
-        if out["failures"]:
+            for proj in self.projections:
+                out = admm(xp, qp_step, proj.bind(xp, x0_a, lcp), delta_a, self.admm_iterations,
+                           self.rho_scale, last_target_is_delta=lay.with_eta)
+                times["qp"] += out["qp"]
+                times["projection"] += out["projection"]
+                failures += out["failures"]
+                z = out["z"]
+                u, lam = xp.contiguous(z[..., lay.u]), xp.contiguous(z[..., lay.lam])
+                # the plan's states: its inputs and forces through the dynamics (exact in them)
+                xs = rollout(x0_a, u, lam, *(mats[k] for k in "ABCd"))
+                t = time.perf_counter()
+                xm = model_rollout(x0_a, u, mats, lcp)  # the model's own forces under the plan's inputs
+                cost = plan_cost(xm, u, xd_a, weights["Q"], weights["R"], weights["QN"])
+                times["model"] += time.perf_counter() - t
+                as_t = xp.unwrap
+                plans.append({
+                    "x": torch.stack([as_t(v) for v in xs], 1), "x_model": torch.stack([as_t(v) for v in xm], 1),
+                    "u": as_t(u), "lam": as_t(lam), "delta": as_t(out["delta"]),
+                    "primal_residual": as_t(out["primal"]), "dual_residual": as_t(out["dual"]),
+                    "complementarity": as_t(violation(xp, xs, u, lam, *(mats[k] for k in "DEFc")))[:, 0],
+                    "cost": as_t(cost)})
+        if failures:
             warnings.warn(
-                f"C3: {out['failures']} QP step(s) failed in {self.qp.solver}; their plans fell back to "
+                f"C3: {failures} QP step(s) failed in {self.qp.solver}; their plans fell back to "
                 "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
-        as_t = xp.unwrap
-        x = torch.stack([as_t(v) for v in xs], 1)
-        times = {"qp": out["qp"], "projection": out["projection"], "lcp": t_lcp,
-                 "total": time.perf_counter() - t_start}
-        plan = Plan(x=x, u=as_t(xp.contiguous(u)), lam=as_t(xp.contiguous(lam)), delta=as_t(out["delta"]),
-                    primal_residual=as_t(out["primal"]), dual_residual=as_t(out["dual"]),
-                    complementarity=as_t(comp)[:, 0], times=times, qp_failures=out["failures"])
+        # per initial state, the plan whose model rollout costs least; "lcp"'s (the first) unless
+        # another costs less by more than round-off (with bounds met, both plans may apply the
+        # same inputs: a tie, and "lcp"'s plan is the one the model agrees with)
+        chosen = torch.zeros(B, dtype=torch.long, device=X0.device)
+        best = plans[0]["cost"]
+        for i in range(1, len(plans)):
+            cheaper = plans[i]["cost"] < best - 1e-9 * (1.0 + best.abs())
+            chosen = torch.where(cheaper, i, chosen)
+            best = torch.where(cheaper, plans[i]["cost"], best)
+        pick = {key: self._pick([p[key] for p in plans], chosen) for key in plans[0]}
+        gap = (pick["x_model"] - pick["x"]).abs().flatten(1).amax(1)
+        self._check_gap(gap, pick["x_model"])
+        names = [self.projections[int(i)].kind for i in chosen.cpu()]
+        times["total"] = time.perf_counter() - t_start
+        plan = Plan(**pick, gap=gap, times=times, qp_failures=failures, projection=names)
         if single:
-            plan = dataclasses.replace(plan, **{f: getattr(plan, f)[0] for f in
-                                                ("x", "u", "lam", "delta", "primal_residual", "dual_residual", "complementarity")})
+            plan = dataclasses.replace(plan, projection=names[0], **{
+                f: getattr(plan, f)[0] for f in ("x", "u", "lam", "delta", "primal_residual", "dual_residual",
+                                                 "complementarity", "x_model", "gap", "cost")})
         return plan
+
+    @staticmethod
+    def _pick(values: list[torch.Tensor], chosen: torch.Tensor) -> torch.Tensor:
+        """Per initial state (the leading axis), ``values[chosen[b]][b]``."""
+        out = values[0]
+        for i, v in enumerate(values[1:], start=1):
+            out = torch.where(chosen.reshape(-1, *[1] * (v.dim() - 1)) == i, v, out)
+        return out
+
+    def _check_gap(self, gap: torch.Tensor, x_model: torch.Tensor) -> None:
+        """Count (and warn of) the plans whose gap passes ``gap_tol (1 + max |x_model|)``."""
+        if self.gap_tol is None:
+            return
+        scale = 1.0 + x_model.abs().flatten(1).amax(1)
+        over = int((gap > self.gap_tol * scale).sum())
+        if over:
+            self.gap_warnings += over
+            warnings.warn(
+                f"C3: {over} plan(s) disagree with the model by more than gap_tol = {self.gap_tol:g} (relative): "
+                f"largest gap {float(gap.max()):.3g} between the planned states and the model's rollout of the "
+                "plan's inputs; the plan relies on forces the model does not produce (projection "
+                f"{self.projection_name!r}; 'lcp' or 'auto' project onto the model's own forces)",
+                PlanGapWarning, stacklevel=4)
+
+    def _lcp(self, xp: Any, mats: dict[str, Any]) -> Any:
+        """``lcp(k, q) -> lam``: the exact LCP of step ``k``'s ``F`` on ``q (M, n_lam)``, on
+        ``xp``'s arrays (the pivoting kernel, batched)."""
+        def lcp(k: int, q: Any) -> Any:
+            if q.shape[-1] == 0:
+                return q
+            return xp.wrap(solve_lcp_unchecked(xp.unwrap(mats["F"][k]), xp.unwrap(xp.contiguous(q))).lam)
+        return lcp
 
     def _lcp_at(self, xp: Any, x0: Any, mats: dict[str, Any]) -> Any:
         """``lam_0 = LCP(F_0, D_0 x0 + c_0)`` ``(B, n_lam)`` (``E = 0``, or ``u = 0`` where

@@ -31,10 +31,12 @@ from .._checks import LCSInputError
 from ..lcp import solve_lcp
 from ..system import ACTIVE_TOL, LCS
 
-__all__ = ["Horizon", "Layout", "OnDevice", "dare", "mode_dynamics", "weight_matrix", "default_consensus_weights",
+__all__ = ["PROJECTIONS", "WITH_ETA", "Horizon", "Layout", "OnDevice", "dare", "mode_dynamics", "weight_matrix", "default_consensus_weights",
            "psd_factor"]
 
-PROJECTIONS = ("c3+", "qp", "miqp")
+PROJECTIONS = ("auto", "lcp", "c3+", "qp", "miqp")
+#: the projections whose decision vector carries ``eta`` (C3+'s layout)
+WITH_ETA = ("auto", "lcp", "c3+")
 
 
 class OnDevice:
@@ -216,11 +218,12 @@ def default_consensus_weights(layout: Layout, projection: str, input_in_compleme
     complementarity (``E = 0``); where it does, ``U`` is 1000 on ``u`` as on ``x``, or the
     projection would reach any contact mode by moving ``u`` freely. ``"c3+"``: ``G`` 1 on
     ``lam`` and ``eta``; ``U`` 1 on ``lam`` and 10,000 on ``eta`` (its projection leaves ``x``
-    and ``u`` as they are).
+    and ``u`` as they are). ``"lcp"`` and ``"auto"``: as ``"c3+"`` (the same layout and QP
+    step; ``"lcp"`` does not use ``U``: its projection is the model's own LCP).
     """
     G = np.zeros(layout.n_z)
     U = np.zeros(layout.n_z)
-    if projection == "c3+":
+    if projection in WITH_ETA:
         G[layout.lam] = 1.0
         G[layout.eta] = 1.0
         U[layout.lam] = 1.0

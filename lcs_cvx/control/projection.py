@@ -8,6 +8,12 @@ $$
 
 The steps are independent, so every method projects all of them (and all initial states) at once:
 
+- ``"lcp"`` (no solver but the model's own LCP): ``x_k`` and ``u_k`` kept, and
+  ``lam_k = LCP(F_k, D_k x_k + E_k u_k + c_k)``, ``eta_k = D_k x_k + E_k u_k + F_k lam_k + c_k``
+  (C3+'s layout): the point of the complementarity set that the model itself reaches from
+  ``(x_k, u_k)``, the exact projection in the limit of an infinite weight on ``x`` and ``u``, and
+  unique under Assumption 1. All steps and plans in one batched :func:`lcs_cvx.solve_lcp` when
+  the model is the same at every step. Its plans use forces the model produces.
 - ``"c3+"`` (closed form, no solver): ``z`` carries ``eta = D x + E u + F lam + c`` as its own
   coordinates; per coordinate the one of ``lam_i``, ``eta_i`` that costs less to zero in the
   ``U``-metric is zeroed and the other clipped at 0 (``U`` diagonal on ``lam`` and ``eta``).
@@ -37,7 +43,7 @@ import cvxpy as cp
 import numpy as np
 
 from .._checks import LCSInputError, SolverError
-from .._kernels.c3 import active_set_maps, project_active_sets, project_c3plus
+from .._kernels.c3 import active_set_maps, project_active_sets, project_c3plus, project_lcp
 from .._optional import require
 from .costs import Horizon, Layout, OnDevice, psd_factor
 
@@ -146,6 +152,10 @@ class Projection:
         self.horizon, self.layout, self.kind = horizon, layout, projection
         self.options = dict(options or {})
         nx, nl, nu = layout.n_x, layout.n_lam, layout.n_u
+        if projection == "lcp":
+            self._lcp = OnDevice({k: getattr(horizon, k) for k in "DEFc"})
+            self.time_invariant = all(bool(np.all(getattr(horizon, k) == getattr(horizon, k)[:1])) for k in "DEFc")
+            return
         if projection == "c3+":
             idx = np.r_[np.arange(layout.n_x, layout.n_x + nl), np.arange(layout.eta.start, layout.eta.stop)]
             block = U[:, idx][:, :, idx]
@@ -219,9 +229,14 @@ class Projection:
                               f"for {int((~found).sum())} step(s)")
         return out
 
-    def bind(self, xp: Any, like: Any) -> Callable[[Any], Any]:
+    def bind(self, xp: Any, like: Any, lcp: Callable[[int, Any], Any] | None = None) -> Callable[[Any], Any]:
         """The projection of one solve, ``project(c) -> delta`` for ``c (B, N, n_z)`` on the arrays
-        of ``xp`` (``"qp"`` and ``"miqp"``: NumPy arrays); ``like``: an array of the solve."""
+        of ``xp`` (``"qp"`` and ``"miqp"``: NumPy arrays); ``like``: an array of the solve;
+        ``lcp(k, q) -> lam``: the LCP of step ``k``'s ``F`` on ``q (M, n_lam)`` (``"lcp"``)."""
+        if self.kind == "lcp":
+            mats = self._lcp.on(xp, like)
+            return lambda c: project_lcp(xp, c, self.layout, mats["D"], mats["E"], mats["F"], mats["c"], lcp,
+                                         self.time_invariant)
         if self.kind == "c3+":
             lam, eta = self.layout.lam, self.layout.eta
             w_lam, w_eta = self._sqrt_w.on(xp, like).values()

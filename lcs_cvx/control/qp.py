@@ -15,10 +15,14 @@ Two paths solve it:
 - ``"cvxpy"``: the problem declared **once** as a parameterised (DPP) CVXPY problem
   (:func:`qp_problem`; parameters ``x0``, the fixed ``lam_0``, the scaled targets, ``sqrt(rho)``
   and the scaled ``x^d``), re-solved by Clarabel or OSQP (warm-started). It takes box bounds.
-- ``"fast"`` (no box bounds): an equality-constrained QP whose solution is affine in its data,
+- ``"fast"``: without bounds, an equality-constrained QP whose solution is affine in its data,
   ``y = Y_rho p + y_rho`` with ``p = (x0, lam_0, t, x^d)``. The KKT system is factorised once per
   consensus scale (``rho_scale**i``, ``i = 0..K``) when the controller is built; a QP step is then
-  one matrix product, batched over initial states (torch, any device).
+  one matrix product, batched over initial states (torch, any device). With box bounds, the
+  bounded coordinates ``s = y_S`` are the only unknowns left: the same factorisation gives the
+  QP's inverse reduced Hessian ``P`` on them, and the step solves the small box QP
+  ``min 1/2 (s - s*)^T P_SS^{-1} (s - s*)``, ``lo <= s <= hi`` per initial state by an exact
+  active-set method (:mod:`lcs_cvx._kernels.box_qp`; NumPy arrays, compiled).
 
 Shapes: ``x0 (B, n_x)``, ``t (B, N, n_z)``, ``x^d (B, N + 1, n_x)``; a step returns
 ``z (B, N, n_z)`` and ``x_N (B, n_x)``.
@@ -38,7 +42,7 @@ import torch
 from threadpoolctl import threadpool_limits
 
 from .._checks import LCSInputError
-from .._kernels.c3 import affine_qp
+from .._kernels.c3 import affine_qp, bounded_affine_qp
 from .costs import Horizon, Layout, OnDevice, psd_factor
 
 __all__ = ["Bounds", "QPStep", "qp_problem", "QP_SOLVERS"]
@@ -86,6 +90,41 @@ class Bounds:
 
     def any(self) -> bool:
         return any(v is not None for v in (self.x, self.u, self.lam))
+
+
+def _bounded_coordinates(horizon: Horizon, layout: Layout, bounds: Bounds, fix_lam0: bool
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(S, lo, hi)``: the coordinates of ``y = (z_0, ..., z_{N-1}, x_N)`` with a finite bound
+    (``x`` at steps 1..N, ``u`` and ``lam`` at steps 0..N-1; not ``lam_0`` when ``fix_lam0``)
+    and their bounds."""
+    N, nz = horizon.N, layout.n_z
+    S, lo, hi = [], [], []
+
+    def add(offset: int, box: tuple[np.ndarray, np.ndarray] | None) -> None:
+        if box is None:
+            return
+        for i in np.flatnonzero(np.isfinite(box[0]) | np.isfinite(box[1])):
+            S.append(offset + int(i))
+            lo.append(box[0][i])
+            hi.append(box[1][i])
+
+    for k in range(N + 1):
+        base = k * nz
+        if k >= 1:
+            add(base + layout.x.start, bounds.x)
+        if k == N:
+            break
+        if not (fix_lam0 and k == 0):
+            add(base + layout.lam.start, bounds.lam)
+        add(base + layout.u.start, bounds.u)
+    return np.array(S, dtype=np.int64), np.array(lo, dtype=np.float64), np.array(hi, dtype=np.float64)
+
+
+def _box_sensitivity(P_S: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(P_SS, P_S^T)`` of one consensus level: the data of the bounded step
+    (:mod:`lcs_cvx._kernels.box_qp`)."""
+    P_SS = P_S[S]
+    return np.ascontiguousarray(0.5 * (P_SS + P_SS.T)), np.ascontiguousarray(P_S.T)
 
 
 def _stage_matrices(horizon: Horizon, layout: Layout, Q, R, QN, G, rho: float, fix_lam0: bool):
@@ -207,7 +246,8 @@ class QPStep:
         Q ``(N, n_x, n_x)``, R ``(N, n_u, n_u)``, QN ``(n_x, n_x)``, G ``(N, n_z, n_z)``: weights.
         rho_levels: ``(K + 1,)`` the scale of ``G`` at each ADMM iteration and the last QP step.
         fix_lam0: constrain ``lam_0`` to a given value (the LCP solution at ``x0``).
-        bounds: box bounds (the ``"cvxpy"`` path only).
+        bounds: box bounds (``lam`` at step 0 is left unbounded on the ``"fast"`` path when
+            ``fix_lam0``: the LCP fixes it).
         path: ``"fast"`` or ``"cvxpy"``; solver: ``"CLARABEL"`` or ``"OSQP"`` (``"cvxpy"`` path).
     """
 
@@ -218,11 +258,6 @@ class QPStep:
             raise LCSInputError(f"qp_path: expected 'fast' or 'cvxpy', received {path!r}")
         if solver not in QP_SOLVERS:
             raise LCSInputError(f"qp_solver: expected one of {QP_SOLVERS}, received {solver!r}")
-        if path == "fast" and bounds.any():
-            raise LCSInputError(
-                "qp_path: the 'fast' path solves the QP without box bounds; with x_bounds, u_bounds or "
-                "lam_bounds use qp_path='cvxpy'"
-            )
         self.horizon, self.layout, self.path, self.solver = horizon, layout, path, solver
         self.fix_lam0 = fix_lam0
         self.rho_levels = np.asarray(rho_levels, dtype=np.float64)
@@ -230,8 +265,12 @@ class QPStep:
         self._LQ = psd_factor(np.concatenate([Q, QN[None]]))
         if path == "fast":
             # BLAS threads as torch's: a dense solve per level, a few milliseconds each
+            self._box = _bounded_coordinates(horizon, layout, bounds, fix_lam0)
+            S = self._box[0]
             with threadpool_limits(limits=torch.get_num_threads()):
-                maps = [self._affine_map(Q, R, QN, G, rho) for rho in self.rho_levels]
+                maps = [self._affine_map(Q, R, QN, G, rho, S) for rho in self.rho_levels]
+            if S.size:
+                self._sensitivity = [_box_sensitivity(m[2], S) for m in maps]
             n_t = horizon.N * layout.n_z
             p_t = layout.n_x + (layout.n_lam if fix_lam0 else 0)
             Y = np.stack([m[0].T for m in maps])  # (levels, n_p, n_y)
@@ -244,11 +283,16 @@ class QPStep:
                 horizon, layout, Q, R, QN, G, fix_lam0=fix_lam0, bounds=bounds
             )
 
-    def _affine_map(self, Q, R, QN, G, rho):
+    def _affine_map(self, Q, R, QN, G, rho, S):
+        """``(Y, y0, P_S)``: the solution map ``y = p Y^T + y0`` and the columns ``S`` of the
+        inverse KKT matrix's ``(n_y, n_y)`` block, ``P_S (n_y, |S|)``."""
         H, Fp, Aeq, Bp, b0 = _stage_matrices(self.horizon, self.layout, Q, R, QN, G, rho, self.fix_lam0)
         n_y, m = H.shape[0], Aeq.shape[0]
         K = np.block([[H, Aeq.T], [Aeq, np.zeros((m, m))]])
-        rhs = np.concatenate([np.concatenate([-Fp, Bp]), np.concatenate([np.zeros(n_y), b0])[:, None]], axis=1)
+        unit = np.zeros((n_y + m, S.size))
+        unit[S, np.arange(S.size)] = 1.0
+        rhs = np.concatenate([np.concatenate([-Fp, Bp]), np.concatenate([np.zeros(n_y), b0])[:, None], unit],
+                             axis=1)
         exc_ = None
         try:
             with warnings.catch_warnings():
@@ -263,7 +307,8 @@ class QPStep:
                 "(G must weight lam, and R or G must weight u)"
                 + (f" ({exc_})" if exc_ is not None else "")
             )
-        return sol[:n_y, :-1], sol[:n_y, -1]
+        n_p = Fp.shape[1]
+        return sol[:n_y, :n_p], sol[:n_y, n_p], sol[:n_y, n_p + 1:]
 
     def bind(self, xp: Any, x0: Any, lam0: Any, x_des: Any) -> Callable[[int, Any], tuple[Any, Any, int]]:
         """The QP step of one solve, ``step(level, target) -> (z (B, N, n_z), x_N (B, n_x),
@@ -277,7 +322,19 @@ class QPStep:
         B = x0.shape[0]
         p_fixed = xp.concat([x0] + ([lam0] if self.fix_lam0 else []) + [x_des.reshape(B, -1)])
         base = p_fixed @ Yf + y0[:, None, :]  # (levels, B, n_y): the fixed data of every level at once
-        return lambda level, target: (*affine_qp(base[level], Yt[level], target), 0)
+        if not self._box[0].size:
+            return lambda level, target: (*affine_qp(base[level], Yt[level], target), 0)
+        S, lo, hi = self._box
+
+        def bounded(level: int, target: Any) -> tuple[Any, Any, int]:
+            z, xN, failed = bounded_affine_qp(base[level], Yt[level], target, S, lo, hi, *self._sensitivity[level])
+            if failed.any():  # no input meets the bounds: C3's fallback plan, as on the "cvxpy" path
+                z[failed] = 0.0
+                z[failed, :, self.layout.x] = x0[failed, None, :]
+                xN[failed] = x0[failed]
+            return z, xN, int(failed.sum())
+
+        return bounded
 
     def _solve_cvxpy(self, level: int, x0: np.ndarray, lam0: np.ndarray | None, target: np.ndarray,
                      x_des: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:

@@ -13,6 +13,9 @@ model. Initial states are drawn uniformly (seed 0) from the box ``|x_c| <= 0.3``
 - ``miqp``: C3 with the exact mixed-integer projection, CVXPY + SCIP (slow: a subset of states);
 - ``miqp enum``: the same exact projection by its active sets (``projection_solver="enumerate"``),
   every state;
+- ``lcp``: C3 with the projection onto the model's own forces (``projection="lcp"``), fast path;
+- ``auto``: C3's default projection (``"auto"``: the ADMM with ``"lcp"`` and with ``"c3+"``, the
+  plan whose model rollout costs less), fast path;
 - ``lqr``: ``u = -K x`` from the Riccati equation of ``(A, B, Q, R)``, ignoring the walls.
 
 A run succeeds when ``|x|_inf <= 0.1`` holds for 30 consecutive steps within 600 steps (C3's
@@ -129,7 +132,7 @@ class Study:
                 self._ctrls[name] = LQR(self.P.model, self.Q, self.R)
             else:
                 proj, path = spec
-                G, U = self.P.weights[proj]
+                G, U = self.P.weights["c3+" if proj in ("lcp", "auto") else proj]
                 ctrl = C3(self.P.model, self.P.horizon, Q=self.P.Q, R=self.P.R, QN="dare", G=G, U=U,
                           projection=proj, qp_path=path, projection_solver=PROJECTION_SOLVER.get(name))
                 if not np.allclose(ctrl.QN, self.QN, rtol=1e-10, atol=1e-8):
@@ -171,6 +174,7 @@ class Study:
         cost, _ = rollout_cost(self.P.model, x0, u, self.Q, self.R, self.QN)
         own = sum(float(x[k] @ self.Q @ x[k] + u[k] @ self.R @ u[k]) for k in range(N)) + float(x[N] @ self.QN @ x[N])
         return {"plan_cost": cost, "plan_cost_planned": own, "plan_complementarity": float(plan.complementarity),
+                "plan_gap": float(plan.gap),
                 "plan_time": plan.times["total"], "plan_primal_residual": float(plan.primal_residual[-1]),
                 "plan_u": u.ravel().tolist(), "plan_warnings": len(caught)}
 
@@ -209,7 +213,7 @@ class Study:
         )
         if rec_ctrl.phases:
             rec["phase_ms_median"] = {k: 1e3 * float(np.median([p[k] for p in rec_ctrl.phases]))
-                                      for k in ("qp", "projection", "lcp", "total")}
+                                      for k in ("qp", "projection", "lcp", "model", "total")}
         if state in TRAJ_STATES:
             rec["traj"] = np.round(x[:, :2], 5).tolist()
         return rec
@@ -268,10 +272,12 @@ class Study:
         ctrl = self.controller("c3+")
         ctrl.reset()
         X0 = torch.as_tensor(self.X[:n])
-        ctrl.solve(X0[:2])  # one warm-up solve (first-call costs), not timed
-        t = time.perf_counter()
-        res = closed_loop(ctrl, self.P.model, X0, steps, tol=TOL, hold=HOLD)
-        wall = time.perf_counter() - t
+        with warnings.catch_warnings(record=True) as caught:  # counted, as in the per-state runs
+            warnings.simplefilter("always")
+            ctrl.solve(X0[:2])  # one warm-up solve (first-call costs), not timed
+            t = time.perf_counter()
+            res = closed_loop(ctrl, self.P.model, X0, steps, tol=TOL, hold=HOLD)
+            wall = time.perf_counter() - t
         ctrl.reset()
         settled = res.settled.numpy()
         final = res.x[:, -1].abs().amax(1).numpy()
@@ -279,7 +285,7 @@ class Study:
                "wall": wall, "per_step_ms": 1e3 * wall / steps, "solve_ms_median": 1e3 * float(np.median(res.solve_times)),
                "solve_ms_p95": 1e3 * float(np.percentile(res.solve_times, 95)),
                "success_rate": float((settled >= 0).mean()), "settled": settled.tolist(),
-               "final_error_median": float(np.median(final))}
+               "final_error_median": float(np.median(final)), "warnings": len(caught)}
         self.append(rec)
         print(f"[batch] {n} rollouts x {steps} steps: {wall:.1f} s, success {rec['success_rate']:.3f}", flush=True)
 
@@ -288,6 +294,8 @@ class Study:
         rand = [str(i) for i in range(st.states)]
         phases = [
             ("c3+", lambda: self.run_controller("c3+", ["x0"] + rand, st.steps)),
+            ("auto", lambda: self.run_controller("auto", ["x0"] + rand, st.steps)),
+            ("lcp", lambda: self.run_controller("lcp", ["x0"] + rand, st.steps)),
             ("lqr", lambda: self.run_controller("lqr", ["x0"] + rand, st.steps)),
             ("exact", lambda: self.run_exact(["x0"] + [str(i) for i in range(max(st.states, st.miqp_states))])),
             ("batch", self.run_batch),

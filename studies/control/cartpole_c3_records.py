@@ -26,14 +26,16 @@ MACHINE = "2-core x86-64 VM, 1 torch thread"
 #: controller name -> (projection, qp_path); None: the LQR baseline
 CONTROLLERS: dict[str, tuple[str, str | None] | None] = {
     "c3+": ("c3+", "fast"), "lqr": None, "c3+ cvxpy": ("c3+", "cvxpy"), "qp": ("qp", None), "miqp": ("miqp", None),
-    "miqp enum": ("miqp", None),
+    "miqp enum": ("miqp", None), "lcp": ("lcp", "fast"), "auto": ("auto", "fast"),
 }
 #: controllers whose projection is solved another way than by default
 PROJECTION_SOLVER = {"miqp enum": "enumerate"}
 LABELS = {"c3+": "C3, c3+ projection (fast path)", "c3+ cvxpy": "C3, c3+ projection (CVXPY QP path)",
           "qp": "C3, qp projection", "miqp": "C3, miqp projection (SCIP)",
-          "miqp enum": "C3, miqp projection (active sets)", "lqr": "LQR ignoring contact"}
-COLORS = {"c3+": "C0", "c3+ cvxpy": "C4", "qp": "C2", "miqp": "C3", "miqp enum": "C1", "lqr": "C7"}
+          "miqp enum": "C3, miqp projection (active sets)", "lqr": "LQR ignoring contact",
+          "lcp": "C3, lcp projection (the model's own forces)", "auto": "C3, defaults (auto: lcp or c3+)"}
+COLORS = {"c3+": "C0", "c3+ cvxpy": "C4", "qp": "C2", "miqp": "C3", "miqp enum": "C1", "lqr": "C7", "lcp": "C5",
+          "auto": "C6"}
 #: states whose trajectories (cart position, pole angle) are stored and drawn
 TRAJ_STATES = ("x0", "0", "1")
 FILE = "cartpole_c3"

@@ -47,7 +47,8 @@ def _fmt(v: float, digits: int = 3) -> str:
 def summarize(records: list[dict[str, Any]], settings: Settings) -> dict[str, Any]:
     """The numbers of the report, from the units finished so far."""
     steps_of = {"c3+": settings.steps, "lqr": settings.steps, "c3+ cvxpy": settings.qp_steps,
-                "qp": settings.qp_steps, "miqp": settings.miqp_steps, "miqp enum": settings.steps}
+                "qp": settings.qp_steps, "miqp": settings.miqp_steps, "miqp enum": settings.steps,
+                "lcp": settings.steps, "auto": settings.steps}
     runs: dict[str, dict[str, dict[str, Any]]] = {k: {} for k in CONTROLLERS}
     exact: dict[str, dict[str, Any]] = {}
     batch = None
@@ -146,7 +147,7 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
              + (f" (1-minute load average {min(loads):.1f} to {max(loads):.1f} while it ran: the two cores were "
                 "shared with other work, so absolute times are pessimistic)" if loads else "") + ".")
     C = s["controllers"]
-    order = [c for c in ("c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C]
+    order = [c for c in ("auto", "lcp", "c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C]
     L: list[str] = []
     w = L.append
     w("# C3 on the cart-pole with soft walls: closed loop, cost gap, time per solve\n")
@@ -338,7 +339,7 @@ def plot(s: dict[str, Any], path: str, settings: Settings) -> None:
             axes[i, j].grid(alpha=0.3)
         axes[0, j].legend(fontsize=7)
     C = s["controllers"]
-    names = [c for c in ("c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C and C[c]["n"]]
+    names = [c for c in ("auto", "lcp", "c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C and C[c]["n"]]
     ax = axes[2, 0]
     for i, c in enumerate(names):
         d = C[c]

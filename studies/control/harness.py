@@ -49,6 +49,9 @@ class Timed:
         violation = getattr(self.ctrl, "violation", None)
         if violation is not None:
             out["plan_violation_median"] = float(np.median(violation))
+        gap = getattr(self.ctrl, "gap", None)
+        if gap is not None:
+            out["plan_gap_median"] = float(np.median(gap))
         return out
 
 

@@ -39,6 +39,8 @@ its centre and the box at rest at the goal; ``R`` on ``u``; terminal ``QN_FACTOR
   ``n_lam = 16``);
 - ``C3, hand-written LCS``: the quasi-static pusher-slider (:func:`handwritten_lcs`), one per
   contact offset ``p_y`` on a 1 cm grid, the nearest to the current ``p_y`` used;
+- ``C3 (defaults), ...``: the same three models with C3's default projection (``"auto"``) and
+  the actuator's limit as ``u_bounds`` (inside the QP step) instead of ``"c3+"`` and clipping;
 - ``QP MPC, affine model``: linear MPC on the least-squares affine model with the pose appended
   (CVXPY, Clarabel, ``|u| <= 10`` as a constraint, horizon 10);
 - ``MPPI, MLP model``: sampling MPC (:class:`MPPI`) on a tanh MLP of the dynamics
@@ -122,6 +124,7 @@ class C3Controller:
         self.ctrls, self.grid = ctrls, grid
         self.prev: dict[int, Any] = {}
         self.violation: list[float] = []
+        self.gap: list[float] = []
         self.last = -1
 
     def __call__(self, x: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -131,6 +134,7 @@ class C3Controller:
         plan = self.ctrls[j].solve(z0, x_des=_x_des(target), warm_start=warm)
         self.prev[j], self.last = plan, j
         self.violation.append(float(plan.complementarity))
+        self.gap.append(float(plan.gap))
         return plan.u[0].numpy()
 
 
@@ -141,12 +145,15 @@ def _build_c3(m: dict[str, np.ndarray], **kw: Any) -> Any:
     return C3(as_lcs(augment(m)), HORIZON, **opts)
 
 
-def _c3_learned(name: str) -> Callable[[dict[str, Any]], Any]:
+def _c3_learned(name: str, defaults: bool = False) -> Callable[[dict[str, Any]], Any]:
+    """C3 on a learned model: ``"c3+"`` as tuned on the violation-loss model, or (``defaults``) the
+    package's default projection with the actuator's limit as ``u_bounds``."""
     def make(ctx: dict[str, Any]) -> Any:
-        key = ("c3", name)
+        key = ("c3", name, defaults)
         if key not in ctx["cache"]:
             m = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz")).to_matrices()
-            ctx["cache"][key] = [_build_c3({k: np.asarray(v) for k, v in m.items()}, R=list(C3_LEARNED_R))]
+            kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX)} if defaults else {}
+            ctx["cache"][key] = [_build_c3({k: np.asarray(v) for k, v in m.items()}, R=list(C3_LEARNED_R), **kw)]
         return C3Controller(ctx["cache"][key])
     return make
 
@@ -154,10 +161,11 @@ def _c3_learned(name: str) -> Callable[[dict[str, Any]], Any]:
 HAND_GRID = np.arange(-4.0, 4.0 + 1e-9, 1.0)
 
 
-def _c3_hand(ctx: dict[str, Any]) -> Any:
-    key = ("c3", "hand")
+def _c3_hand(ctx: dict[str, Any], defaults: bool = False) -> Any:
+    key = ("c3", "hand", defaults)
+    kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX)} if defaults else {}
     if key not in ctx["cache"]:
-        ctx["cache"][key] = [_build_c3(handwritten_lcs(float(py))) for py in HAND_GRID]
+        ctx["cache"][key] = [_build_c3(handwritten_lcs(float(py)), **kw) for py in HAND_GRID]
     return C3Controller(ctx["cache"][key], HAND_GRID)
 
 
@@ -250,6 +258,9 @@ CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "C3, learned LCS (violation loss)": _c3_learned("violation_n20000"),
     "C3, learned LCS (prediction loss)": _c3_learned("prediction_n20000"),
     "C3, hand-written LCS": _c3_hand,
+    "C3 (defaults), learned LCS (violation loss)": _c3_learned("violation_n20000", defaults=True),
+    "C3 (defaults), learned LCS (prediction loss)": _c3_learned("prediction_n20000", defaults=True),
+    "C3 (defaults), hand-written LCS": lambda ctx: _c3_hand(ctx, defaults=True),
     "QP MPC, affine model": _qp_affine,
     "MPPI, MLP model": _mppi_mlp,
 }

@@ -39,7 +39,9 @@ def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict
                   "head": float(np.median([r["final_heading_error"] for r in rs])),
                   "ms": float(np.median([r["ms_per_step_median"] for r in rs])),
                   "violation": float(np.median([r["plan_violation_median"] for r in rs]))
-                  if "plan_violation_median" in rs[0] else float("nan")}
+                  if "plan_violation_median" in rs[0] else float("nan"),
+                  "gap": float(np.median([r["plan_gap_median"] for r in rs]))
+                  if "plan_gap_median" in rs[0] else float("nan")}
     return out
 
 
@@ -68,13 +70,15 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
         "",
         f"| controller | success | position error ≤ {POS_TOL:g} cm | heading error ≤ {HEADING_TOL:g} rad | "
         "median final position error (cm) | median final heading error (rad) | "
-        "median ms per control step | median plan complementarity violation |",
-        "|---|---|---|---|---|---|---|---|",
+        "median ms per control step | median plan complementarity violation | median plan gap to the model |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for n, s in summ.items():
         viol = "" if math.isnan(s["violation"]) else f"{s['violation']:.3f}"
+        gap = "" if math.isnan(s["gap"]) else f"{s['gap']:.3f}"
         lines.append(f"| {n} | {s['success']}/{s['runs']} ({100 * s['success'] / s['runs']:.0f} %) | "
-                     f"{s['pos_ok']}/{s['runs']} | {s['head_ok']}/{s['runs']} | {s['pos']:.2f} | {s['head']:.3f} | {s['ms']:.2f} | {viol} |")
+                     f"{s['pos_ok']}/{s['runs']} | {s['head_ok']}/{s['runs']} | {s['pos']:.2f} | {s['head']:.3f} | "
+                     f"{s['ms']:.2f} | {viol} | {gap} |")
     lines += ["", "Time per control step: the controller's call only (not MuJoCo), median over a run, "
               "then median over the runs. C3s are built once per process (not timed).", ""]
     if ctx is not None:
@@ -142,7 +146,7 @@ def _versus_mlp(summ: dict[str, dict[str, float]]) -> list[str]:
         return []
     out = ["", "Where C3 on the learned LCS stands against the MLP controller:", ""]
     for n, s in summ.items():
-        if not n.startswith("C3, learned"):
+        if not (n.startswith("C3, learned") or n.startswith("C3 (defaults), learned")):
             continue
         ok = s["success"] / s["runs"] >= mlp["success"] / mlp["runs"]
         faster = s["ms"] < mlp["ms"]
