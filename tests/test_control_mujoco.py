@@ -1,6 +1,7 @@
 """The MuJoCo closed-loop study of the controllers (studies.control.mujoco_closed_loop), smoke
 variant: 2 starts, 0.8 s runs, every controller; the JSON lines, the report and the figure are
-written, a rerun skips the finished runs, and the hand-written LCS of the plant is the physical one."""
+written, a rerun skips the finished runs, and the hand-written LCS of the plant is the physical one.
+The learn, control, relearn study (studies.control.relearn), smoke variant."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import pytest
 pytest.importorskip("mujoco")
 
 from studies.control import mujoco_closed_loop as study  # noqa: E402
+from studies.control import relearn  # noqa: E402
 
 
 def test_smoke_run_writes_report(tmp_path):
@@ -59,3 +61,19 @@ def test_handwritten_lcs_matches_plant():
     lam = lcs_cvx.solve_lcp(M["F"], (M["D"] @ x + M["c"])[None]).lam.numpy()[0]
     assert lam[0] == 0 and 0.5 < lam[1] < 2.0  # m_eff * k * 0.05 ~ 1 N
     assert (M["C"] @ lam)[3] < 0  # it pushes the pole back
+
+
+def test_the_relearn_study_smoke_run_writes_its_rounds_and_resumes(tmp_path):
+    """studies.control.relearn --smoke: round 0 and one refit, the random-data baseline, the
+    report; a rerun finds every round done and writes the same table."""
+    out = tmp_path / "control"
+    assert relearn.main(["--out", str(out), "--smoke"]) == 0
+    rows = [json.loads(line) for line in (out / "relearn_smoke.jsonl").read_text().splitlines()]
+    rounds = [r for r in rows if r["kind"] == "round"]
+    assert [r["round"] for r in rounds] == [0, 1]
+    assert [r["data_size"] for r in rounds] == [500 + 75, 500 + 150]
+    assert [r["kind"] for r in rows].count("baseline") == 1
+    report = (out / "relearn_smoke.md").read_text()
+    assert "| 1 | " in report and "Same budget of random data" in report
+    assert relearn.main(["--out", str(out), "--smoke"]) == 0
+    assert (out / "relearn_smoke.jsonl").read_text().count("\n") == len(rows)

@@ -100,7 +100,8 @@ def _closed_loop(plant: Callable[[np.ndarray, np.ndarray], Any], ctrl: Callable[
 def relearn(model: LCS, data: Dataset, plant: Callable[[np.ndarray, np.ndarray], Any],
             make_controller: Callable[[LCS], Callable[[np.ndarray], Any]], starts: Sequence[Any] | np.ndarray,
             success: Callable[[np.ndarray, np.ndarray], bool], *, rounds: int = 3, steps: int = 100,
-            fit_options: dict[str, Any] | None = None, fit_first: bool = True, first_round: int = 0,
+            fit_options: dict[str, Any] | None = None, warm_start: bool = True, fit_first: bool = True,
+            first_round: int = 0,
             on_round: Callable[[Round, LCS, Dataset], None] | None = None,
             progress: Callable[[str], None] | None = None) -> Relearning:
     """Learn -> control -> relearn, ``rounds`` times after round 0 (module docstring).
@@ -116,7 +117,9 @@ def relearn(model: LCS, data: Dataset, plant: Callable[[np.ndarray, np.ndarray],
         rounds: refits after round 0 (``rounds + 1`` rounds are run).
         steps: control steps per run.
         fit_options: keyword arguments of every :func:`lcs_cvx.fit` (``progress=False`` unless
-            given); the refits add ``init="model"`` (the warm start).
+            given).
+        warm_start: refit from the current model (``init="model"``); False: every refit starts
+            as the first fit does (``fit_options``' own ``init``).
         fit_first: fit ``model`` on ``data`` before the first round (False: ``model`` is already
             fitted).
         first_round: the index of the first round run (to resume: ``model`` and ``data`` as
@@ -163,13 +166,12 @@ def relearn(model: LCS, data: Dataset, plant: Callable[[np.ndarray, np.ndarray],
         control_s = time.perf_counter() - t0
         new = Dataset.from_arrays(np.concatenate([x[:-1] for x in xs_all]), np.concatenate(us_all),
                                   np.concatenate([x[1:] for x in xs_all]))
-        data = Dataset.from_arrays(np.concatenate([data.x.numpy(), new.x.numpy()]),
-                                   np.concatenate([data.u.numpy(), new.u.numpy()]),
-                                   np.concatenate([data.x_next.numpy(), new.x_next.numpy()]))
+        data = Dataset.from_arrays(*(torch.cat([getattr(data, k).detach().cpu(), getattr(new, k).to(getattr(data, k))])
+                                     for k in ("x", "u", "x_next")))
         fit_s = 0.0
         if r < rounds:
             t1 = time.perf_counter()
-            fit(model, data, **{**options, "init": "model"})
+            fit(model, data, **({**options, "init": "model"} if warm_start else options))
             fit_s = time.perf_counter() - t1
         rec = Round(round=r, successes=sum(ok), runs=len(ok), transitions=len(new), data_size=len(data),
                     control_s=control_s, fit_s=fit_s, ms_per_step=1e3 * float(np.median(times)), success=ok)

@@ -3,7 +3,7 @@ r"""Learn, control, relearn on the MuJoCo cart-pole between soft walls
 transitions.
 
 Round 0: an LCS (``n_lam = 4``, the physics study's settings: ``recipe="best"``, stiffness 1,
-``init_scale`` 0.1) learned from ``--random`` random transitions of
+``init_scale`` 0.1; ``--iterations``: Adam steps other than the recipe's) learned from ``--random`` random transitions of
 :func:`studies.physics.plant.sample_transitions` (seed 0), then C3 with the package's defaults
 (``C3(model, 10, Q=diag(5, 20, 0.5, 0.5), R=[1], u_bounds=(-4, 4))``) closed on MuJoCo from the
 50 starts of :mod:`studies.control.mujoco_closed_loop` (4 s each, its success test). Each round
@@ -15,7 +15,11 @@ Resumable: after each round the model and data go to ``OUT/relearn_cache/`` and 
 ``OUT/relearn.jsonl``; a rerun resumes after the last round there. The report is
 ``OUT/relearn.md``.
 
-    python -m studies.control.relearn --out studies/results/control [--rounds 3] [--random 500] [--smoke]
+    python -m studies.control.relearn --out studies/results/control [--rounds 3] [--random 500]
+        [--iterations N] [--fresh] [--smoke]
+
+``--fresh``: every refit starts as the first fit does instead of from the current model; the
+variants write ``relearn_fresh.*`` / ``relearn_itN.*``.
 """
 
 from __future__ import annotations
@@ -96,15 +100,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--random", type=int, default=500, help="random transitions of round 0")
     ap.add_argument("--starts", type=int, default=50)
+    ap.add_argument("--iterations", type=int, default=None, help="Adam steps of each fit (default: the recipe's)")
+    ap.add_argument("--fresh", action="store_true", help="refit from a fresh start each round (not warm)")
     ap.add_argument("--smoke", action="store_true", help="3 starts, 1 s runs, 1 round, short fits")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     steps = 100
-    fit_options = dict(FIT)
+    fit_options = dict(FIT) if args.iterations is None else dict(FIT, iterations=args.iterations)
     if args.smoke:
         args.starts, args.rounds, steps = 3, 1, 25
         fit_options.update(iterations=200, restarts=1)
-    name = "relearn" + ("_smoke" if args.smoke else "")
+    name = ("relearn" + ("_fresh" if args.fresh else "") + (f"_it{args.iterations}" if args.iterations else "")
+            + ("_smoke" if args.smoke else ""))
     cache = os.path.join(args.out, f"{name}_cache")
     os.makedirs(cache, exist_ok=True)
     log = os.path.join(args.out, f"{name}.jsonl")
@@ -130,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 model, data, kw = fresh_model(), random_data(args.random), {}
             relearn(model, data, plant, controller, X0, plant.success, rounds=args.rounds, steps=steps,
-                    fit_options=fit_options, on_round=save, progress=lambda line: print(line, flush=True), **kw)
+                    fit_options=fit_options, warm_start=not args.fresh, on_round=save, progress=lambda line: print(line, flush=True), **kw)
         done = [r for r in read_rounds(log) if r["kind"] == "round"]
         baseline = [r for r in read_rounds(log) if r["kind"] == "baseline"]
         if not baseline:
@@ -147,9 +154,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _rounds_text(rows: list[dict[str, Any]]) -> str:
+    return ", ".join(f"{r['successes']}/{r['runs']}" for r in rows)
+
+
 def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: dict[str, Any], wall: float) -> None:
-    cmd = f"python -m studies.control.relearn --out {args.out}" + (" --smoke" if args.smoke else
-                                                                  f" --rounds {args.rounds} --random {args.random}")
+    flags = (" --smoke" if args.smoke else f" --rounds {args.rounds} --random {args.random}"
+             + (f" --iterations {args.iterations}" if args.iterations else "") + (" --fresh" if args.fresh else ""))
+    cmd = f"python -m studies.control.relearn --out {args.out}{flags}"
+    refit = ("refitted from a fresh start as the first fit" if args.fresh
+             else "the model refitted from where it was (`init=\"model\"`)")
+    steps = "" if args.iterations is None else f", {args.iterations:,} Adam steps per fit"
     lines = [
         "# Learn, control, relearn on the MuJoCo cart-pole",
         "",
@@ -158,10 +173,10 @@ def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: d
         "",
         f"**Loop** (`lcs_cvx.control.relearn`): an LCS with n_lam = {N_LAM} learned from {args.random} random "
         "transitions of `studies.physics.plant.sample_transitions` (seed 0; `recipe=\"best\"`, stiffness 1, "
-        "init_scale 0.1), then per round C3 with the package's defaults "
+        f"init_scale 0.1{steps}), then per round C3 with the package's defaults "
         "(`C3(model, 10, Q=diag(5, 20, 0.5, 0.5), R=[1], u_bounds=(-4, 4))`) closed on MuJoCo from the starts "
         "of `mujoco_closed_loop.md` (its task and success test), the closed-loop transitions added to the data "
-        "and the model refitted from where it was (`init=\"model\"`).",
+        f"and {refit}.",
         "",
         "| round | success | closed-loop transitions added | data after the round | ms per control step | "
         "control s | refit s |",
@@ -177,6 +192,19 @@ def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: d
         f"{baseline['runs']} successes.",
         "",
     ]
+    variants = {"relearn_fresh": "every refit from a fresh start (`--fresh`)",
+                "relearn_it12000": "12,000 Adam steps per fit, as the physics study's models (`--iterations 12000`)"}
+    found = {k: read_rounds(os.path.join(args.out, f"{k}.jsonl")) for k in variants if k != name}
+    found = {k: v for k, v in found.items() if v}
+    if found and not args.smoke:
+        lines += ["**Variants** (the same command with the flag named; success per round 0, 1, ..., then the "
+                  "random-data baseline):", ""]
+        for k, rows in found.items():
+            rs = [r for r in rows if r["kind"] == "round"]
+            base = [r for r in rows if r["kind"] == "baseline"]
+            lines.append(f"- {variants[k]}: {_rounds_text(rs)}"
+                         + (f"; random data {base[0]['successes']}/{base[0]['runs']}" if base else "") + ".")
+        lines.append("")
     with open(os.path.join(args.out, f"{name}.md"), "w") as f:
         f.write("\n".join(lines))
     print("\n".join(lines))
