@@ -41,6 +41,8 @@ its centre and the box at rest at the goal; ``R`` on ``u``; terminal ``QN_FACTOR
   contact offset ``p_y`` on a 1 cm grid, the nearest to the current ``p_y`` used;
 - ``C3 (defaults), ...``: the same three models with C3's default projection (``"auto"``) and
   the actuator's limit as ``u_bounds`` (inside the QP step) instead of ``"c3+"`` and clipping;
+  ``C3 (defaults, 20 ADMM iterations), ...``: the learned models so, with 20 ADMM iterations
+  (the one setting changed, after probes on starts 0 to 7);
 - ``QP MPC, affine model``: linear MPC on the least-squares affine model with the pose appended
   (CVXPY, Clarabel, ``|u| <= 10`` as a constraint, horizon 10);
 - ``MPPI, MLP model``: sampling MPC (:class:`MPPI`) on a tanh MLP of the dynamics
@@ -145,14 +147,16 @@ def _build_c3(m: dict[str, np.ndarray], **kw: Any) -> Any:
     return C3(as_lcs(augment(m)), HORIZON, **opts)
 
 
-def _c3_learned(name: str, defaults: bool = False) -> Callable[[dict[str, Any]], Any]:
+def _c3_learned(name: str, defaults: bool = False, admm_iterations: int = 10) -> Callable[[dict[str, Any]], Any]:
     """C3 on a learned model: ``"c3+"`` as tuned on the violation-loss model, or (``defaults``) the
-    package's default projection with the actuator's limit as ``u_bounds``."""
+    package's default projection with the actuator's limit as ``u_bounds`` (and
+    ``admm_iterations``)."""
     def make(ctx: dict[str, Any]) -> Any:
-        key = ("c3", name, defaults)
+        key = ("c3", name, defaults, admm_iterations)
         if key not in ctx["cache"]:
             m = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz")).to_matrices()
-            kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX)} if defaults else {}
+            kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX),
+                                  "admm_iterations": admm_iterations} if defaults else {}
             ctx["cache"][key] = [_build_c3({k: np.asarray(v) for k, v in m.items()}, R=list(C3_LEARNED_R), **kw)]
         return C3Controller(ctx["cache"][key])
     return make
@@ -261,6 +265,8 @@ CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "C3 (defaults), learned LCS (violation loss)": _c3_learned("violation_n20000", defaults=True),
     "C3 (defaults), learned LCS (prediction loss)": _c3_learned("prediction_n20000", defaults=True),
     "C3 (defaults), hand-written LCS": lambda ctx: _c3_hand(ctx, defaults=True),
+    "C3 (defaults, 20 ADMM iterations), learned LCS (violation loss)": _c3_learned("violation_n20000", True, 20),
+    "C3 (defaults, 20 ADMM iterations), learned LCS (prediction loss)": _c3_learned("prediction_n20000", True, 20),
     "QP MPC, affine model": _qp_affine,
     "MPPI, MLP model": _mppi_mlp,
 }
