@@ -324,3 +324,27 @@ def test_bounded_inputs_on_the_fast_path_plan_as_the_declared_problem(cartpole, 
         assert float(a.u.abs().max()) <= 0.6 * peak + 1e-9
         for name in ("x", "u", "lam"):
             assert torch.allclose(getattr(a, name), getattr(b, name), rtol=0, atol=1e-6), name
+
+
+def test_penalize_input_change_measures_the_inputs_from_the_previous_plan(cartpole):
+    """With penalize_input_change the input cost is (u_k - u_ref_k)^T R (u_k - u_ref_k): a large R
+    pins the plan to the reference (the previous plan shifted by one step, as ctrl(x) uses it);
+    without the option a reference is ignored."""
+    P = cartpole
+    x0 = np.array([0.1, -0.2, 0.2, -0.1])
+    ref = np.linspace(-1.0, 1.0, P.horizon)[:, None]
+    G, U = P.weights["c3+"]
+    pinned = C3(P.model, P.horizon, Q=P.Q, R=[1e6], QN=np.diag(P.Q), G=G, U=U, penalize_input_change=True,
+                gap_tol=None)
+    assert torch.allclose(pinned.solve(x0, u_ref=ref).u, torch.as_tensor(ref), atol=1e-3)
+    plain = controller(P, "auto")
+    assert torch.equal(plain.solve(x0, u_ref=ref).u, plain.solve(x0).u)
+    ctrl = controller(P, "auto", penalize_input_change=True)
+    ctrl(x0)
+    first = ctrl.last_plan
+    shifted = torch.cat([first.u[1:], first.u[-1:]])
+    x1 = P.model.step(x0, first.u[0].numpy())[0].detach()
+    assert torch.equal(ctrl.solve(x1, warm_start=first, u_ref=shifted.numpy()).u,
+                       ctrl.solve(x1, warm_start=first, u_ref=first).u)
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"u_ref: expected a Plan or finite inputs of shape \(5, 1\)"):
+        ctrl.solve(x0, u_ref=np.zeros(3))

@@ -247,3 +247,28 @@ def test_weights_of_the_wrong_shape_are_named():
         C3([model, model], 3, Q=np.ones(4), R=np.ones(2))
     with pytest.raises(lcs_cvx.LCSInputError, match="G, R: the QP step has no unique solution"):
         C3(model, 3, Q=np.ones(4), R=np.zeros(2), G=np.zeros(12))
+
+
+@pytest.mark.parametrize("bounds", [{}, {"u": (-0.3, 0.3)}], ids=["free", "bounded"])
+def test_an_input_reference_enters_both_paths_alike(bounds):
+    """The input cost (u - u_ref)^T R (u - u_ref) (penalize_input_change): the fast step, with and
+    without bounds, against the declared problem, at every level; u_ref = 0 is the plain cost."""
+    model = random_model(n_lam=2, seed=5)
+    hz, lay, fast, slow = bounded_pair(model, 4, True, False, bounds)
+    rng = np.random.default_rng(4)
+    B = 4
+    x0, xd = 0.3 * rng.normal(size=(B, 4)), 0.2 * rng.normal(size=(B, 5, 4))
+    target, u_ref = rng.normal(size=(B, 4, lay.n_z)), rng.normal(size=(B, 4, 2))
+    xp = array_ops(torch.zeros(0), "numpy")
+    step_f, step_s = fast.bind(xp, x0, None, xd, u_ref), slow.bind(xp, x0, None, xd, u_ref)
+    plain = fast.bind(xp, x0, None, xd)
+    zero = fast.bind(xp, x0, None, xd, np.zeros((B, 4, 2)))
+    moved = 0.0
+    for level in range(11):
+        z_f, xN_f, bad_f = step_f(level, target)
+        z_s, xN_s, bad_s = step_s(level, target)
+        assert bad_f == bad_s == 0
+        assert np.abs(z_f - z_s).max() <= 1e-6 * (1 + np.abs(z_s).max())
+        assert np.array_equal(plain(level, target)[0], zero(level, target)[0])  # the same operations
+        moved = max(moved, float(np.abs(z_f - plain(level, target)[0]).max()))
+    assert moved > 1e-3  # the reference changes the plan

@@ -162,6 +162,11 @@ class C3:
             C3 does), so a learned model whose ``E`` is merely small needs ``fix_lam0=True``.
         arrays: the array back-end of the solve (``"auto"``: NumPy for CPU tensors, torch on
             other devices; ``"torch"`` runs torch on the CPU too).
+        penalize_input_change: the input cost ``(u_k - u^prev_k)^T R (u_k - u^prev_k)`` with
+            ``u^prev`` the previous plan's inputs shifted by one step (``ctrl(x0)`` after a
+            first call; ``solve(..., u_ref=plan)``), instead of ``u_k^T R u_k`` (DAIRLab/c3's
+            option of that name): smoother inputs, and no pull towards ``u = 0`` where holding
+            a force is needed.
         gap_tol: a :class:`lcs_cvx.PlanGapWarning` when a plan's ``gap`` passes
             ``gap_tol (1 + max_k |x_model_k|_inf)``; ``ctrl.gap_warnings`` counts those plans
             (None: no check; the gap is still in every plan).
@@ -173,7 +178,7 @@ class C3:
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
                  projection_options: dict[str, Any] | None = None, warm_start: bool = True,
                  big_m: float = 1000.0, fix_lam0: bool | None = None,
-                 arrays: str = "auto", gap_tol: float | None = 0.5):
+                 arrays: str = "auto", penalize_input_change: bool = False, gap_tol: float | None = 0.5):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
         self.horizon = Horizon.of(model, horizon)
@@ -211,6 +216,7 @@ class C3:
                                        options=projection_options)
                             for kind in (("lcp", "c3+") if projection == "auto" else (projection,))]
         self.gap_tol = None if gap_tol is None else check_positive("gap_tol", gap_tol)
+        self.penalize_input_change = bool(penalize_input_change)
         self.gap_warnings = 0
         self.warm_start = warm_start
         array_ops(torch.zeros(0), arrays)  # checks the name
@@ -253,10 +259,12 @@ class C3:
         return torch.cat([delta[:, 1:], delta[:, -1:]], dim=1)
 
     @torch.no_grad()
-    def solve(self, x0: Any, *, x_des: Any = None, warm_start: Plan | Any = None) -> Plan:
+    def solve(self, x0: Any, *, x_des: Any = None, warm_start: Plan | Any = None, u_ref: Plan | Any = None) -> Plan:
         """The plan from ``x0`` ``(n_x,)`` or a batch ``(B, n_x)``. ``warm_start``: a previous
         :class:`Plan` of the same batch size (its ``delta`` shifted by one step starts the ADMM),
-        or a starting ``delta`` of the user's ``(N, n_z)`` or ``(B, N, n_z)``.
+        or a starting ``delta`` of the user's ``(N, n_z)`` or ``(B, N, n_z)``. ``u_ref``: with
+        ``penalize_input_change``, the inputs the cost measures ``u`` from: a previous
+        :class:`Plan` (its ``u`` shifted by one step) or ``(N, n_u)`` / ``(B, N, n_u)`` (None: 0).
         With ``qp_path="fast"``, no bounds and C3+'s layout (``"auto"``, ``"lcp"``, ``"c3+"``)
         the whole solve runs on ``x0``'s device."""
         t_start = time.perf_counter()
@@ -276,12 +284,13 @@ class C3:
         mats = self._matrices.on(xp, X0)
         weights = self._weights.on(xp, X0)
         lcp = self._lcp(xp, mats)
+        u_ref_a = xp.wrap(self._input_reference(u_ref, X0).contiguous())
         t = time.perf_counter()
         lam0_a = self._lcp_at(xp, x0_a, mats) if self.fix_lam0 else None
         times = {"qp": 0.0, "projection": 0.0, "lcp": time.perf_counter() - t, "model": 0.0}
         plans, failures = [], 0
         with xp.threads():
-            qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a)
+            qp_step = self.qp.bind(xp, x0_a, lam0_a, xd_a, u_ref_a)
             for proj in self.projections:
                 out = admm(xp, qp_step, proj.bind(xp, x0_a, lcp), delta_a, self.admm_iterations,
                            self.rho_scale, last_target_is_delta=lay.with_eta)
@@ -294,7 +303,7 @@ class C3:
                 xs = rollout(x0_a, u, lam, *(mats[k] for k in "ABCd"))
                 t = time.perf_counter()
                 xm = model_rollout(x0_a, u, mats, lcp)  # the model's own forces under the plan's inputs
-                cost = plan_cost(xm, u, xd_a, weights["Q"], weights["R"], weights["QN"])
+                cost = plan_cost(xm, u - u_ref_a, xd_a, weights["Q"], weights["R"], weights["QN"])
                 times["model"] += time.perf_counter() - t
                 as_t = xp.unwrap
                 plans.append({
@@ -327,6 +336,25 @@ class C3:
                 f: getattr(plan, f)[0] for f in ("x", "u", "lam", "delta", "primal_residual", "dual_residual",
                                                  "complementarity", "x_model", "gap", "cost")})
         return plan
+
+    def _input_reference(self, u_ref: Plan | Any, X0: torch.Tensor) -> torch.Tensor:
+        """``(B, N, n_u)``: the inputs the input cost is measured from (zero unless
+        ``penalize_input_change``)."""
+        B, N, nu = X0.shape[0], self.horizon.N, self.horizon.n_u
+        if not self.penalize_input_change or u_ref is None:
+            return X0.new_zeros(B, N, nu)
+        if isinstance(u_ref, Plan):
+            u = u_ref.u if u_ref.u.dim() == 3 else u_ref.u.unsqueeze(0)
+            if u.shape[0] != B:
+                return X0.new_zeros(B, N, nu)
+            return torch.cat([u[:, 1:], u[:, -1:]], dim=1).to(X0)
+        r = torch.as_tensor(np.asarray(u_ref, dtype=np.float64)).to(X0)
+        if r.shape == (N, nu):
+            r = r.expand(B, N, nu)
+        if r.shape != (B, N, nu) or not bool(torch.isfinite(r).all()):
+            raise LCSInputError(f"u_ref: expected a Plan or finite inputs of shape ({N}, {nu}) or ({B}, {N}, {nu}), "
+                                f"received shape {tuple(r.shape)}")
+        return r
 
     @staticmethod
     def _pick(values: list[torch.Tensor], chosen: torch.Tensor) -> torch.Tensor:
@@ -375,7 +403,7 @@ class C3:
         warm-started from the previous call's plan when ``warm_start``; ``x_des``: this call's
         target (as :meth:`solve`'s; None: the controller's)."""
         prev = self.last_plan if self.warm_start else None
-        plan = self.solve(x0, x_des=x_des, warm_start=prev)
+        plan = self.solve(x0, x_des=x_des, warm_start=prev, u_ref=self.last_plan)
         self.last_plan = plan
         return plan.u[..., 0, :]
 

@@ -132,9 +132,11 @@ def _stage_matrices(horizon: Horizon, layout: Layout, Q, R, QN, G, rho: float, f
     ``f = Fp p``, equalities ``A_eq y = Bp p + b0``."""
     N, nz, nx, nl = horizon.N, layout.n_z, layout.n_x, layout.n_lam
     n_y = N * nz + nx
-    n_p = nx + (nl if fix_lam0 else 0) + N * nz + (N + 1) * nx
+    nu = layout.n_u
+    n_p = nx + (nl if fix_lam0 else 0) + N * nz + (N + 1) * nx + N * nu
     p_t = nx + (nl if fix_lam0 else 0)
     p_xd = p_t + N * nz
+    p_ur = p_xd + (N + 1) * nx
 
     def xk(k: int) -> np.ndarray:
         return np.arange(nx) + (k * nz if k < N else N * nz)
@@ -152,6 +154,7 @@ def _stage_matrices(horizon: Horizon, layout: Layout, Q, R, QN, G, rho: float, f
             break
         z = np.arange(k * nz, (k + 1) * nz)
         H[np.ix_(part(k, layout.u), part(k, layout.u))] += 2 * R[k]
+        Fp[np.ix_(part(k, layout.u), p_ur + k * nu + np.arange(nu))] -= 2 * R[k]  # (u - u_ref)^T R (u - u_ref)
         H[np.ix_(z, z)] += 2 * rho * G[k]
         Fp[np.ix_(z, p_t + k * nz + np.arange(nz))] -= 2 * rho * G[k]
     m_rows = nx + N * nx + (N * nl if layout.with_eta else 0) + (nl if fix_lam0 else 0)
@@ -191,7 +194,9 @@ def qp_problem(horizon: Horizon, layout: Layout, Q: np.ndarray, R: np.ndarray, Q
                ) -> tuple[cp.Problem, dict[str, cp.Parameter], dict[str, cp.Variable]]:
     """The QP step declared once (DPP). Parameters: ``x0 (n_x)``, ``lam0 (n_lam)`` (when
     ``fix_lam0``), ``sqrt_rho`` (scalar), ``target (N, n_z)`` holding ``sqrt(rho) L_k t_k`` with
-    ``L_k^T L_k = G_k``, ``x_des (N + 1, n_x)`` holding ``M_k x^d_k`` with ``M_k^T M_k = Q_k``.
+    ``L_k^T L_k = G_k``, ``x_des (N + 1, n_x)`` holding ``M_k x^d_k`` with ``M_k^T M_k = Q_k``,
+    ``u_ref (N, n_u)`` holding ``S_k u^ref_k`` with ``S_k^T S_k = R_k`` (the input cost is
+    ``(u_k - u^ref_k)^T R_k (u_k - u^ref_k)``; ``u^ref = 0`` by default).
     Variables ``x (N + 1, n_x)``, ``lam``, ``u`` (and ``eta``) ``(N, .)``."""
     N, nx, nl, nu = horizon.N, layout.n_x, layout.n_lam, layout.n_u
     x = cp.Variable((N + 1, nx), name="x")
@@ -203,6 +208,7 @@ def qp_problem(horizon: Horizon, layout: Layout, Q: np.ndarray, R: np.ndarray, Q
         "sqrt_rho": cp.Parameter(nonneg=True, name="sqrt_rho"),
         "target": cp.Parameter((N, layout.n_z), name="target"),
         "x_des": cp.Parameter((N + 1, nx), name="x_des"),
+        "u_ref": cp.Parameter((N, nu), name="u_ref"),
     }
     LG, LQ, LR, LQN = psd_factor(G), psd_factor(Q), psd_factor(R), psd_factor(QN)
     cost = 0
@@ -212,7 +218,7 @@ def qp_problem(horizon: Horizon, layout: Layout, Q: np.ndarray, R: np.ndarray, Q
         if eta is not None:
             parts.append(eta[k])
         z = cp.hstack(parts)
-        cost += cp.sum_squares(LQ[k] @ x[k] - params["x_des"][k]) + cp.sum_squares(LR[k] @ u[k])
+        cost += cp.sum_squares(LQ[k] @ x[k] - params["x_des"][k]) + cp.sum_squares(LR[k] @ u[k] - params["u_ref"][k])
         cost += cp.sum_squares(params["sqrt_rho"] * (LG[k] @ z) - params["target"][k])
         nxt = horizon.A[k] @ x[k] + horizon.B[k] @ u[k] + horizon.d[k]
         if nl:
@@ -262,6 +268,7 @@ class QPStep:
         self.fix_lam0 = fix_lam0
         self.rho_levels = np.asarray(rho_levels, dtype=np.float64)
         self._LG = psd_factor(G)
+        self._LR = psd_factor(R)
         self._LQ = psd_factor(np.concatenate([Q, QN[None]]))
         if path == "fast":
             # BLAS threads as torch's: a dense solve per level, a few milliseconds each
@@ -310,17 +317,20 @@ class QPStep:
         n_p = Fp.shape[1]
         return sol[:n_y, :n_p], sol[:n_y, n_p], sol[:n_y, n_p + 1:]
 
-    def bind(self, xp: Any, x0: Any, lam0: Any, x_des: Any) -> Callable[[int, Any], tuple[Any, Any, int]]:
+    def bind(self, xp: Any, x0: Any, lam0: Any, x_des: Any, u_ref: Any = None) -> Callable[[int, Any], tuple[Any, Any, int]]:
         """The QP step of one solve, ``step(level, target) -> (z (B, N, n_z), x_N (B, n_x),
         failures)`` at ``rho_levels[level]``, for ``x0 (B, n_x)``, the fixed ``lam0 (B, n_lam)`` (or
-        None) and ``x_des (B, N + 1, n_x)``, on the arrays of ``xp``. ``failures``: the initial
-        states whose QP failed (``"cvxpy"`` path; they get C3's fallback plan, ``x_k = x0`` and
-        ``lam = u = 0``)."""
-        if self.path == "cvxpy":
-            return lambda level, target: self._solve_cvxpy(level, x0, lam0, target, x_des)
-        Yf, Yt, y0 = self._maps.on(xp, x0).values()
+        None), ``x_des (B, N + 1, n_x)`` and the input reference ``u_ref (B, N, n_u)`` (None: 0),
+        on the arrays of ``xp``. ``failures``: the initial states whose QP failed (they get C3's
+        fallback plan, ``x_k = x0`` and ``lam = u = 0``)."""
         B = x0.shape[0]
-        p_fixed = xp.concat([x0] + ([lam0] if self.fix_lam0 else []) + [x_des.reshape(B, -1)])
+        if u_ref is None:
+            like = xp.unwrap(x0)
+            u_ref = xp.wrap(torch.zeros(B, self.horizon.N, self.layout.n_u, dtype=like.dtype, device=like.device))
+        if self.path == "cvxpy":
+            return lambda level, target: self._solve_cvxpy(level, x0, lam0, target, x_des, u_ref)
+        Yf, Yt, y0 = self._maps.on(xp, x0).values()
+        p_fixed = xp.concat([x0] + ([lam0] if self.fix_lam0 else []) + [x_des.reshape(B, -1), u_ref.reshape(B, -1)])
         base = p_fixed @ Yf + y0[:, None, :]  # (levels, B, n_y): the fixed data of every level at once
         if not self._box[0].size:
             return lambda level, target: (*affine_qp(base[level], Yt[level], target), 0)
@@ -337,7 +347,7 @@ class QPStep:
         return bounded
 
     def _solve_cvxpy(self, level: int, x0: np.ndarray, lam0: np.ndarray | None, target: np.ndarray,
-                     x_des: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+                     x_des: np.ndarray, u_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """The ``"cvxpy"`` path, one declared problem re-solved per initial state (NumPy arrays)."""
         B, N, nz = target.shape
         s = float(np.sqrt(self.rho_levels[level]))
@@ -351,6 +361,7 @@ class QPStep:
             self.params["sqrt_rho"].value = s
             self.params["target"].value = s * np.einsum("kij,kj->ki", self._LG, t_np[b])
             self.params["x_des"].value = np.einsum("kij,kj->ki", self._LQ, xd_np[b])
+            self.params["u_ref"].value = np.einsum("kij,kj->ki", self._LR, np.asarray(u_ref[b]).reshape(N, -1))
             if self.fix_lam0:
                 self.params["lam0"].value = lam0[b]
             try:
