@@ -60,7 +60,8 @@ class Dataset:
     # -- constructors -------------------------------------------------------------------
     @classmethod
     def from_arrays(cls, x: Any, u: Any, x_next: Any, lam: Any | None = None) -> Dataset:
-        """Build a dataset from a user's arrays (validated: 2-D, matching rows, finite)."""
+        """Build a dataset from a user's arrays (validated: 2-D, matching rows, finite); tensors
+        are taken without their autograd history."""
         x_arr = np.asarray(x, dtype=np.float64) if not isinstance(x, torch.Tensor) else x
         if x_arr.ndim != 2:
             raise LCSInputError(f"x: expected shape (N, n_x), received shape {tuple(x_arr.shape)}")
@@ -78,8 +79,10 @@ class Dataset:
             lam_arr = np.asarray(lam, dtype=np.float64) if not isinstance(lam, torch.Tensor) else lam
             if lam_arr.ndim != 2:
                 raise LCSInputError(f"lam: expected shape ({N}, n_lam), received {tuple(lam_arr.shape)}")
-            lam_t = as_batch("lam", lam_arr, lam_arr.shape[1], batch=N)
-        return cls(x_t, u_t, xn_t, lam_t)
+            lam_t = as_batch("lam", lam_arr, lam_arr.shape[1], batch=N).detach()
+        # data, not a graph: a tensor computed by a model (say, x_next = model.step(x, u)) would
+        # otherwise keep its autograd graph alive and refuse .numpy()
+        return cls(x_t.detach(), u_t.detach(), xn_t.detach(), lam_t)
 
     @classmethod
     def load(cls, path: str | os.PathLike, columns: Mapping[str, Sequence[str]] | None = None) -> Dataset:

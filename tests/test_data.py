@@ -314,3 +314,15 @@ def test_relative_error_float32_model(truth, data):
     m32 = LCS.from_matrices(**truth.to_matrices(), dtype=torch.float32)
     e = relative_error(m32, data)
     assert 0 <= e <= 1e-10
+
+
+def test_from_arrays_takes_tensors_without_their_autograd_history(truth):
+    """A Dataset built from a model's own predictions holds data, not a graph: no grad, and
+    .numpy() works on every column."""
+    x = torch.randn(5, truth.n_x, dtype=torch.float64)
+    u = torch.randn(5, truth.n_u, dtype=torch.float64)
+    x_next = LCS(truth.n_x, truth.n_u, truth.n_lam, seed=0).step(x, u)  # a learnable model's prediction
+    assert x_next.requires_grad
+    data = lcs_cvx.Dataset.from_arrays(x, u, x_next)
+    assert not any(t.requires_grad for t in (data.x, data.u, data.x_next))
+    assert np.array_equal(data.x_next.numpy(), x_next.detach().numpy())
