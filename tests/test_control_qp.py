@@ -27,13 +27,19 @@ def random_model(n_x=4, n_u=2, n_lam=3, seed=0, E_zero=False):
         F=M @ M.T + np.eye(n_lam), c=rng.standard_normal(n_lam))
 
 
-def qp_pair(model, N, with_eta, fix_lam0, seed=0):
+def horizon_weights(model, N, with_eta, seed):
+    """The horizon, layout and random stage weights ``Q``, ``R`` (and ``QN`` from the Riccati
+    equation) of a QP-step test, and its generator for the rest."""
     hz = Horizon.of(model, N)
     lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta)
     rng = np.random.default_rng(seed)
     Q = weight_matrix("Q", rng.uniform(0.5, 2, hz.n_x), hz.n_x, N)
     R = weight_matrix("R", rng.uniform(0.5, 2, hz.n_u), hz.n_u, N)
-    QN = dare(hz.A[0], hz.B[0], Q[0], R[0])
+    return hz, lay, Q, R, dare(hz.A[0], hz.B[0], Q[0], R[0]), rng
+
+
+def qp_pair(model, N, with_eta, fix_lam0, seed=0):
+    hz, lay, Q, R, QN, rng = horizon_weights(model, N, with_eta, seed)
     Gm = rng.standard_normal((lay.n_z, lay.n_z))
     G = weight_matrix("G", Gm @ Gm.T / lay.n_z + 0.1 * np.eye(lay.n_z), lay.n_z, N)
     rho = 2.0 ** np.arange(3)
@@ -144,12 +150,7 @@ def test_dare_solves_the_riccati_equation():
 
 def bounded_pair(model, N, with_eta, fix_lam0, bounds, seed=0):
     """The fast and the declared QP step with the same weights and box ``bounds``."""
-    hz = Horizon.of(model, N)
-    lay = Layout(hz.n_x, hz.n_lam, hz.n_u, with_eta)
-    rng = np.random.default_rng(seed)
-    Q = weight_matrix("Q", rng.uniform(0.5, 2, hz.n_x), hz.n_x, N)
-    R = weight_matrix("R", rng.uniform(0.5, 2, hz.n_u), hz.n_u, N)
-    QN = dare(hz.A[0], hz.B[0], Q[0], R[0])
+    hz, lay, Q, R, QN, rng = horizon_weights(model, N, with_eta, seed)
     G = weight_matrix("G", rng.uniform(0.1, 1, lay.n_z), lay.n_z, N)
     rho = 2.0 ** np.arange(11)  # C3's default levels, up to 1024
     box = Bounds.of(lay, **bounds)

@@ -18,7 +18,7 @@ from .._checks import SolverError
 from .box_qp import box_qp
 
 __all__ = ["active_set_maps", "admm", "affine_qp", "bounded_affine_qp", "model_rollout", "plan_cost",
-           "project_active_sets", "project_c3plus", "project_lcp", "step_values", "rollout", "violation"]
+           "project_active_sets", "project_c3plus", "project_lcp", "step_products", "step_values", "rollout", "violation"]
 
 
 def affine_qp(base: Any, Yt: Any, target: Any) -> tuple[Any, Any]:
@@ -59,11 +59,9 @@ def violation(xp: Any, xs: list[Any], u: Any, lam: Any, D: Any, E: Any, F: Any, 
     """``max_k max_i |min(lam, D_k x_k + E_k u_k + F_k lam_k + c_k)_i|`` per plan, ``(B, 1)``:
     the steps as the batch of one product each (``(N, B, .)``)."""
     B, N = u.shape[0], u.shape[1]
-    steps = lambda a: a.swapaxes(0, 1)  # noqa: E731  (B, N, m) <-> (N, B, m)
     x = xp.concat([v.reshape(B, 1, -1) for v in xs[:N]]).reshape(B, N, -1)
-    eta = (steps(x) @ D.swapaxes(1, 2) + steps(u) @ E.swapaxes(1, 2) + steps(lam) @ F.swapaxes(1, 2)
-           + c[:, None, :])
-    return xp.amax_abs(xp.minimum(steps(lam), eta).swapaxes(0, 1).reshape(B, -1))
+    eta = step_values(x, u, D, E, c) + step_products(lam, F)
+    return xp.amax_abs(xp.minimum(lam, eta).reshape(B, -1))
 
 
 def project_c3plus(xp: Any, c: Any, lam: slice, eta: slice, sqrt_w_lam: Any, sqrt_w_eta: Any) -> Any:
@@ -85,6 +83,11 @@ def step_values(x: Any, u: Any, D: Any, E: Any, c: Any) -> Any:
     return steps(steps(x) @ D.swapaxes(1, 2) + steps(u) @ E.swapaxes(1, 2) + c[:, None, :])
 
 
+def step_products(lam: Any, F: Any) -> Any:
+    """``F_k lam_k`` ``(B, N, m)`` for ``lam (B, N, n)`` and ``F (N, m, n)``."""
+    return (lam.swapaxes(0, 1) @ F.swapaxes(1, 2)).swapaxes(0, 1)
+
+
 def project_lcp(xp: Any, c: Any, layout: Any, D: Any, E: Any, F: Any, cc: Any, lcp: Callable[[int, Any], Any],
                 time_invariant: bool) -> Any:
     """``x_k``, ``u_k`` of ``c (B, N, n_z)`` kept, ``lam_k = LCP(F_k, q_k)`` with
@@ -101,7 +104,7 @@ def project_lcp(xp: Any, c: Any, layout: Any, D: Any, E: Any, F: Any, cc: Any, l
             lam[:, k] = lcp(k, xp.contiguous(q[:, k]))
     out = xp.copy(c)
     out[..., layout.lam] = lam
-    out[..., layout.eta] = q + (lam.swapaxes(0, 1) @ F.swapaxes(1, 2)).swapaxes(0, 1)
+    out[..., layout.eta] = q + step_products(lam, F)
     return out
 
 

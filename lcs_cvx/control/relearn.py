@@ -166,7 +166,7 @@ def relearn(model: LCS, data: Dataset, plant: Callable[[np.ndarray, np.ndarray],
         control_s = time.perf_counter() - t0
         new = Dataset.from_arrays(np.concatenate([x[:-1] for x in xs_all]), np.concatenate(us_all),
                                   np.concatenate([x[1:] for x in xs_all]))
-        data = Dataset.from_arrays(*(torch.cat([getattr(data, k).detach().cpu(), getattr(new, k).to(getattr(data, k))])
+        data = Dataset.from_arrays(*(torch.cat([getattr(data, k), getattr(new, k).to(getattr(data, k))])
                                      for k in ("x", "u", "x_next")))
         fit_s = 0.0
         if r < rounds:

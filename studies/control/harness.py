@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["Timed", "read_records", "run_units", "MPPI"]
+__all__ = ["Timed", "plan_medians", "read_records", "run_units", "MPPI"]
 
 
 class Timed:
@@ -53,6 +53,13 @@ class Timed:
         if gap is not None:
             out["plan_gap_median"] = float(np.median(gap))
         return out
+
+
+def plan_medians(records: list[dict[str, Any]]) -> dict[str, float]:
+    """The median over runs of the plans' complementarity violation and gap to the model
+    (``"violation"``, ``"gap"``; NaN for a controller whose runs do not record them)."""
+    return {key: float(np.median([r[f"plan_{key}_median"] for r in records]))
+            if f"plan_{key}_median" in records[0] else float("nan") for key in ("violation", "gap")}
 
 
 def read_records(path: str, steps: int) -> dict[tuple[str, int], dict[str, Any]]:

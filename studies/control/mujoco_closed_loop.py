@@ -355,10 +355,7 @@ def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict
                   "final_abs_x_c": float(np.median([r["final_abs_x_c"] for r in rs])),
                   "final_error": float(np.median([r["final_error"] for r in rs])),
                   "ms": float(np.median([r["ms_per_step_median"] for r in rs])),
-                  "violation": float(np.median([r["plan_violation_median"] for r in rs]))
-                  if "plan_violation_median" in rs[0] else float("nan"),
-                  "gap": float(np.median([r["plan_gap_median"] for r in rs]))
-                  if "plan_gap_median" in rs[0] else float("nan")}
+                  **harness.plan_medians(rs)}
     return out
 
 

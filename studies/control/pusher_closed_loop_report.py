@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from . import harness
 from .pusher_task import (
     C3_LEARNED_R,
     DATE,
@@ -38,10 +39,7 @@ def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict
                   "pos": float(np.median([r["final_position_error"] for r in rs])),
                   "head": float(np.median([r["final_heading_error"] for r in rs])),
                   "ms": float(np.median([r["ms_per_step_median"] for r in rs])),
-                  "violation": float(np.median([r["plan_violation_median"] for r in rs]))
-                  if "plan_violation_median" in rs[0] else float("nan"),
-                  "gap": float(np.median([r["plan_gap_median"] for r in rs]))
-                  if "plan_gap_median" in rs[0] else float("nan")}
+                  **harness.plan_medians(rs)}
     return out
 
 
