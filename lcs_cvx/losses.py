@@ -67,6 +67,21 @@ DEGENERATE_TOL = 1e-9
 #: Pivoting sweeps of the fast paths before a sample falls back to a reference solver.
 MAX_ITER = 1000
 
+#: The dtype the fast violation loss computes in, whatever the model's. Its gradient in ``D, E,
+#: c, G, H`` is ``w / (gamma eps)`` with ``w = F lam + q - phi``, a cancellation down to the
+#: size of ``gamma eps`` (1e-6 at the defaults): in float32 (round-off 1.2e-7 of ``|q|``) those
+#: gradients come out wrong by 100 % and more, and pivoting cannot certify a candidate to its
+#: tolerance (1e-11), so samples run to ``MAX_ITER`` and fall back. float32 models and data are
+#: promoted to float64 and the loss and solution returned in their dtype (the gradient reaches
+#: the float32 parameters through autograd's casts).
+VIOLATION_DTYPE = torch.float64
+
+
+def promoted(params: list[torch.Tensor], *data: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """``params`` and ``data`` in :data:`VIOLATION_DTYPE` (differentiable casts; the tensors
+    themselves where they are float64 already)."""
+    return ([p.to(VIOLATION_DTYPE) for p in params], [t.to(VIOLATION_DTYPE) for t in data])
+
 
 @dataclass(frozen=True)
 class LossInfo:
@@ -194,7 +209,8 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
             return LossInfo(loss, lam, phi=torch.from_numpy(phi), iterations=sweeps,
                             max_residual=worst, active=torch.from_numpy(active))
     xp = array_ops(x, arrays)
-    params = [getattr(model, k) for k in PARAMETER_NAMES]
+    dtype = x.dtype
+    params, (x, u, x_next) = promoted([getattr(model, k) for k in PARAMETER_NAMES], x, u, x_next)
     with xp.threads():
         b = kernel.batch(xp, params, x, u, x_next, stiffness)
         normal = kernel_violation.normal_equations(xp, b.C, b.F, b.q, b.r, gamma, eps)
@@ -209,7 +225,7 @@ def violation_fast(model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.T
         phi = kernel_violation.phi(xp, lam, b.F, b.q, gamma)
         loss = EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
     worst = float(sol.residual.max()) if residual else None
-    return LossInfo(loss, sol.lam, phi=xp.unwrap(phi), iterations=sol.iterations,
+    return LossInfo(loss.to(dtype), sol.lam.to(dtype), phi=xp.unwrap(phi).to(dtype), iterations=sol.iterations,
                     n_fallback=sol.n_fallback, max_residual=worst,
                     fallback_residual=sol.fallback_residual, active=sol.active)
 
@@ -319,7 +335,10 @@ def violation_loss(
             set.
 
     Returns:
-        Scalar tensor; its gradients w.r.t. the model's parameters are Lemma 3's.
+        Scalar tensor of the model's dtype; its gradients w.r.t. the model's parameters are
+        Lemma 3's. The fast path computes a float32 model's loss in float64
+        (:data:`VIOLATION_DTYPE`: the gradient in ``D, E, c, G, H`` cancels below float32's
+        resolution).
     """
     return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, False, threads).loss
 

@@ -224,7 +224,8 @@ def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: 
         return StackedInfo(loss, torch.stack([torch.from_numpy(out[4]) for out in outs]), [0] * K,
                            [0.0] * K)
     xp = array_ops(x, arrays)
-    params = [getattr(ens, k) for k in PARAMETER_NAMES]
+    dtype = x.dtype
+    params, (x, u, x_next) = _losses.promoted([getattr(ens, k) for k in PARAMETER_NAMES], x, u, x_next)
     with xp.threads():
         b = kernel.batch(xp, params, x, u, x_next, xp.wrap(ens.stiffness)[:, None, None])
         normal = kernel_violation.normal_equations(xp, b.C, b.F, b.q, b.r, gamma, eps)
@@ -249,7 +250,7 @@ def violation_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: 
         lam = xp.wrap(pivoted.lam).reshape(K, B, n)
         phi = kernel_violation.phi(xp, lam, b.F, b.q, gamma)
         loss = EnvelopeLoss.apply(b, lam, phi, gamma, eps, *params)
-    return StackedInfo(loss, pivoted.active.reshape(K, B, 2 * n), n_fb, worst)
+    return StackedInfo(loss.to(dtype), pivoted.active.reshape(K, B, 2 * n), n_fb, worst)
 
 
 def prediction_losses(ens: StackedLCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,

@@ -58,7 +58,8 @@ def violation_value_and_grad(model: Any, x: Any, u: Any, x_next: Any, gamma: flo
     the numbers of ``violation_loss(...).backward()``, to round-off. One model's float64 CPU
     tensors run the compiled kernel (:mod:`lcs_cvx._kernels.compiled`, solve, loss and gradient
     in one call); anything else (other dtypes and devices, inputs to convert) the same loss
-    through autograd. ``threads``: as :func:`violation_loss`'s.
+    through autograd, a float32 model's computed in float64 and returned in float32
+    (:data:`lcs_cvx.losses.VIOLATION_DTYPE`). ``threads``: as :func:`violation_loss`'s.
     """
     check_positive("eps", eps)
     check_positive("gamma", gamma)

@@ -107,19 +107,24 @@ def test_best_recipe_runs_on_cuda(monkeypatch):
 
 
 @needs_cuda
-def test_c3_plans_on_cuda_as_on_the_cpu():
-    """The fast c3+ path on CUDA tensors: the whole solve on the GPU, the plans of the CPU."""
+@pytest.mark.parametrize("projection", ["c3+", "auto"])
+def test_c3_plans_on_cuda_as_on_the_cpu(projection):
+    """C3's fast path on CUDA tensors (the default ``"auto"``, which runs the ``"lcp"``
+    projection too, and ``"c3+"``): the whole solve on the GPU, the plans of the CPU. Plans of
+    ``"c3+"`` that disagree with the model are this test's data, not its subject (``gap_tol``
+    off)."""
     import numpy as np
 
     from lcs_cvx.control import C3, c3_cartpole
 
     P = c3_cartpole()
     G, U = P.weights["c3+"]
-    ctrl = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U, projection="c3+")
+    ctrl = C3(P.model, P.horizon, Q=P.Q, R=P.R, G=G, U=U, projection=projection, gap_tol=None)
     X0 = torch.tensor(np.random.default_rng(0).uniform(-0.4, 0.4, (64, 4)))
     cpu, gpu = ctrl.solve(X0), ctrl.solve(X0.to("cuda"))
-    assert gpu.u.device.type == "cuda"
+    assert gpu.u.device.type == "cuda" and gpu.x_model.device.type == "cuda"
     assert torch.allclose(gpu.u.cpu(), cpu.u, rtol=0, atol=1e-9)
+    assert torch.allclose(gpu.cost.cpu(), cpu.cost, rtol=1e-9, atol=1e-12)
 
 
 def test_the_affine_reference_steps_on_the_device_of_its_states():
@@ -194,3 +199,40 @@ def test_select_n_lam_with_data_on_cuda():
                                 make_model=lambda n: lcs_cvx.LCS(2, 1, n, seed=0).to("cuda"))
     assert traj.model.device.type == "cuda" and math.isfinite(traj.table[0]["validation_error"])
     print("cuda select_n_lam:", [(r["n_lam"], r["validation_error"]) for r in selection.table])
+
+
+@needs_cuda
+def test_fit_draws_and_warm_starts_on_the_data_device_as_on_the_cpu(tmp_path, monkeypatch):
+    """A CUDA fit keeps its epoch permutation and warm-start tables on the GPU (no copy through
+    the host per step), draws the minibatches of a CPU fit (the permutation comes from the CPU
+    generator), ends where the CPU fit ends (to round-off), and resumes from its checkpoint;
+    ``fit_ensemble`` likewise."""
+    from lcs_cvx.train.state import TrainState
+
+    seen_devices: set[str] = set()
+    real = TrainState.remember
+
+    def spy(self, idx, active):
+        real(self, idx, active)
+        seen_devices.update({self.perm.device.type, self.active.device.type, self.seen.device.type})
+
+    monkeypatch.setattr(TrainState, "remember", spy)
+    truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    train = lcs_cvx.make_dataset(truth, 400, noise=1e-3, seed=1)
+    options = {"iterations": 60, "batch_size": 100, "lr": 1e-2, "progress": False}
+    cpu = lcs_cvx.LCS(2, 1, 2, seed=3)
+    lcs_cvx.fit(cpu, train, **options)
+    gpu = lcs_cvx.LCS(2, 1, 2, seed=3).to("cuda")
+    lcs_cvx.fit(gpu, train.to("cuda"), checkpoint=tmp_path / "run.ckpt", checkpoint_every=30, **options)
+    assert seen_devices == {"cpu", "cuda"}
+    for name in PARAMETER_NAMES:
+        assert torch.allclose(getattr(gpu, name).detach().cpu(), getattr(cpu, name).detach(),
+                              rtol=1e-8, atol=1e-10), name
+    again = lcs_cvx.LCS(2, 1, 2, seed=3).to("cuda")  # resumed from the finished run's checkpoint
+    lcs_cvx.fit(again, train.to("cuda"), checkpoint=tmp_path / "run.ckpt", checkpoint_every=30,
+                resume=True, **options)
+    assert again.device.type == "cuda"
+    assert all(torch.equal(getattr(again, k), getattr(gpu, k)) for k in PARAMETER_NAMES)
+    models = [lcs_cvx.LCS(2, 1, 2, seed=s).to("cuda") for s in (3, 4)]
+    results = lcs_cvx.fit_ensemble(models, [train.to("cuda")] * 2, **options)
+    assert all(math.isfinite(r.history[-1]["loss"]) for r in results)

@@ -624,3 +624,37 @@ def test_invalid_warm_start_raises():
     with pytest.raises(LCSInputError, match=r"warm_start: only the 'fast' solver uses it"):
         prediction_loss(model, data.x, data.u, data.x_next, solver="cvxpylayers",
                         warm_start=torch.zeros(n, 3, dtype=torch.bool))
+
+
+# -- float32 -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_violation_loss_of_a_float32_model_has_float64_accurate_gradients(device):
+    """A float32 model's violation loss is computed in float64 (``VIOLATION_DTYPE``) and returned
+    in float32. Computed in float32 itself, its gradient in ``D, E, c, G, H`` (``w / (gamma
+    eps)``, a cancellation to ``gamma eps``) was off by 60--1100 %, and at ``n_lam = 20`` one
+    sample of 2,000 ran to ``MAX_ITER`` and fell back to Clarabel (a FallbackWarning, an error
+    here)."""
+    from lcs_cvx.bench import perturbed
+    from lcs_cvx.stacked import StackedLCS, violation_losses
+
+    truth = lcs_cvx.random_lcs(10, 4, 20, stiffness=0.5, seed=0)
+    data = lcs_cvx.make_dataset(truth, 2000, noise=1e-2, seed=1)
+    ref = perturbed(truth, 0.05, 2)
+    value, grads = lcs_cvx.violation_value_and_grad(ref, data.x, data.u, data.x_next)
+    m32 = perturbed(truth, 0.05, 2).to(device=device, dtype=torch.float32)
+    x, u, xn = (t.to(device=device, dtype=torch.float32) for t in (data.x, data.u, data.x_next))
+    info = violation_loss_info(m32, x, u, xn)
+    info.loss.backward()
+    assert info.loss.dtype == info.lam.dtype == torch.float32 and info.n_fallback == 0
+    assert float(info.loss.detach()) == pytest.approx(float(value), rel=1e-5)
+    for name in PARAMETER_NAMES:
+        g = getattr(m32, name).grad
+        assert g.dtype == torch.float32 and g.device.type == device
+        assert rel_err(g.double().cpu(), grads[name]) <= 1e-5, name
+    # the ensembles' path (one stacked model here) promotes the same way
+    ens = StackedLCS([perturbed(truth, 0.05, 2).to(device=device, dtype=torch.float32)])
+    stacked = violation_losses(ens, x[None], u[None], xn[None], gamma=1e-2, eps=1e-4)
+    assert stacked.loss.dtype == torch.float32 and stacked.n_fallback == [0]
+    assert float(stacked.loss.detach().sum()) == pytest.approx(float(value), rel=1e-5)

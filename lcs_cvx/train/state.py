@@ -83,7 +83,7 @@ class TrainState:
                                             betas=a.betas, eps=a.adam_eps)
         self.rollout_adam = torch.optim.Adam(model.parameters(), lr=options.rollout.lr,
                                              betas=a.betas, eps=a.adam_eps)
-        self.perm = torch.randperm(len(train), generator=self.generator)
+        self.perm = self._permutation()
         self.pos = 0
         self.steps = dict.fromkeys(PHASES, 0)
         self.history: list[dict[str, Any]] = []
@@ -95,7 +95,7 @@ class TrainState:
         # the fast solver's final active sets per training sample: the warm start of the
         # sample's next visit; the loss does not depend on them, the solver's work does
         self.active: torch.Tensor | None = None
-        self.seen = torch.zeros(len(train), dtype=torch.bool)
+        self.seen = torch.zeros(len(train), dtype=torch.bool, device=self.device)
         self._views: tuple | None = None
 
     @property
@@ -104,10 +104,22 @@ class TrainState:
         return self.steps["adam"] + self.steps["refine"] + self.steps["polish"] + self.steps["rollout"]
 
     # -- data
+    @property
+    def device(self) -> torch.device:
+        """The training data's device: of the minibatch indices and the warm-start tables."""
+        return self.train.x.device
+
+    def _permutation(self) -> torch.Tensor:
+        """A random permutation of the training samples, drawn on the run's CPU generator (the
+        same numbers on every device) and held on the data's device: a GPU run's minibatches
+        and warm starts are gathered there, without a copy through the host per step."""
+        return torch.randperm(len(self.train), generator=self.generator).to(self.device)
+
     def next_batch(self, size: int) -> torch.Tensor:
-        """The indices of the next minibatch: a fresh permutation every epoch."""
+        """The indices of the next minibatch (on the data's device): a fresh permutation every
+        epoch."""
         if self.pos + size > len(self.perm):
-            self.perm = torch.randperm(len(self.train), generator=self.generator)
+            self.perm = self._permutation()
             self.pos = 0
         idx = self.perm[self.pos : self.pos + size]
         self.pos += size
@@ -143,7 +155,7 @@ class TrainState:
 
     def remember(self, idx: torch.Tensor, active: torch.Tensor | np.ndarray) -> None:
         if self.active is None:
-            self.active = torch.zeros(len(self.train), active.shape[1], dtype=torch.bool)
+            self.active = torch.zeros(len(self.train), active.shape[1], dtype=torch.bool, device=self.device)
         if isinstance(active, np.ndarray):
             rows = idx.numpy()
             table, seen = self.warm_tables()
@@ -229,11 +241,12 @@ class TrainState:
         self.polish_adam.load_state_dict(st["polish_adam"])
         self.rollout_adam.load_state_dict(st["rollout_adam"])
         self.generator.set_state(st["generator"])
-        self.perm, self.pos = st["perm"], st["pos"]
+        self.perm, self.pos = st["perm"].to(self.device), st["pos"]
         self.steps, self.history, self.damping = dict(st["steps"]), st["history"], st["damping"]
         self.best = None if st["best"] is None else (st["best"]["score"], st["best"]["params"])
         self.acc_loss, self.acc_n, self.acc_fallback, self.acc_residual = st["stretch"]
-        self.active, self.seen = st["active"], st["seen"]
+        self.active = None if st["active"] is None else st["active"].to(self.device)
+        self.seen = st["seen"].to(self.device)
         start = st["rollout_start"]
         self.rollout_start = None if start is None else (start["score"], start["params"])
         self.rollout_kept = st["rollout_kept"]
