@@ -134,8 +134,10 @@ def rollout_growth(model: Any, trajectories: Trajectories) -> float:
     """The largest ``max_t ||x_hat_t|| / max_t ||x_t||`` over ``trajectories``, each rolled out
     open loop from its first state to its end (inf when a rollout leaves the finite numbers): a
     stable model stays near 1, a diverging one grows without bound. All trajectories are stepped
-    together, the longest first (those still running at step ``t`` are a prefix)."""
-    kw = {"dtype": model.dtype, "device": model.device}
+    together, the longest first (those still running at step ``t`` are a prefix). ``model``: an
+    LCS, or anything with ``step(x, u)`` and ``dtype`` (the affine map,
+    :class:`lcs_cvx.metrics.AffineMap`: then on the trajectories' device)."""
+    kw = {"dtype": model.dtype, "device": getattr(model, "device", trajectories.xs[0].device)}
     order = sorted(range(len(trajectories)), key=lambda i: -trajectories.lengths[i])
     lengths = torch.tensor([trajectories.lengths[i] for i in order])
     top = torch.stack([trajectories.xs[i].norm(dim=-1).max() for i in order]).to(**kw)

@@ -63,6 +63,59 @@ def test_heldout_scores_of_the_lcs_and_of_the_affine_map(data):
     assert "5-step rollout error" in result.verdict and f"{result.heldout_error:.4g}" in result.verdict
 
 
+def test_the_judgement_shows_the_affine_maps_growth_and_the_per_run_spread(data):
+    """Beside the scores: the affine map's rollout growth on the same held-out runs, and each
+    held-out run's score alone (of the LCS and of the affine map), their range in the verdict."""
+    model, result = fit(data, holdout_horizon=5, holdout=0.3)
+    split = split_data(data, None, RunOptions(holdout=0.3), None)
+    affine = affine_lstsq(split.fit)
+    assert result.affine_heldout_growth == pytest.approx(rollout_growth(affine, split.holdout), rel=1e-12)
+    runs = [lcs_cvx.Trajectories([x], [u]) for x, u in zip(split.holdout.xs, split.holdout.us, strict=True)]
+    assert len(runs) == 3
+    assert result.heldout_run_errors == pytest.approx([lcs_cvx.rollout_error(model, r, 5)[5] for r in runs],
+                                                      rel=1e-12)
+    assert result.affine_heldout_run_errors == pytest.approx([affine_rollout_error(affine, r, 5) for r in runs],
+                                                             rel=1e-12)
+    lo, hi = min(result.heldout_run_errors), max(result.heldout_run_errors)
+    assert lo <= result.heldout_error <= hi  # the pooled score lies within the runs' range
+    assert f"(runs {lo:.3g}-{hi:.3g})" in result.verdict
+    assert f"affine {result.affine_heldout_growth:.3g}" in result.verdict
+    # one held-out run: no spread to show
+    one = split_data(data, None, RunOptions(holdout=0.1), None)
+    assert len(one.holdout) == 1 and one.run_scores(model) is None
+
+
+def test_a_model_whose_rollouts_grow_more_is_never_better(data):
+    """A lower held-out error does not make the LCS better when its held-out rollouts grow past
+    GROWTH_SLACK times the larger of the data's (1) and the affine map's growth; NaN growth
+    counts as growing."""
+    from lcs_cvx.train.result import GROWTH_SLACK
+
+    _, result = fit(data, iterations=20, rollout_horizon=None)
+    lower = dataclasses.replace(result, heldout_error=0.5 * result.affine_heldout_error, affine_heldout_growth=1.2)
+    assert lower.beats_affine and not lower.grows_more
+    assert "the LCS is better" in dataclasses.replace(lower, heldout_growth=GROWTH_SLACK * 1.2).verdict
+    grown = dataclasses.replace(lower, heldout_growth=GROWTH_SLACK * 1.2 * 1.01)
+    assert grown.grows_more and grown.beats_affine is False
+    assert "NOT better than the affine map (lower error, but its rollouts leave the data's range)" in grown.verdict
+    # the data's own growth (1) is the floor of the reference: an affine map that shrinks does not tighten it
+    shrinking = dataclasses.replace(lower, affine_heldout_growth=0.5, heldout_growth=1.4)
+    assert shrinking.beats_affine
+    assert dataclasses.replace(lower, heldout_growth=math.nan).beats_affine is False
+
+
+def test_affine_if_better_returns_the_affine_map_for_a_growing_model(data, monkeypatch):
+    """The driver asks the same judgement: a model whose held-out rollouts grow past the slack
+    (here made so by a stand-in growth of 100) is replaced by the affine map with
+    ``affine_if_better``, however low its error."""
+    from lcs_cvx.train.holdout import Split
+
+    monkeypatch.setattr(Split, "growth", lambda self, model: 100.0)
+    model, result = fit(data, iterations=200, affine_if_better=True)
+    assert result.grows_more and result.returned_affine and torch.count_nonzero(model.C) == 0
+    assert "DIVERGE" in result.verdict and "the affine map is returned" in result.verdict
+
+
 def test_the_verdict_says_when_rollouts_diverge(data):
     _, result = fit(data, iterations=20, rollout_horizon=None)
     grown = dataclasses.replace(result, heldout_growth=math.inf)

@@ -334,19 +334,18 @@ def fit(
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
     result = FitResult(model, history, opts, scores, elapsed(), scaling, refinement_kept=refinement_kept)
-    return _against_affine(result, split, affine_score, r.affine_if_better) if holdout is not None else result
+    return _against_affine(result, split, r.affine_if_better) if holdout is not None else result
 
 
-def _against_affine(result: FitResult, split: Split, affine_score: Callable[[], float],
-                    affine_if_better: bool) -> FitResult:
+def _against_affine(result: FitResult, split: Split, affine_if_better: bool) -> FitResult:
     """``result`` with the held-out scores of its model and of the least-squares affine map on
-    the same split (:attr:`FitResult.verdict` says which is better) and the growth of its
-    held-out rollouts; with ``affine_if_better``, when the affine map scores at least as well,
-    the affine map (as an LCS, ``C = 0``) written into the returned model, the learned one kept
-    as ``learned``."""
+    the same split, the growth of their held-out rollouts and the per-run spread
+    (:meth:`Split.judge`; :attr:`FitResult.verdict` says which is better); with
+    ``affine_if_better``, when the LCS is not better (:attr:`FitResult.beats_affine`), the
+    affine map (as an LCS, ``C = 0``) written into the returned model, the learned one kept as
+    ``learned``."""
     model = result.model
-    result = dataclasses.replace(result, heldout_error=split.score(model), affine_heldout_error=affine_score(),
-                                 heldout_growth=split.growth(model))
+    result = dataclasses.replace(result, **split.judge(model))
     if result.beats_affine or not affine_if_better:
         return result
     learned = copy.deepcopy(model)

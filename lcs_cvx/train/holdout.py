@@ -73,6 +73,38 @@ class Split:
         when the held-out part is transitions)."""
         return rollout_growth(model, self.holdout) if isinstance(self.holdout, Trajectories) else None
 
+    def run_scores(self, model: Any) -> tuple[float, ...] | None:
+        """The held-out score of ``model`` on each held-out trajectory long enough for the
+        horizon, alone (None with held-out transitions, or with fewer than two such
+        trajectories: no spread to show). ``model``: an LCS or the :attr:`affine` map."""
+        if not isinstance(self.holdout, Trajectories):
+            return None
+        runs = [i for i, T in enumerate(self.holdout.lengths) if T >= self.horizon]
+        if len(runs) < 2:
+            return None
+        scores = []
+        for i in runs:
+            one = Trajectories([self.holdout.xs[i]], [self.holdout.us[i]])
+            scores.append(affine_rollout_error(model, one, self.horizon) if isinstance(model, AffineMap)
+                          else rollout_error(model, one, self.horizon)[self.horizon])
+        return tuple(scores)
+
+    def judge(self, model: Any) -> dict[str, Any]:
+        """Everything :class:`lcs_cvx.FitResult` reports of ``model`` against the affine map on
+        the held-out part (its fields ``heldout_error``, ``affine_heldout_error``,
+        ``heldout_growth``, ``affine_heldout_growth``, ``heldout_run_errors``,
+        ``affine_heldout_run_errors``; the verdict is :attr:`lcs_cvx.FitResult.verdict`)."""
+        trajectories = isinstance(self.holdout, Trajectories)
+        return {"heldout_error": self.score(model), "affine_heldout_error": self.affine_score(),
+                "heldout_growth": self.growth(model),
+                "affine_heldout_growth": self.affine_growth() if trajectories else None,
+                "heldout_run_errors": self.run_scores(model),
+                "affine_heldout_run_errors": self.run_scores(self.affine)}
+
+    def affine_growth(self) -> float:
+        """:meth:`growth` of :attr:`affine` (its rollouts through the same whole trajectories)."""
+        return rollout_growth(self.affine, self.holdout)
+
 
 def _as_transitions(name: str, data: Any) -> Dataset:
     if isinstance(data, Trajectories):

@@ -271,9 +271,10 @@ class RunOptions:
         holdout_horizon: with :class:`lcs_cvx.Trajectories` as data, the held-out score is the
             rollout error (:func:`lcs_cvx.rollout_error`) at this horizon on the held-out
             trajectories (1: the one-step relative error).
-        affine_if_better: return the least-squares affine map as an LCS (``C = 0``) when its
-            held-out score is at most the learned LCS's (:attr:`lcs_cvx.FitResult.beats_affine`);
-            the learned model is kept in :attr:`lcs_cvx.FitResult.learned`.
+        affine_if_better: return the least-squares affine map as an LCS (``C = 0``) when the
+            learned LCS is not better (:attr:`lcs_cvx.FitResult.beats_affine`: its held-out
+            score not lower, or its held-out rollouts growing more than the data's and the
+            affine map's); the learned model is kept in :attr:`lcs_cvx.FitResult.learned`.
         normalize: learn in normalised coordinates (:class:`lcs_cvx.scaling.Scaling`: ``x``,
             ``u`` and the increment ``x' - x`` scaled by the training set's statistics) and fold
             the result back exactly into the user's units. The losses' constants, the

@@ -10,11 +10,22 @@ from ..scaling import Scaling
 from ..system import LCS
 from .options import FitOptions
 
-__all__ = ["FitResult", "lowest", "DIVERGING_GROWTH"]
+__all__ = ["FitResult", "lowest", "DIVERGING_GROWTH", "GROWTH_SLACK"]
 
 #: A held-out rollout that grows past this multiple of the largest recorded state is called
 #: diverging by :attr:`FitResult.verdict`.
 DIVERGING_GROWTH = 10.0
+
+#: The learned model's held-out rollouts "grow more" than the data's and the affine map's when
+#: their growth passes this multiple of the larger of 1 (the data's own) and the affine map's:
+#: then :attr:`FitResult.beats_affine` is False whatever the errors say (an error over short
+#: windows does not see a model that leaves the data's range over a whole run).
+GROWTH_SLACK = 1.5
+
+
+def _spread(scores: tuple[float, ...] | None) -> str:
+    """`` (runs LO-HI)``: the range of per-run held-out scores ('' without them)."""
+    return "" if not scores else f" (runs {min(scores):.3g}-{max(scores):.3g})"
 
 
 def lowest(scores: list[float]) -> int:
@@ -51,6 +62,11 @@ class FitResult:
             ||x_t||`` of the learned model's rollouts over each whole held-out trajectory
             (:func:`lcs_cvx.simulation_error.rollout_growth`: near 1 for a stable model, inf when
             a rollout overflows).
+        affine_heldout_growth: the same growth of the affine map's rollouts (None without
+            held-out trajectories).
+        heldout_run_errors, affine_heldout_run_errors: the held-out score on each held-out
+            trajectory alone, of the learned model and of the affine map (None with held-out
+            transitions or fewer than two held-out trajectories): the spread behind the score.
         learned: with ``affine_if_better`` when the affine map scored at least as well, the
             learned LCS (:attr:`model` then holds the affine map, ``C = 0``); else None.
         returned_affine: whether :attr:`model` holds the affine map.
@@ -73,14 +89,29 @@ class FitResult:
     learned: LCS | None = None
     returned_affine: bool = False
     refinement_kept: bool | None = None
+    affine_heldout_growth: float | None = None
+    heldout_run_errors: tuple[float, ...] | None = None
+    affine_heldout_run_errors: tuple[float, ...] | None = None
+
+    @property
+    def grows_more(self) -> bool | None:
+        """Whether the learned model's held-out rollouts grow more than the data's and the
+        affine map's: :attr:`heldout_growth` above :data:`GROWTH_SLACK` times the larger of 1
+        and :attr:`affine_heldout_growth` (a NaN growth counts as growing; None without held-out
+        trajectories)."""
+        if self.heldout_growth is None:
+            return None
+        reference = max(1.0, self.affine_heldout_growth or 1.0)
+        return not self.heldout_growth <= GROWTH_SLACK * reference
 
     @property
     def beats_affine(self) -> bool | None:
-        """Whether the learned model's held-out score is below the affine map's (None without
-        a held-out part)."""
+        """Whether the learned model is better than the affine map on the held-out part: its
+        score lower and its rollouts not growing more (:attr:`grows_more`); None without a
+        held-out part."""
         if self.heldout_error is None or self.affine_heldout_error is None:
             return None
-        return self.heldout_error < self.affine_heldout_error
+        return self.heldout_error < self.affine_heldout_error and not self.grows_more
 
     @property
     def verdict(self) -> str:
@@ -89,15 +120,20 @@ class FitResult:
             return "no held-out data: the learned LCS was not compared with the affine map"
         h = self.settings.run.holdout_horizon
         what = "one-step relative error" if h == 1 else f"{h}-step rollout error"
-        line = (f"held-out {what}: LCS {self.heldout_error:.4g}, affine least squares "
-                f"{self.affine_heldout_error:.4g}")
+        line = (f"held-out {what}: LCS {self.heldout_error:.4g}{_spread(self.heldout_run_errors)}, "
+                f"affine least squares {self.affine_heldout_error:.4g}{_spread(self.affine_heldout_run_errors)}")
         if self.heldout_growth is not None:
-            line += f"; largest held-out rollout growth {self.heldout_growth:.3g}"
+            line += f"; largest held-out rollout growth: LCS {self.heldout_growth:.3g}"
             if not self.heldout_growth <= DIVERGING_GROWTH:
                 line += " (its open-loop rollouts DIVERGE)"
+            if self.affine_heldout_growth is not None:
+                line += f", affine {self.affine_heldout_growth:.3g}"
         if self.beats_affine:
             return line + ": the LCS is better"
-        return line + (": the LCS is NOT better than the affine map" +
+        why = ""
+        if self.grows_more and self.heldout_error < self.affine_heldout_error:
+            why = " (lower error, but its rollouts leave the data's range)"
+        return line + (f": the LCS is NOT better than the affine map{why}" +
                        ("; the affine map is returned (affine_if_better)" if self.returned_affine
                         else "; fit(..., affine_if_better=True) returns the affine map"))
 
