@@ -6,8 +6,9 @@ the held-out scores of the learned model and of the least-squares affine map on 
 
 - ``validation`` given: it is the held-out part, ``train`` is trained on whole;
 - :class:`~lcs_cvx.Trajectories`: ``holdout`` of the trajectories, whole ones, held out (random
-  transitions of one run would leak their neighbours into validation); with one trajectory,
-  nothing;
+  transitions of one run would leak their neighbours into validation), at least
+  :data:`MIN_HELDOUT_RUNS` of five or more (a score on one run is that run's noise) and one of
+  two to four, always leaving one to train on; with one trajectory, nothing;
 - a :class:`~lcs_cvx.Dataset`: ``holdout`` of the transitions, held out with ``restarts > 1``
   only (as before trajectories were accepted).
 
@@ -32,10 +33,21 @@ from ..system import LCS
 from ..trajectories import Trajectories, rollout_error
 from .phase_options import RunOptions
 
-__all__ = ["Split", "split_data", "affine_lcs", "AUTO_ROLLOUT_HORIZON"]
+__all__ = ["Split", "split_data", "affine_lcs", "heldout_runs", "AUTO_ROLLOUT_HORIZON", "MIN_HELDOUT_RUNS"]
 
 #: The simulation-error phase's window with ``rollout_horizon="auto"`` and trajectories as data.
 AUTO_ROLLOUT_HORIZON = 10
+
+#: The fewest trajectories held out of five or more (:func:`heldout_runs`).
+MIN_HELDOUT_RUNS = 2
+
+
+def heldout_runs(count: int, holdout: float) -> int:
+    """How many of ``count >= 2`` trajectories are held out: ``round(holdout * count)``, at least
+    :data:`MIN_HELDOUT_RUNS` when that leaves three or more to train on (else at least one), and
+    at most ``count - 1``."""
+    floor = MIN_HELDOUT_RUNS if count >= MIN_HELDOUT_RUNS + 3 else 1
+    return min(max(int(round(holdout * count)), floor), count - 1)
 
 
 @dataclass(frozen=True)
@@ -132,7 +144,9 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
                             f"expected train as an lcs_cvx.Trajectories, received {type(train).__name__}")
     holdout: Dataset | Trajectories | None = validation
     if validation is None and trajectories is not None and len(trajectories) >= 2:
-        trajectories, holdout = trajectories.split(1.0 - run.holdout, seed=run.seed)
+        count = len(trajectories)
+        trajectories, holdout = trajectories.split((count - heldout_runs(count, run.holdout)) / count,
+                                                   seed=run.seed)
     elif validation is None and trajectories is None and run.restarts > 1:
         fit_all, holdout = fit_all.split(1.0 - run.holdout, seed=run.seed)
     fit = trajectories.to_transitions() if trajectories is not None else fit_all

@@ -249,8 +249,9 @@ class RunOptions:
             initialisations); the one with the lowest relative error on a held-out ``holdout``
             fraction of the data is returned.
         holdout: see ``restarts``; the fraction held out when ``restarts > 1``, and with
-            :class:`lcs_cvx.Trajectories` as data always (whole trajectories), unless
-            ``validation`` is given.
+            :class:`lcs_cvx.Trajectories` as data always (whole trajectories: at least two of
+            five or more, one of two to four, :func:`lcs_cvx.train.holdout.heldout_runs`),
+            unless ``validation`` is given.
         restart_tolerance: with ``restarts > 1``, run a further restart only while no finished
             run *succeeded*: kept its fit -- ended (after pruning and refinement) at a training
             loss at most ``restart_tolerance`` times its loss at the end of the Adam phase
