@@ -9,8 +9,10 @@ on the same data and measures each one's relative error (the paper's ``e_test``,
 
 on transitions it did not train on: a validation set, or a held-out fraction of the training
 set. Given :class:`lcs_cvx.Trajectories`, whole trajectories are held out and the held-out score
-is :func:`lcs_cvx.fit`'s (the rollout error at ``holdout_horizon``, 1 by default). :func:`choose` then applies a parsimony rule to the table ``{n: e(n)}``: the smallest
-``n`` whose error is within ``(1 + tolerance)`` of the lowest.
+is :func:`lcs_cvx.fit`'s (the rollout error at ``holdout_horizon``, 10 steps by default, relative
+to the recorded change with each coordinate scaled: :func:`lcs_cvx.simulation_error.change_error`).
+:func:`choose` then applies a parsimony rule to the table ``{n: e(n)}``: the smallest ``n``
+whose error is within ``(1 + tolerance)`` of the lowest.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from .data import Dataset
 from .metrics import relative_error
 from .system import DEFAULT_STIFFNESS, LCS
 from .train.driver import fit
+from .train.holdout import heldout_runs
 from .trajectories import Trajectories
 
 __all__ = ["Selection", "select_n_lam", "choose", "EXACT_ERROR"]
@@ -251,8 +254,12 @@ def select_n_lam(
             )
         part, held, where = train, validation, "validation set"
     elif by_trajectory:
-        part, held = train.split(1.0 - holdout, seed=seed)
-        where = f"held-out {100 * holdout:g}% of train's trajectories"
+        if len(train) < 2:
+            raise LCSInputError("train: expected at least two trajectories to hold whole ones out (or "
+                                f"validation=), received {len(train)}")
+        held_out = heldout_runs(len(train), holdout)
+        part, held = train.split((len(train) - held_out) / len(train), seed=seed)
+        where = f"{held_out} held-out trajectories of train's {len(train)}"
     else:
         part, held = train.split(1.0 - holdout, seed=seed)
         if len(part) == 0 or len(held) == 0:

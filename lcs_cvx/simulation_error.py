@@ -20,6 +20,8 @@ trains what a user of the model measures: rollouts.
 - :func:`simulation_error`: the loss of a batch of windows, differentiable in the parameters;
   in normalised coordinates (:class:`lcs_cvx.scaling.Scaling`) when a scaling is given.
 - :func:`affine_rollout_error`: :func:`lcs_cvx.rollout_error` of an affine map, the baseline.
+- :func:`change_error`: the rollout error relative to the recorded change, each coordinate
+  scaled by the spread of its one-step change: ``fit``'s held-out score on trajectories.
 - :func:`rollout_growth`: how far the rollouts of a model over whole trajectories grow.
 """
 
@@ -34,7 +36,7 @@ from .metrics import AffineMap
 from .scaling import Scaling
 from .trajectories import Trajectories
 
-__all__ = ["Windows", "simulation_error", "affine_rollout_error", "rollout_growth"]
+__all__ = ["Windows", "simulation_error", "affine_rollout_error", "change_error", "rollout_growth"]
 
 
 class Windows:
@@ -108,17 +110,23 @@ def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.T
     return total / us.shape[1]
 
 
-def _window_rollouts(step: Any, trajectories: Trajectories, horizon: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(predicted, recorded)`` states of every window of ``horizon`` steps, stacked by step
-    ``h = 1 .. H``: ``(H, W, n_x)`` each, on the device ``step`` returns."""
+def _window_rollouts(step: Any, trajectories: Trajectories, horizon: int,
+                     like: Any = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(predicted, recorded, start)`` states of every window of ``horizon`` steps, the first two
+    stacked by step ``h = 1 .. H``: ``(H, W, n_x)`` each, the starts ``(W, n_x)``, on the device
+    ``step`` returns; ``like``: a model whose dtype and device the windows are moved to first
+    (None: as recorded)."""
     w = Windows(trajectories, horizon)
     x0, us, xs = w.batch(torch.arange(len(w)))
+    if like is not None:
+        x0, us = (t.to(dtype=like.dtype, device=like.device) for t in (x0, us))
     xh, pred = x0, []
     for h in range(horizon):
         xh = step(xh, us[:, h])
         pred.append(xh)
     pred_t = torch.stack(pred)
-    return pred_t, xs.transpose(0, 1).to(dtype=pred_t.dtype, device=pred_t.device)
+    kw = {"dtype": pred_t.dtype, "device": pred_t.device}
+    return pred_t, xs.transpose(0, 1).to(**kw), x0.to(**kw)
 
 
 def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon: int) -> float:
@@ -126,8 +134,32 @@ def affine_rollout_error(affine: AffineMap, trajectories: Trajectories, horizon:
     (:func:`lcs_cvx.metrics.affine_lstsq`): ``sum ||x_hat_{s+H} - x_{s+H}||^2 / sum
     ||x_{s+H}||^2`` over the windows."""
     with torch.no_grad():
-        pred, rec = _window_rollouts(affine.step, trajectories, horizon)
+        pred, rec, _ = _window_rollouts(affine.step, trajectories, horizon)
     return float((pred[-1] - rec[-1]).pow(2).sum() / rec[-1].pow(2).sum())
+
+
+def change_error(model: Any, trajectories: Trajectories, horizon: int, scale: torch.Tensor) -> float:
+    r"""The ``horizon``-step rollout error relative to the recorded change, each coordinate
+    scaled by ``scale`` ``(n_x,)`` (the spread of its one-step change, as in the simulation-error
+    loss):
+
+    $$
+    e_H = \frac{\sum_{\text{windows}} \|(\hat x_{s+H} - x_{s+H}) / \sigma\|^2}
+               {\sum_{\text{windows}} \|(x_{s+H} - x_s) / \sigma\|^2},
+    $$
+
+    over every window of ``horizon`` steps of ``trajectories`` (:class:`Windows`), ``x_hat``
+    the open-loop rollout from the recorded ``x_s`` under the recorded inputs. Predicting no
+    motion scores 1, and every coordinate counts by its own motion: a held-out score that
+    positions and velocities both move (the relative error of :func:`lcs_cvx.rollout_error` is
+    dominated by the coordinates of largest magnitude). ``model``: an :class:`lcs_cvx.LCS` or an
+    affine map (:class:`lcs_cvx.metrics.AffineMap`)."""
+    with torch.no_grad():
+        like = model if isinstance(model, torch.nn.Module) else None
+        pred, rec, x0 = _window_rollouts(model.step, trajectories, horizon, like)
+        sigma = scale.to(dtype=pred.dtype, device=pred.device)
+        moved = ((rec[-1] - x0) / sigma).pow(2).sum()
+        return float(((pred[-1] - rec[-1]) / sigma).pow(2).sum() / moved.clamp_min(torch.finfo(pred.dtype).tiny))
 
 
 def rollout_growth(model: Any, trajectories: Trajectories) -> float:

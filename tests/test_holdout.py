@@ -16,7 +16,8 @@ from helpers import simulated_runs
 
 import lcs_cvx
 from lcs_cvx.metrics import affine_lstsq
-from lcs_cvx.simulation_error import affine_rollout_error, rollout_growth
+from lcs_cvx.scaling import Scaling
+from lcs_cvx.simulation_error import change_error, rollout_growth
 from lcs_cvx.train.holdout import split_data
 from lcs_cvx.train.phase_options import RunOptions
 
@@ -52,12 +53,15 @@ def test_whole_trajectories_are_held_out(data):
 
 
 def test_heldout_scores_of_the_lcs_and_of_the_affine_map(data):
+    """On held-out runs both are scored by the rollout error relative to the recorded change,
+    each coordinate scaled by the spread of its one-step change on the training runs."""
     model, result = fit(data, holdout_horizon=5, holdout=0.3)
     split = split_data(data, None, RunOptions(holdout=0.3), None)
-    want = lcs_cvx.rollout_error(model, split.holdout, 5)[5]
-    assert result.heldout_error == pytest.approx(want, rel=1e-12)
+    scale = Scaling.fit(split.fit).sy
+    assert result.heldout_error == pytest.approx(change_error(model, split.holdout, 5, scale), rel=1e-12)
     affine = affine_lstsq(split.fit)
-    assert result.affine_heldout_error == pytest.approx(affine_rollout_error(affine, split.holdout, 5), rel=1e-12)
+    assert result.affine_heldout_error == pytest.approx(change_error(affine, split.holdout, 5, scale), rel=1e-12)
+    assert result.heldout_score == "5-step rollout error relative to the recorded change"
     assert result.heldout_growth == pytest.approx(rollout_growth(model, split.holdout), rel=1e-12)
     assert result.beats_affine == (result.heldout_error < result.affine_heldout_error)
     assert "5-step rollout error" in result.verdict and f"{result.heldout_error:.4g}" in result.verdict
@@ -72,12 +76,11 @@ def test_the_judgement_shows_the_affine_maps_growth_and_the_per_run_spread(data)
     assert result.affine_heldout_growth == pytest.approx(rollout_growth(affine, split.holdout), rel=1e-12)
     runs = [lcs_cvx.Trajectories([x], [u]) for x, u in zip(split.holdout.xs, split.holdout.us, strict=True)]
     assert len(runs) == 3
-    assert result.heldout_run_errors == pytest.approx([lcs_cvx.rollout_error(model, r, 5)[5] for r in runs],
+    assert result.heldout_run_errors == pytest.approx([change_error(model, r, 5, split.scale) for r in runs],
                                                       rel=1e-12)
-    assert result.affine_heldout_run_errors == pytest.approx([affine_rollout_error(affine, r, 5) for r in runs],
-                                                             rel=1e-12)
+    assert result.affine_heldout_run_errors == pytest.approx(
+        [change_error(affine, r, 5, split.scale) for r in runs], rel=1e-12)
     lo, hi = min(result.heldout_run_errors), max(result.heldout_run_errors)
-    assert lo <= result.heldout_error <= hi  # the pooled score lies within the runs' range
     assert f"(runs {lo:.3g}-{hi:.3g})" in result.verdict
     assert f"affine {result.affine_heldout_growth:.3g}" in result.verdict
     # one held-out run: no spread to show
@@ -143,7 +146,7 @@ def test_affine_if_better_returns_the_affine_map_and_keeps_the_learned_model(dat
     assert torch.count_nonzero(model.C) == 0
     assert result.learned is not None and torch.count_nonzero(result.learned.C) > 0
     split = split_data(data, None, RunOptions(), None)
-    assert lcs_cvx.relative_error(model, split.holdout.to_transitions()) == pytest.approx(
+    assert change_error(model, split.holdout, split.horizon, split.scale) == pytest.approx(
         result.affine_heldout_error, rel=1e-10)
     assert "the affine map is returned" in result.verdict
     _, kept = fit(data, iterations=2)  # without the option: said, not done
@@ -162,7 +165,8 @@ def test_a_dataset_keeps_its_old_behaviour(truth):
 def test_validation_trajectories_replace_the_split(truth, data):
     val = make_trajectories(truth, 3, 25, seed=9)
     model, result = fit(data, validation=val, holdout_horizon=3)
-    assert result.heldout_error == pytest.approx(lcs_cvx.rollout_error(model, val, 3)[3], rel=1e-12)
+    scale = Scaling.fit(data.to_transitions()).sy
+    assert result.heldout_error == pytest.approx(change_error(model, val, 3, scale), rel=1e-12)
 
 
 def test_keep_best_follows_the_heldout_score_without_a_test_set(data):

@@ -142,3 +142,36 @@ def test_rollout_growth_tells_a_stable_model_from_a_diverging_one(truth):
     unstable = lcs_cvx.LCS.from_matrices(A=1.5 * np.eye(3), B=np.zeros((3, 1)), C=np.zeros((3, 2)), d=np.zeros(3),
                                          D=np.zeros((2, 3)), E=np.zeros((2, 1)), F=np.eye(2), c=np.ones(2))
     assert rollout_growth(unstable, tr) > 1e3
+
+
+def test_change_error_against_a_hand_loop_and_its_reference_points(truth):
+    """``change_error``: every window rolled out by hand; a model that predicts no motion scores
+    exactly 1 and the truth 0; each coordinate counts by its own scale (a coordinate's units
+    changed together with its scale leave the score unchanged); the affine map is scored too."""
+    from lcs_cvx.simulation_error import change_error
+
+    runs = trajectories(truth, [12, 9, 4], seed=3)
+    model = lcs_cvx.LCS(3, 1, 2, seed=5)
+    scale = torch.tensor([0.3, 2.0, 1.0], dtype=torch.float64)
+    H = 4
+    num = den = 0.0
+    with torch.no_grad():
+        for xs, us in zip(runs.xs, runs.us, strict=True):
+            for s in range(len(us) - H + 1):
+                x = xs[s:s + 1]
+                for h in range(H):
+                    x = model.step(x, us[s + h:s + h + 1])
+                num += float((((x[0] - xs[s + H]) / scale) ** 2).sum())
+                den += float((((xs[s + H] - xs[s]) / scale) ** 2).sum())
+    assert change_error(model, runs, H, scale) == pytest.approx(num / den, rel=1e-12)
+    assert change_error(truth, runs, H, scale) <= 1e-24
+    still = lcs_cvx.LCS.from_matrices(A=np.eye(3), B=np.zeros((3, 1)), C=np.zeros((3, 2)), d=np.zeros(3),
+                                      D=np.zeros((2, 3)), E=np.zeros((2, 1)), F=np.eye(2), c=np.ones(2))
+    assert change_error(still, runs, H, scale) == pytest.approx(1.0, rel=1e-12)
+    # units: position in mm (x 1000) and its scale in mm leave the score as it was
+    mm = torch.tensor([1000.0, 1.0, 1.0], dtype=torch.float64)
+    runs_mm = lcs_cvx.Trajectories([x * mm for x in runs.xs], list(runs.us))
+    affine = affine_lstsq(runs.to_transitions())
+    affine_mm = affine_lstsq(runs_mm.to_transitions())
+    assert change_error(affine_mm, runs_mm, H, scale * mm) == pytest.approx(
+        change_error(affine, runs, H, scale), rel=1e-8)

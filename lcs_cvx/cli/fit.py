@@ -82,7 +82,8 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
                    help="steps of that refinement (default: 300)")
     p.add_argument("--holdout-horizon", type=positive_int, default=None, metavar="H",
                    help="with a trajectory file: score the held-out trajectories by the H-step "
-                   "rollout error (default: 1, the one-step error)")
+                   "rollout error relative to the recorded change (default: 10 steps, at most the "
+                   "longest held-out trajectory's)")
     p.add_argument("--affine-if-better", action="store_true", default=None,
                    help="write the least-squares affine map (an LCS with C = 0) when it scores at "
                    "least as well on held-out data")
@@ -181,7 +182,7 @@ def run_fit(args: argparse.Namespace) -> int:
                  else f"{100 * holdout:g}% of --data's runs held out" if trajectories is not None
                  else f"{100 * holdout:g}% of --data held out")
         print(f"chosen n_lam: {n_lam} (the smallest within {100 * tolerance:g}% of the lowest "
-              f"relative error on {where})")
+              f"{result.heldout_score if trajectories is not None else 'relative error'} on {where})")
     else:
         n_lam = args.n_lam
         model = LCS(train.n_x, train.n_u, n_lam, stiffness=args.stiffness, seed=seed)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import functools
 import math
 import os
 import sys
@@ -271,14 +270,9 @@ def fit(
         base = model if restart == 0 else fresh_like(model, seed=r.seed * 7919 + restart)
         return start(base, r.init_for(restart), scaling, fit_data, exact=restart == 0)
 
-    @functools.cache
-    def affine_score() -> float:
-        """The affine map's held-out score (computed once, when first needed)."""
-        return split.affine_score()
-
     def succeeded(run: dict) -> bool:
         """Whether a finished run kept its fit and beat the affine map (``restart_tolerance``)."""
-        return run.get("kept", False) and run["score"] < AFFINE_MARGIN * affine_score()
+        return run.get("kept", False) and run["score"] < AFFINE_MARGIN * split.affine_heldout
 
     history: list[dict] = [h for d in done for h in d["history"]]
     stopped = False

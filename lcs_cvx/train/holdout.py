@@ -13,8 +13,13 @@ the held-out scores of the learned model and of the least-squares affine map on 
   only (as before trajectories were accepted).
 
 The held-out score (:meth:`Split.score`) is the relative error (:func:`lcs_cvx.relative_error`)
-on held-out transitions, or the rollout error (:func:`lcs_cvx.rollout_error`) at
-``holdout_horizon`` on held-out trajectories.
+on held-out transitions, or on held-out trajectories the rollout error at ``holdout_horizon``
+relative to the recorded change, each coordinate scaled by the spread of its one-step change on
+the training transitions (:func:`lcs_cvx.simulation_error.change_error`; ``"auto"``: the
+simulation-error phase's horizon, :data:`AUTO_ROLLOUT_HORIZON` steps or the longest held-out
+run's). One score, asked by every choice a run makes: the kept iterate (``keep_best``), the
+kept restart, whether the simulation-error phase is kept, :func:`lcs_cvx.select_n_lam`'s
+table, and the verdict against the affine map (:meth:`Split.judge`).
 """
 
 from __future__ import annotations
@@ -28,9 +33,10 @@ import torch
 from .._checks import LCSInputError
 from ..data import Dataset
 from ..metrics import AffineMap, affine_lstsq, relative_error
-from ..simulation_error import affine_rollout_error, rollout_growth
+from ..scaling import Scaling
+from ..simulation_error import change_error, rollout_growth
 from ..system import LCS
-from ..trajectories import Trajectories, rollout_error
+from ..trajectories import Trajectories
 from .phase_options import RunOptions
 
 __all__ = ["Split", "split_data", "affine_lcs", "heldout_runs", "AUTO_ROLLOUT_HORIZON", "MIN_HELDOUT_RUNS"]
@@ -54,8 +60,8 @@ def heldout_runs(count: int, holdout: float) -> int:
 class Split:
     """``fit``: the training transitions; ``trajectories``: the training trajectories (None when
     the data were transitions); ``holdout``: the held-out transitions or trajectories (None: no
-    held-out part); ``horizon``: the rollout horizon of the held-out score; ``rollout_horizon``:
-    the simulation-error phase's window (None: no such phase)."""
+    held-out part); ``horizon``: the rollout horizon of the held-out score (resolved: an
+    integer); ``rollout_horizon``: the simulation-error phase's window (None: no such phase)."""
 
     fit: Dataset
     trajectories: Trajectories | None
@@ -63,11 +69,21 @@ class Split:
     horizon: int
     rollout_horizon: int | None = None
 
+    @functools.cached_property
+    def scale(self) -> torch.Tensor:
+        """The spread of each coordinate's one-step change on the training transitions
+        (``(n_x,)``, float64; :attr:`lcs_cvx.scaling.Scaling.sy`): the held-out score's
+        per-coordinate scale on trajectories, the simulation-error loss's."""
+        return Scaling.fit(self.fit).sy
+
+    def _score(self, model: Any, holdout: Dataset | Trajectories) -> float:
+        if isinstance(holdout, Trajectories):
+            return change_error(model, holdout, self.horizon, self.scale)
+        return relative_error(model, holdout)
+
     def score(self, model: Any) -> float:
-        """The held-out score of ``model`` (in the user's units)."""
-        if isinstance(self.holdout, Trajectories):
-            return rollout_error(model, self.holdout, self.horizon)[self.horizon]
-        return relative_error(model, self.holdout)
+        """The held-out score of ``model`` (module docstring)."""
+        return self._score(model, self.holdout)
 
     @functools.cached_property
     def affine(self) -> AffineMap:
@@ -76,9 +92,20 @@ class Split:
 
     def affine_score(self) -> float:
         """The held-out score of :attr:`affine`."""
+        return self._score(self.affine, self.holdout)
+
+    @functools.cached_property
+    def affine_heldout(self) -> float:
+        """:meth:`affine_score`, computed once, when first needed (the restarts' test and the
+        verdict ask it)."""
+        return self.affine_score()
+
+    @property
+    def what(self) -> str:
+        """The held-out score in words (the verdict's)."""
         if isinstance(self.holdout, Trajectories):
-            return affine_rollout_error(self.affine, self.holdout, self.horizon)
-        return relative_error(self.affine, self.holdout)
+            return f"{self.horizon}-step rollout error relative to the recorded change"
+        return "one-step relative error"
 
     def growth(self, model: Any) -> float | None:
         """:func:`lcs_cvx.simulation_error.rollout_growth` on the held-out trajectories (None
@@ -94,12 +121,8 @@ class Split:
         runs = [i for i, T in enumerate(self.holdout.lengths) if T >= self.horizon]
         if len(runs) < 2:
             return None
-        scores = []
-        for i in runs:
-            one = Trajectories([self.holdout.xs[i]], [self.holdout.us[i]])
-            scores.append(affine_rollout_error(model, one, self.horizon) if isinstance(model, AffineMap)
-                          else rollout_error(model, one, self.horizon)[self.horizon])
-        return tuple(scores)
+        return tuple(self._score(model, Trajectories([self.holdout.xs[i]], [self.holdout.us[i]]))
+                     for i in runs)
 
     def judge(self, model: Any) -> dict[str, Any]:
         """Everything :class:`lcs_cvx.FitResult` reports of ``model`` against the affine map on
@@ -107,7 +130,8 @@ class Split:
         ``heldout_growth``, ``affine_heldout_growth``, ``heldout_run_errors``,
         ``affine_heldout_run_errors``; the verdict is :attr:`lcs_cvx.FitResult.verdict`)."""
         trajectories = isinstance(self.holdout, Trajectories)
-        return {"heldout_error": self.score(model), "affine_heldout_error": self.affine_score(),
+        return {"heldout_score": self.what,
+                "heldout_error": self.score(model), "affine_heldout_error": self.affine_heldout,
                 "heldout_growth": self.growth(model),
                 "affine_heldout_growth": self.affine_growth() if trajectories else None,
                 "heldout_run_errors": self.run_scores(model),
@@ -150,21 +174,24 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
     elif validation is None and trajectories is None and run.restarts > 1:
         fit_all, holdout = fit_all.split(1.0 - run.holdout, seed=run.seed)
     fit = trajectories.to_transitions() if trajectories is not None else fit_all
-    if run.holdout_horizon > 1:
+    horizon = run.holdout_horizon
+    if horizon == "auto":
+        horizon = min(AUTO_ROLLOUT_HORIZON, max(holdout.lengths)) if isinstance(holdout, Trajectories) else 1
+    elif horizon > 1:
         if not isinstance(holdout, Trajectories):
-            raise LCSInputError("holdout_horizon: a rollout score needs held-out trajectories; expected 1 with "
-                                f"{'no held-out part' if holdout is None else 'held-out transitions'}, "
-                                f"received {run.holdout_horizon}")
+            raise LCSInputError("holdout_horizon: a rollout score needs held-out trajectories; expected 1 or "
+                                f"'auto' with {'no held-out part' if holdout is None else 'held-out transitions'}, "
+                                f"received {horizon}")
         longest = max(holdout.lengths)
-        if run.holdout_horizon > longest:
+        if horizon > longest:
             raise LCSInputError(f"holdout_horizon: expected at most {longest} steps (the longest held-out "
-                                f"trajectory's), received {run.holdout_horizon}")
+                                f"trajectory's), received {horizon}")
     if trajectories is not None and rollout_horizon is not None and rollout_horizon > max(trajectories.lengths):
         raise LCSInputError(f"rollout_horizon: expected at most {max(trajectories.lengths)} steps (the longest "
                             f"training trajectory's), received {rollout_horizon}")
     if auto and trajectories is not None:
         rollout_horizon = min(AUTO_ROLLOUT_HORIZON, max(trajectories.lengths))
-    return Split(fit, trajectories, holdout, run.holdout_horizon, rollout_horizon)
+    return Split(fit, trajectories, holdout, horizon, rollout_horizon)
 
 
 def affine_lcs(affine: AffineMap, like: LCS) -> LCS:

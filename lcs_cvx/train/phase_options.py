@@ -270,8 +270,11 @@ class RunOptions:
             are :class:`lcs_cvx.Trajectories` with a held-out part (``validation``, or the
             ``holdout`` fraction of whole trajectories), else False.
         holdout_horizon: with :class:`lcs_cvx.Trajectories` as data, the held-out score is the
-            rollout error (:func:`lcs_cvx.rollout_error`) at this horizon on the held-out
-            trajectories (1: the one-step relative error).
+            rollout error at this horizon on the held-out trajectories, relative to the
+            recorded change, each coordinate scaled by the spread of its one-step change
+            (:func:`lcs_cvx.simulation_error.change_error`). ``"auto"``: 10 steps (at most the
+            longest held-out trajectory's), the simulation-error phase's default window; with
+            transitions, the one-step relative error.
         affine_if_better: return the least-squares affine map as an LCS (``C = 0``) when the
             learned LCS is not better (:attr:`lcs_cvx.FitResult.beats_affine`: its held-out
             score not lower, or its held-out rollouts growing more than the data's and the
@@ -301,11 +304,15 @@ class RunOptions:
     keep_best: bool | None = None
     normalize: bool = True
     init: str | tuple[str, ...] = "increment"
-    holdout_horizon: int = 1
+    holdout_horizon: int | str = "auto"
     affine_if_better: bool = False
 
     def __post_init__(self) -> None:
-        _count(self, 1, "restarts", "eval_every", "checkpoint_every", "holdout_horizon")
+        _count(self, 1, "restarts", "eval_every", "checkpoint_every")
+        if self.holdout_horizon != "auto":
+            h = self.holdout_horizon
+            if isinstance(h, bool) or not isinstance(h, int) or h < 1:
+                raise option_error("holdout_horizon", "an integer >= 1 or 'auto'", h)
         if self.keep_best is not None and not isinstance(self.keep_best, bool):
             raise option_error("keep_best", "True, False or None", self.keep_best)
         if not isinstance(self.affine_if_better, bool):

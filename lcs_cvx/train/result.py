@@ -53,8 +53,10 @@ class FitResult:
             (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
             history is in those coordinates; ``e_test`` and the restart scores are in the user's.
         heldout_error: the held-out score of the learned model (:func:`lcs_cvx.relative_error`
-            on held-out transitions, or :func:`lcs_cvx.rollout_error` at ``holdout_horizon`` on
-            held-out trajectories); None without a held-out part.
+            on held-out transitions; on held-out trajectories the rollout error at
+            ``holdout_horizon`` relative to the recorded change, each coordinate scaled,
+            :func:`lcs_cvx.simulation_error.change_error`); None without a held-out part.
+        heldout_score: that score in words (None without a held-out part).
         affine_heldout_error: the same score of the least-squares affine map fitted on the same
             training part: the learned LCS contains that map (``C = 0``), so it should score
             below it.
@@ -90,6 +92,7 @@ class FitResult:
     returned_affine: bool = False
     refinement_kept: bool | None = None
     affine_heldout_growth: float | None = None
+    heldout_score: str | None = None
     heldout_run_errors: tuple[float, ...] | None = None
     affine_heldout_run_errors: tuple[float, ...] | None = None
 
@@ -118,9 +121,7 @@ class FitResult:
         """One line on the learned model against the affine map on held-out data."""
         if self.beats_affine is None:
             return "no held-out data: the learned LCS was not compared with the affine map"
-        h = self.settings.run.holdout_horizon
-        what = "one-step relative error" if h == 1 else f"{h}-step rollout error"
-        line = (f"held-out {what}: LCS {self.heldout_error:.4g}{_spread(self.heldout_run_errors)}, "
+        line = (f"held-out {self.heldout_score}: LCS {self.heldout_error:.4g}{_spread(self.heldout_run_errors)}, "
                 f"affine least squares {self.affine_heldout_error:.4g}{_spread(self.affine_heldout_run_errors)}")
         if self.heldout_growth is not None:
             line += f"; largest held-out rollout growth: LCS {self.heldout_growth:.3g}"

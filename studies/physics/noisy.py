@@ -132,10 +132,16 @@ def _affine_lcs(train: Any, like: Any) -> Any:
 
 
 def _scores(model: Any, data: dict[str, Any], horizons: list[int]) -> dict[str, dict[str, float]]:
+    """Validation: ``fit``'s held-out score (the rollout error at the longest horizon relative to
+    the recorded change, each coordinate scaled by the training runs' spread of its change);
+    test: the relative rollout errors at every horizon."""
     from lcs_cvx import rollout_error
+    from lcs_cvx.scaling import Scaling
+    from lcs_cvx.simulation_error import change_error
 
     H = max(horizons)
-    return {"validation": {str(H): rollout_error(model, data["validation"], H)[H]},
+    scale = Scaling.fit(data["train"].to_transitions()).sy
+    return {"validation": {str(H): change_error(model, data["validation"], H, scale)},
             "test": {str(h): e for h, e in rollout_error(model, data["test"], horizons).items()},
             "test_clean": {str(h): e for h, e in rollout_error(model, data["test_clean"], horizons).items()}}
 
@@ -160,7 +166,8 @@ def fit_one(cfg: dict[str, Any], data: dict[str, Any], seed: int, rollout_horizo
     wall = time.perf_counter() - t0
     return {"seed": seed, "rollout_horizon": rollout_horizon, "error": None, "wall_time": wall,
             "heldout_error": res.heldout_error, "affine_heldout_error": res.affine_heldout_error,
-            "heldout_growth": res.heldout_growth, "beats_affine": res.beats_affine, "verdict": res.verdict,
+            "heldout_growth": res.heldout_growth, "affine_heldout_growth": res.affine_heldout_growth,
+            "grows_more": res.grows_more, "beats_affine": res.beats_affine, "verdict": res.verdict,
             "refinement_kept": res.refinement_kept,
             "restart_scores": list(res.restart_scores), "scores": _scores(res.model, data, horizons)}
 
