@@ -348,3 +348,25 @@ def test_penalize_input_change_measures_the_inputs_from_the_previous_plan(cartpo
                        ctrl.solve(x1, warm_start=first, u_ref=first).u)
     with pytest.raises(lcs_cvx.LCSInputError, match=r"u_ref: expected a Plan or finite inputs of shape \(5, 1\)"):
         ctrl.solve(x0, u_ref=np.zeros(3))
+
+
+@pytest.mark.parametrize("projection", ["lcp", "c3+"])
+@pytest.mark.parametrize("lam_bounds", [None, (0.0, 3.0)])
+def test_scale_lcs_is_the_admm_on_the_rescaled_system(cartpole, projection, lam_bounds):
+    """scale_lcs (DAIRLab/c3's): the ADMM on the system with lam = s lam_s, s = ||A_0|| / ||C_0||:
+    the plans of C3 on that LCS written out by hand (C s; D, E, c divided by s; lam bounds
+    divided by s), with lam returned in the model's units; off, s = 1."""
+    P = cartpole
+    M = P.model.to_matrices()
+    X0 = torch.tensor(np.random.default_rng(3).uniform(-0.4, 0.4, (8, 4)))
+    kw = {"Q": P.Q, "R": P.R, "projection": projection, "gap_tol": None}
+    scaled = C3(P.model, P.horizon, scale_lcs=True, lam_bounds=lam_bounds, **kw)
+    s = scaled.lam_scale
+    assert s == pytest.approx(np.linalg.norm(M["A"]) / np.linalg.norm(M["C"]), rel=1e-15)
+    assert C3(P.model, P.horizon, **kw).lam_scale == 1.0
+    by_hand = lcs_cvx.LCS.from_matrices(**{**M, "C": M["C"] * s, "D": M["D"] / s, "E": M["E"] / s, "c": M["c"] / s})
+    hand = C3(by_hand, P.horizon, lam_bounds=None if lam_bounds is None else (0.0, 3.0 / s), **kw)
+    a, b = scaled.solve(X0), hand.solve(X0)
+    assert torch.allclose(a.u, b.u, rtol=0, atol=1e-12)
+    assert torch.allclose(a.lam, s * b.lam, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(a.x, b.x, rtol=0, atol=1e-12) and torch.allclose(a.x_model, b.x_model, rtol=0, atol=1e-12)

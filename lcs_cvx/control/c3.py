@@ -170,6 +170,15 @@ class C3:
         gap_tol: a :class:`lcs_cvx.PlanGapWarning` when a plan's ``gap`` passes
             ``gap_tol (1 + max_k |x_model_k|_inf)``; ``ctrl.gap_warnings`` counts those plans
             (None: no check; the gap is still in every plan).
+        scale_lcs: DAIRLab/c3's option of that name: the ADMM runs on the same system with
+            ``lam = s lam_s``, ``s = ||A_0||_F / ||C_0||_F`` (``C s``; ``D, E, c`` divided by
+            ``s``, ``F`` kept: :meth:`~lcs_cvx.control.costs.Horizon.lam_scaled`), so that
+            ``G`` and ``U`` on ``lam`` and ``eta`` weigh forces of the dynamics' size; the plan's
+            ``lam`` is returned in the model's units (``delta`` stays in the scaled ones).
+            ``ctrl.lam_scale`` is ``s`` (1.0 without). Off by default: with the default ``G``
+            and ``U`` it lost most starts of the MuJoCo cart-pole study's learned models
+            (``studies/results/control/mujoco_closed_loop.md``); weights tuned for the scaled
+            forces are the user's.
     """
 
     def __init__(self, model: Any, horizon: int, *, Q: Any, R: Any, QN: Any = "dare", G: Any = None,
@@ -178,7 +187,8 @@ class C3:
                  qp_path: str | None = None, qp_solver: str = "CLARABEL", projection_solver: str | None = None,
                  projection_options: dict[str, Any] | None = None, warm_start: bool = True,
                  big_m: float = 1000.0, fix_lam0: bool | None = None,
-                 arrays: str = "auto", penalize_input_change: bool = False, gap_tol: float | None = 0.5):
+                 arrays: str = "auto", penalize_input_change: bool = False, gap_tol: float | None = 0.5,
+                 scale_lcs: bool = False):
         if projection not in PROJECTIONS:
             raise LCSInputError(f"projection: expected one of {PROJECTIONS}, received {projection!r}")
         self.horizon = Horizon.of(model, horizon)
@@ -210,9 +220,15 @@ class C3:
             fix_lam0 = not hz.input_in_complementarity()
         self.fix_lam0 = bool(fix_lam0) and hz.n_lam > 0
         rho = self.rho_scale ** np.arange(self.admm_iterations + 1)
-        self.qp = QPStep(hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
+        # the ADMM's system: the model's, or with lam rescaled (scale_lcs); rollouts, the model's
+        # LCP and the plan's outputs stay in the model's units
+        admm_hz, self.lam_scale = hz.lam_scaled() if scale_lcs else (hz, 1.0)
+        if scale_lcs and lam_bounds is not None:  # checked above; in the scaled units here
+            scaled = tuple(np.asarray(b, dtype=np.float64) / self.lam_scale for b in lam_bounds)
+            bounds = Bounds.of(self.layout, x=x_bounds, u=u_bounds, lam=scaled)
+        self.qp = QPStep(admm_hz, self.layout, self.Q, self.R, self.QN, self.G, rho, fix_lam0=self.fix_lam0,
                          bounds=bounds, path=path, solver=qp_solver)
-        self.projections = [Projection(hz, self.layout, self.U, kind, solver=projection_solver, big_m=big_m,
+        self.projections = [Projection(admm_hz, self.layout, self.U, kind, solver=projection_solver, big_m=big_m,
                                        options=projection_options)
                             for kind in (("lcp", "c3+") if projection == "auto" else (projection,))]
         self.gap_tol = None if gap_tol is None else check_positive("gap_tol", gap_tol)
@@ -286,7 +302,7 @@ class C3:
         lcp = self._lcp(xp, mats)
         u_ref_a = xp.wrap(self._input_reference(u_ref, X0).contiguous())
         t = time.perf_counter()
-        lam0_a = self._lcp_at(xp, x0_a, mats) if self.fix_lam0 else None
+        lam0_a = self._lcp_at(xp, x0_a, mats) / self.lam_scale if self.fix_lam0 else None
         times = {"qp": 0.0, "projection": 0.0, "lcp": time.perf_counter() - t, "model": 0.0}
         plans, failures = [], 0
         with xp.threads():
@@ -298,7 +314,7 @@ class C3:
                 times["projection"] += out["projection"]
                 failures += out["failures"]
                 z = out["z"]
-                u, lam = xp.contiguous(z[..., lay.u]), xp.contiguous(z[..., lay.lam])
+                u, lam = xp.contiguous(z[..., lay.u]), xp.contiguous(z[..., lay.lam]) * self.lam_scale
                 # the plan's states: its inputs and forces through the dynamics (exact in them)
                 xs = rollout(x0_a, u, lam, *(mats[k] for k in "ABCd"))
                 t = time.perf_counter()

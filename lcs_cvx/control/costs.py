@@ -144,6 +144,17 @@ class Horizon:
     def n_lam(self) -> int:
         return self.C.shape[2]
 
+    def lam_scaled(self) -> tuple[Horizon, float]:
+        """DAIRLab/c3's ``scale_lcs``: the same system with ``lam = s lam_s``,
+        ``s = ||A_0||_F / ||C_0||_F`` (1 where ``C_0 = 0``): ``C s``, and the complementarity rows
+        divided by ``s`` (``D / s``, ``E / s``, ``c / s``; ``F`` kept), so that
+        ``0 <= lam_s _|_ (D x + E u + F lam + c) / s >= 0`` holds exactly when the original does.
+        Returns the scaled stack and ``s``: the ADMM's weights on ``lam`` then act on forces of
+        the dynamics' size."""
+        norm_c = float(np.linalg.norm(self.C[0]))
+        s = float(np.linalg.norm(self.A[0])) / norm_c if norm_c > 0 else 1.0
+        return dataclasses.replace(self, C=self.C * s, D=self.D / s, E=self.E / s, c=self.c / s), s
+
     def input_in_complementarity(self) -> bool:
         """Whether ``u`` enters the complementarity (``E != 0``); if not, ``lam_0`` is fixed to the
         LCP solution at ``x0``, as in C3."""

@@ -31,6 +31,7 @@ Controllers (all with the stage weights ``Q = diag(5, 20, 0.5, 0.5)`` of ``mpc_e
   default ``G``, ``U``) on the learned ``n_lam`` = 8, 4, 2 models and the hand-written LCS,
   ``R = 1`` and the actuator's limit as ``u_bounds`` (inside the QP step); ``C3 (defaults,
   penalize_input_change), ...``: the same with the input cost measured from the previous plan;
+  ``C3 (defaults, scale_lcs), ...``: the same with the ADMM on the rescaled ``lam``;
 - ``mode-sequence MPC, learned LCS n_lam=8``: :class:`studies.physics.mpc_example.LCSMPC`;
 - ``QP MPC, affine model``: the same QP MPC on an affine least-squares fit (an LCS whose one
   dummy ``lam`` never activates, so the QP is the plain linear MPC with ``|u| <= 4``);
@@ -252,6 +253,9 @@ CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
                                                                              penalize_input_change=True),
     "C3 (defaults, penalize_input_change), learned LCS n_lam=2": _c3_defaults("violation_nlam2",
                                                                              penalize_input_change=True),
+    "C3 (defaults, scale_lcs), learned LCS n_lam=8": _c3_defaults("violation_nlam8", scale_lcs=True),
+    "C3 (defaults, scale_lcs), learned LCS n_lam=4": _c3_defaults("violation_nlam4", scale_lcs=True),
+    "C3 (defaults, scale_lcs), learned LCS n_lam=2": _c3_defaults("violation_nlam2", scale_lcs=True),
     "mode-sequence MPC, learned LCS n_lam=8": _lcsmpc_learned,
     "QP MPC, affine model": _qp_affine,
     "MPPI, MLP model": _mppi_mlp,
@@ -426,7 +430,11 @@ _FINDINGS = [
     "model error no controller setting removes. `penalize_input_change=True` (the input cost "
     "measured from the previous plan's inputs, DAIRLab/c3's option) is not a default: it brings the "
     "`n_lam = 4` runs closer to the target (median final |x_c| 0.002 m against 0.020) but loses "
-    "most starts on the `n_lam = 8` and `n_lam = 2` models (17/50 and 3/50).",
+    "most starts on the `n_lam = 8` and `n_lam = 2` models (17/50 and 3/50). `scale_lcs=True` "
+    "(DAIRLab/c3's option: the ADMM on `lam = s lam_s`, `s = ||A|| / ||C||`, 4.4, 14.5 and 13.7 "
+    "on the `n_lam` = 8, 4, 2 models) is not a default either: with the default `G` and `U` the "
+    "weights on `lam` then act on forces `s` times larger, and the runs lose most starts "
+    "(12/50, 0/50, 0/50).",
     "",
     "## What makes C3 with the per-unit projection work, or not, on the learned LCS",
     "",
