@@ -22,9 +22,11 @@ array          shape                meaning
                shape                ``meta["masks"]`` lists them)
 =============  ===================  =====================================================
 
-The known structure travels with the model (format version 2): ``meta["fixed"]`` lists the fixed
-parameters (loaded with ``requires_grad`` False) and the ``mask_*`` arrays the masks. Files of
-version 1 (no structure) load as models with every parameter learnable.
+The known structure travels with the model: ``meta["fixed"]`` lists the fixed parameters
+(loaded with ``requires_grad`` False) and the ``mask_*`` arrays the masks; a masked entry is held
+at its stored value (format version 3: 0 for :meth:`~lcs_cvx.LCS.mask`, any value for
+:meth:`~lcs_cvx.LCS.hold`; version 2 held masked entries at 0 only, and such files load as
+before). Files of version 1 (no structure) load as models with every parameter learnable.
 
 All numeric arrays have the model's dtype (float32 or float64). The path is used exactly as
 given: unlike ``np.savez``, no ``.npz`` is appended when it is missing.
@@ -51,7 +53,8 @@ __all__ = ["save_model", "load_model", "load_metadata", "atomic_write", "FORMAT"
 FORMAT = "lcs_cvx.model"
 #: Version of the file layout written by :func:`save_model`; files of a newer version are refused.
 #: 2: the fixed parameters (``meta["fixed"]``) and masks (``mask_*`` arrays, ``meta["masks"]``).
-FORMAT_VERSION = 2
+#: 3: masked entries hold their stored values (:meth:`lcs_cvx.LCS.hold`), not only 0.
+FORMAT_VERSION = 3
 #: Arrays every model file holds.
 ARRAY_NAMES = PARAMETER_NAMES + ("stiffness", "F", "meta")
 
@@ -190,7 +193,7 @@ def load_model(path: str | os.PathLike) -> LCS:
         )
     masks = {k: torch.from_numpy(arrays[f"mask_{k}"]) for k in meta["masks"]}
     if masks:
-        model.mask(**masks)  # the stored values are 0 there already (checked by _read)
+        model.replace_masks(masks, zero=False)  # held at the stored values
     for name in meta["fixed"]:
         getattr(model, name).requires_grad_(False)
     return model
@@ -284,9 +287,10 @@ def _read(path: str | os.PathLike) -> tuple[str, dict[str, np.ndarray], dict[str
                 f"{where}: expected a bool array of shape {expected[name]}, received shape "
                 f"{m.shape} and dtype {m.dtype}"
             )
-        if (arrays[name][~m] != 0).any():
-            raise LCSInputError(f"{where}: expected {name} to be 0 where the mask is False, received "
-                                f"{int((arrays[name][~m] != 0).sum())} nonzero entries there")
+        if meta["format_version"] < 3 and (arrays[name][~m] != 0).any():  # version 2: masks hold 0
+            raise LCSInputError(f"{where}: expected {name} to be 0 where the mask is False (format version "
+                                f"{meta['format_version']}), received {int((arrays[name][~m] != 0).sum())} "
+                                "nonzero entries there")
     return path_s, arrays, meta
 
 

@@ -8,11 +8,12 @@ The user states what they know about eq. (1),
 on the model itself (:class:`lcs_cvx.LCS`): a parameter is *fixed* iff it does not require grad
 (:meth:`~lcs_cvx.LCS.fix`, or ``model.A.requires_grad_(False)``), and a *mask*
 (:meth:`~lcs_cvx.LCS.mask`, :attr:`~lcs_cvx.LCS.masks`: True = learned) holds chosen entries of
-``A, B, C, d, D, E, c`` at exactly 0. An entry is *free* when its parameter is not fixed and its
+``A, B, C, d, D, E, c`` at exactly 0, or at given values (:meth:`~lcs_cvx.LCS.hold`). An entry
+is *free* when its parameter is not fixed and its
 mask (if any) is True: :func:`free_entries`, :func:`free_vector`.
 
 This module owns how every part of training honours that, so that a fixed parameter comes back
-bit-identical and a masked entry exactly 0.0:
+bit-identical and a masked entry at exactly its held value:
 
 - first order: :func:`mask_gradients_` before an optimiser step, :func:`project_` after it;
 - second order: the flat free coordinates (:func:`free_vector`) to which
@@ -95,11 +96,12 @@ def check_learnable(model: LCS) -> None:
 
 # -- first-order optimisers -----------------------------------------------------------------
 def project_(model: LCS) -> None:
-    """Set the masked entries of ``model``'s parameters to 0 (in place)."""
+    """Set the masked entries of ``model``'s parameters to their held values (0 for a mask,
+    :meth:`lcs_cvx.LCS.hold`'s otherwise; in place)."""
     with torch.no_grad():
         for name, mask in model.masks.items():
             p = getattr(model, name)
-            p.masked_fill_(~mask.to(p.device), 0.0)
+            p.copy_(torch.where(mask.to(p.device), p, model._held[name].to(p)))
 
 
 def mask_gradients_(model: LCS) -> None:
@@ -171,14 +173,14 @@ def _restrict(name: str, t: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
 
 def copy_structure_(src: LCS, dst: LCS) -> LCS:
     """Give ``dst`` (same sizes as ``src``) ``src``'s fixed parameters -- values and flags --
-    and masks, its masked entries set to 0; returns ``dst``. A fresh restart keeps what the
-    user stated this way."""
+    and masks, its masked entries set to ``src``'s held values; returns ``dst``. A fresh
+    restart keeps what the user stated this way."""
     with torch.no_grad():
         for name in PARAMETER_NAMES:
             p = getattr(src, name)
             if not p.requires_grad:
                 getattr(dst, name).copy_(p).requires_grad_(False)
-    dst.replace_masks(src.masks)
+    dst.replace_masks(src.masks, held=src._held)
     return dst
 
 
@@ -195,7 +197,8 @@ def restrict_structure_(src: LCS, dst: LCS, keep: list[int]) -> None:
 
 def keeps_structure(candidate: LCS, model: LCS, keep: list[int]) -> bool:
     """Whether ``candidate``, built from the units ``keep`` of ``model``, holds ``model``'s
-    fixed values (restricted to those units; bit-identical) and 0 at its masked entries. A
+    fixed values (restricted to those units; bit-identical) and its held values at its masked
+    entries. A
     fixed ``G`` or ``H`` asks for the restriction of ``F`` (to round-off: ``F`` is re-factored)."""
     idx = torch.tensor(keep, dtype=torch.long)
     for name in PARAMETER_NAMES:
@@ -210,7 +213,9 @@ def keeps_structure(candidate: LCS, model: LCS, keep: list[int]) -> bool:
             return False
     for name, mask in candidate.masks.items():
         p = getattr(candidate, name).detach()
-        if bool((p[~mask.to(p.device)] != 0).any()):
+        held = _restrict(name, model._held[name], idx).to(p)
+        off = ~mask.to(p.device)
+        if not torch.equal(p[off], held[off]):
             return False
     return True
 
@@ -226,13 +231,15 @@ def growth_blocker(model: LCS) -> str | None:
             first = mask.narrow(axes[0], 0, 1)
             if not bool((mask == first).all()):
                 return f"the mask of {name} differs between units"
+            if bool((model._held[name] != 0).any()):
+                return f"entries of {name} are held at values other than 0"
     return None
 
 
 def grow_structure_(src: LCS, dst: LCS) -> None:
     """Give ``dst``, ``src`` with units appended (:func:`lcs_cvx.resizing.add_units`), ``src``'s fixed
     flags and masks, the new units copying the (common) pattern of the old ones; masked entries
-    of ``dst`` are set to 0. :class:`LCSInputError` when :func:`growth_blocker` objects."""
+    of ``dst`` held at ``src``'s values (0 on the unit-indexed parameters). :class:`LCSInputError` when :func:`growth_blocker` objects."""
     why = growth_blocker(src)
     if why is not None:
         raise LCSInputError(
@@ -250,7 +257,8 @@ def grow_structure_(src: LCS, dst: LCS) -> None:
             size[axes[0]] = dst.n_lam
             mask = mask.narrow(axes[0], 0, 1).expand(size).clone()
         masks[name] = mask.clone()
-    dst.replace_masks(masks)
+    # held values: 0 on the unit-indexed parameters (growth_blocker), the source's elsewhere
+    dst.replace_masks(masks, held={k: v for k, v in src._held.items() if k not in UNIT_AXES})
 
 
 def allowed_extra_units(model: LCS, option: int | str, n_extra: int) -> int:

@@ -183,8 +183,8 @@ def _like(model: LCS, values: dict[str, torch.Tensor]) -> LCS:
             getattr(new, name).copy_(value)
     for name in PARAMETER_NAMES:  # the flags and masks, not the values: those are mapped
         getattr(new, name).requires_grad_(getattr(model, name).requires_grad)
-    if model.masks:
-        new.mask(**model.masks)
+    if model.masks:  # held at the mapped values (entrywise maps: no centring where d, c are held)
+        new.replace_masks(model.masks, zero=False)
     return new
 
 

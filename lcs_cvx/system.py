@@ -120,8 +120,9 @@ class LCS(nn.Module):
     Known structure. A parameter is *fixed* iff it does not require grad (the torch convention:
     ``model.A.requires_grad_(False)`` fixes ``A``; :meth:`fix` sets values and fixes them). A
     *mask* (:meth:`mask`, :attr:`masks`) holds chosen entries of ``A, B, C, d, D, E, c`` at
-    exactly 0. :func:`lcs_cvx.fit` and every optimiser, pruning and re-initialisation leave fixed
-    parameters bit-identical and masked entries 0. :func:`random_lcs` returns a model with every
+    exactly 0, and :meth:`hold` at given values (gravity in ``d``, a known integration step in
+    ``A``; :attr:`held`). :func:`lcs_cvx.fit` and every optimiser, pruning and re-initialisation
+    leave fixed parameters and held entries bit-identical. :func:`random_lcs` returns a model with every
     parameter fixed (a ground truth); ``.requires_grad_(True)`` makes all of it learnable.
 
     Example:
@@ -147,6 +148,9 @@ class LCS(nn.Module):
         # name -> CPU bool tensor (True: learnable entry); a plain attribute, not a buffer, so
         # state dicts are the same with and without masks
         self._masks: dict[str, torch.Tensor] = {}
+        # name -> CPU tensor of the parameter's shape: the values of its masked entries (0 at
+        # the learned ones); restored by every optimiser step (parameter_constraints.project_)
+        self._held: dict[str, torch.Tensor] = {}
         self.n_x = check_positive("n_x", n_x, integer=True)
         if isinstance(n_u, bool) or not isinstance(n_u, (int, np.integer)) or n_u < 0:
             raise LCSInputError(f"n_u: expected an integer >= 0, received {n_u!r}")
@@ -203,11 +207,14 @@ class LCS(nn.Module):
         new = {k: as_matrix(k, v, shapes[k], **kw) for k, v in values.items()}
         for k, v in new.items():
             m = self._masks.get(k)
-            if m is not None and bool((v[~m.to(v.device)] != 0).any()):
-                bad = int((v[~m.to(v.device)] != 0).sum())
+            if m is None:
+                continue
+            held = self._held[k].to(v)
+            off = v[~m.to(v.device)] != held[~m.to(v.device)]
+            if bool(off.any()):
                 raise LCSInputError(
-                    f"{k}: expected 0 at the entries its mask holds at 0, received {bad} "
-                    "nonzero there"
+                    f"{k}: expected the held values at the entries its mask holds (0 for mask, "
+                    f"the given ones for hold), received {int(off.sum())} other values there"
                 )
         if "F" in new:
             F, s = new.pop("F"), float(self.stiffness)
@@ -239,13 +246,63 @@ class LCS(nn.Module):
             >>> m.A[1, 0].item(), m.masks["A"].tolist()
             (0.0, [[True, True], [False, True]])
         """
-        return self.replace_masks({**self._masks, **patterns})
+        others = {k: v for k, v in self._held.items() if k not in patterns}  # held as they were
+        return self.replace_masks({**self._masks, **patterns}, held=others)
 
-    def replace_masks(self, masks: dict[str, Any], *, zero: bool = True) -> LCS:
+    def hold(self, **values: Any) -> LCS:
+        """Hold entries of parameters at given values; returns ``self``.
+
+        Keywords are names of :data:`MASKABLE`; each value is an array or tensor of the
+        parameter's exact shape, NaN where the entry is learned and the value to hold elsewhere
+        (e.g. gravity's increment in ``d``). The held entries are set now and stay bit-identical
+        through :func:`lcs_cvx.fit` (their gradients are zeroed, every step restores them);
+        :attr:`masks` shows them as masked, :attr:`held` their values. Nothing changes unless
+        every value is valid.
+
+        Example:
+            >>> import math
+            >>> m = LCS(2, 1, 1).hold(d=[math.nan, -0.0981])
+            >>> held, pattern = m.held["d"], m.masks["d"]
+            >>> m.d.tolist()[1], pattern.tolist(), held.tolist()[1]
+            (-0.0981, [True, False], -0.0981)
+        """
+        shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
+        given: dict[str, torch.Tensor] = {}
+        for k, v in values.items():
+            if k not in MASKABLE:
+                raise LCSInputError(f"{k}: expected a name among {MASKABLE} to hold entries of, received {k!r}")
+            t = torch.as_tensor(np.asarray(v, dtype=np.float64))
+            if tuple(t.shape) != tuple(shapes[k]):
+                raise LCSInputError(f"{k}: expected an array of shape {tuple(shapes[k])} (NaN where learned), "
+                                    f"received shape {tuple(t.shape)}")
+            if bool(torch.isinf(t).any()):
+                raise LCSInputError(f"{k}: expected finite values to hold (NaN where learned), received inf")
+            given[k] = t
+        with torch.no_grad():
+            for k, t in given.items():
+                p = getattr(self, k)
+                keep = ~torch.isnan(t)
+                p.copy_(torch.where(keep.to(p.device), t.to(p), p))
+        others = {k: v for k, v in self._held.items() if k not in given}
+        return self.replace_masks({**self._masks, **{k: torch.isnan(t) for k, t in given.items()}}, zero=False,
+                                  held=others)
+
+    @property
+    def held(self) -> dict[str, torch.Tensor]:
+        """``{name: tensor}`` (copies, on the CPU, the parameter's dtype) of the masked
+        parameters: the value each masked entry is held at (0 for :meth:`mask`), NaN where the
+        entry is learned."""
+        return {k: torch.where(m, torch.full_like(self._held[k], float("nan")), self._held[k])
+                for k, m in self._masks.items()}
+
+    def replace_masks(self, masks: dict[str, Any], *, zero: bool = True,
+                      held: dict[str, torch.Tensor] | None = None) -> LCS:
         """Replace every mask by ``masks`` (patterns as in :meth:`mask`, validated; a parameter
-        not named, or named with None, has no mask); returns ``self``. With ``zero=False`` the
-        masked entries keep their values: for models derived from another one (a unit
-        eliminated), whose masked entries are checked afterwards rather than set.
+        not named, or named with None, has no mask); returns ``self``. The masked entries are
+        held at 0 (``zero=True``), at ``held[name]``'s values where given (tensors of the
+        parameter's shape, read at the masked entries), or else at the values they have now
+        (``zero=False``: for models derived from another one, a unit eliminated, whose masked
+        entries are checked afterwards rather than set).
         """
         shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
         new: dict[str, torch.Tensor] = {}
@@ -260,10 +317,14 @@ class LCS(nn.Module):
             if v is not None:
                 new[k] = as_pattern(k, v, shapes[k])
         self._masks = new
-        if zero:
-            with torch.no_grad():
-                for k, m in new.items():
-                    getattr(self, k).masked_fill_(~m.to(self.device), 0.0)
+        with torch.no_grad():
+            for k, m in new.items():
+                p = getattr(self, k)
+                if held is not None and k in held:
+                    p.copy_(torch.where(m.to(p.device), p, held[k].to(p)))
+                elif zero:
+                    p.masked_fill_(~m.to(p.device), 0.0)
+        self._held = {k: getattr(self, k).detach().cpu().clone().masked_fill_(m, 0.0) for k, m in new.items()}
         return self
 
     @property

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 
 import numpy as np
 import pytest
@@ -113,7 +114,7 @@ def test_fix_F_sets_G_and_H():
         (lambda m: m.mask(A="ones"), r"^A: expected a bool or 0/1 array of shape \(4, 4\), received "
                                       r"str 'ones'$"),
         (lambda m: m.mask(c=[1, 0, 1]).fix(c=[1.0, 1.0, 1.0]),
-         r"^c: expected 0 at the entries its mask holds at 0, received 1 nonzero there$"),
+         r"^c: expected the held values at the entries its mask holds \(0 for mask, the given ones for hold\), received 1 other values there$"),
         (lambda m: LCS(4, 2, 3, mask=[("A", 1)]), r"^mask: expected a dict"),
     ],
 )
@@ -226,6 +227,66 @@ def test_fit_keeps_fixed_and_masked(system, path):
     assert_structure_kept(model, truth)
     assert seen and seen[-1] == result.settings.run.restarts - 1  # the best recipe: 2 runs
     assert np.isfinite(result.history[-1]["e_test"])
+
+
+def held_structured(truth: LCS, seed: int = 3) -> LCS:
+    """A learner that holds the first row of A and d's last two entries at the truth's values
+    (d[1] nonzero: a held value, not a zero), and the zeros of C and D."""
+    nan = float("nan")
+    A = torch.full((3, 3), nan, dtype=torch.float64)
+    A[0] = truth.A[0]
+    return LCS(3, 1, 2, stiffness=1.0, seed=seed).mask(C=C_MASK, D=D_MASK).hold(
+        A=A, d=[nan, float(truth.d[1]), 0.0])
+
+
+@pytest.mark.parametrize("path", FIT_PATHS)
+def test_fit_keeps_held_values(system, path):
+    """Entries held at nonzero values (LCS.hold) come back bit-identical from every training
+    path (their gradients zeroed, every step restoring them; through the normalised coordinates
+    and back), the rest is learned."""
+    truth, train, test = system
+    assert float(truth.d[1]) != 0.0
+    model = held_structured(truth)
+    start = model.A.detach().clone()
+
+    def kept(current: LCS) -> None:
+        assert torch.equal(current.A[0].detach(), truth.A[0]), "A[0]"
+        assert current.d[1].item() == truth.d[1].item() and current.d[2].item() == 0.0
+        assert bool((current.C[1] == 0).all()) and bool((current.D[:, 1] == 0).all())
+
+    result = lcs_cvx.fit(model, train, test=test, progress=False,
+                         callbacks=[lambda record, current: kept(current)], **FIT_PATHS[path])
+    kept(model)
+    assert not torch.equal(model.A[1:].detach(), start[1:])  # the free rows were learned
+    assert np.isfinite(result.history[-1]["e_test"])
+
+
+def test_hold_sets_values_and_is_checked(system, tmp_path):
+    truth, _, _ = system
+    model = held_structured(truth)
+    assert model.masks["d"].tolist() == [True, False, False]
+    assert model.held["d"][1].item() == truth.d[1].item() and math.isnan(model.held["d"][0].item())
+    lcs_cvx.save_model(model, tmp_path / "held.npz")
+    loaded = lcs_cvx.load_model(tmp_path / "held.npz")
+    assert lcs_cvx.load_metadata(tmp_path / "held.npz")["format_version"] == 3
+    assert all(torch.equal(getattr(loaded, k), getattr(model, k)) for k in PARAMETER_NAMES)
+    assert {k: v.tolist() for k, v in loaded.masks.items()} == {k: v.tolist() for k, v in model.masks.items()}
+    assert torch.equal(torch.nan_to_num(loaded.held["d"]), torch.nan_to_num(model.held["d"]))
+    # units cannot be added where a unit-indexed parameter holds a value other than 0
+    grown = LCS(3, 1, 2, stiffness=1.0, seed=0).hold(c=[0.5, 0.5])
+    assert growth_blocker(grown) == "entries of c are held at values other than 0"
+    assert growth_blocker(LCS(3, 1, 2, seed=0).hold(c=[0.0, 0.0])) is None
+    assert growth_blocker(model) is None  # A and d are not indexed by the units
+    # a later mask of another parameter leaves the held values as they are
+    again = held_structured(truth).mask(E=[[1], [0]])
+    assert again.d[1].item() == truth.d[1].item() and torch.equal(again.A[0].detach(), truth.A[0])
+    assert again.E[1, 0].item() == 0.0
+    with pytest.raises(LCSInputError, match=r"^G: expected a name among"):
+        LCS(3, 1, 2).hold(G=np.zeros((2, 2)))
+    with pytest.raises(LCSInputError, match=r"^d: expected an array of shape \(3,\) \(NaN where learned\), received shape \(2,\)"):
+        LCS(3, 1, 2).hold(d=[0.0, 1.0])
+    with pytest.raises(LCSInputError, match=r"^d: expected finite values to hold"):
+        LCS(3, 1, 2).hold(d=[0.0, float("inf"), float("nan")])
 
 
 def test_best_recipe_grows_units_with_structure(system):
@@ -448,7 +509,15 @@ def test_save_load_round_trip(system, tmp_path):
     with pytest.raises(LCSInputError, match=r"array 'mask_C' in .*expected a bool array of shape "
                                             r"\(3, 2\), received shape \(3, 2\) and dtype float64"):
         lcs_cvx.load_model(tmp_path / "bad.npz")
+    # version 3: a masked entry holds its stored value; version 2 held masked entries at 0 only
     filled = {**arrays, "C": np.ones((3, 2))}
     np.savez(tmp_path / "filled.npz", **filled)
-    with pytest.raises(LCSInputError, match=r"expected C to be 0 where the mask is False"):
-        lcs_cvx.load_model(tmp_path / "filled.npz")
+    held = lcs_cvx.load_model(tmp_path / "filled.npz")
+    assert torch.equal(held.C.detach(), torch.ones(3, 2, dtype=torch.float64))
+    assert torch.equal(held.held["C"][~held.masks["C"]], torch.ones(3, 2, dtype=torch.float64)[~held.masks["C"]])
+    v2 = json.loads(str(arrays["meta"]))
+    v2["format_version"] = 2
+    np.savez(tmp_path / "filled_v2.npz", **{**filled, "meta": np.array(json.dumps(v2))})
+    with pytest.raises(LCSInputError, match=r"expected C to be 0 where the mask is False \(format version 2\)"):
+        lcs_cvx.load_model(tmp_path / "filled_v2.npz")
+    lcs_cvx.load_model(tmp_path / "m.npz")  # a version-2 reader's file with zeros loads either way

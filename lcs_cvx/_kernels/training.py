@@ -92,7 +92,8 @@ def adam_steps(kind, A, B, C, d, D, E, c, G, H, stiffness, X, U, XN, rows, activ
                 vi = v[i] * beta2 + (1.0 - beta2) * gi * gi
                 m[i] = mi
                 v[i] = vi
-                p[i] = p[i] + -step_size * mi / (math.sqrt(vi) / bc2 + adam_eps) if mask[i] else 0.0
+                if mask[i]:  # a masked entry keeps its held value
+                    p[i] = p[i] + -step_size * mi / (math.sqrt(vi) / bc2 + adam_eps)
         for i in range(batch):
             active[r[i]] = act[i]
             seen[r[i]] = True
