@@ -227,13 +227,16 @@ def measured_with_noise(s: dict[str, Any]) -> list[str]:
         + "). The affine map: least squares "
         "on the same training transitions (the map `fit` compares with).",
         "",
-        f"Columns: **held-out** -- the {H}-step rollout error on the validation trajectories "
-        "(`FitResult.heldout_error` / `affine_heldout_error`, measured data: what a user sees); **test** -- "
+        f"Columns: **held-out** -- `fit`'s held-out score on the validation trajectories, the {H}-step "
+        "rollout error relative to the recorded change with each coordinate scaled by the spread of its "
+        "one-step change (`FitResult.heldout_error` / `affine_heldout_error`, measured data: what a user "
+        "sees); **test** -- "
         "`lcs_cvx.rollout_error` on the test trajectories at each horizon, against the measured states; **test, "
         f"noise-free** -- at H = {H} from and against the same test trajectories logged without noise "
         "(exact positions, velocities by the same differences: the true value of what the sensor measures; "
         "for the exact and differenced sensors the same as test); **growth** -- `FitResult.heldout_growth`; **< affine** -- "
-        "`FitResult.beats_affine`. A model of logged states predicts logged states (for a differencing "
+        "`FitResult.beats_affine` (a lower held-out score, and rollouts that do not grow past 1.5 times the data's "
+        "and the affine map's growth). A model of logged states predicts logged states (for a differencing "
         "sensor, mean velocities over the last control period), so it is scored against logged states, "
         "not against the simulator's instantaneous velocities.",
     ]
