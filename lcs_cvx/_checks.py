@@ -169,6 +169,23 @@ def check_positive(name: str, value: Any, *, integer: bool = False, upper: float
     return float(value)
 
 
+def as_held(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
+    """Values to hold (:meth:`lcs_cvx.LCS.hold`) as a CPU float64 tensor of exactly ``shape``:
+    NaN where the entry is learned, finite elsewhere; or a clear error."""
+    try:
+        t = (value.detach().cpu() if isinstance(value, torch.Tensor)
+             else torch.from_numpy(np.array(value, dtype=np.float64))).to(torch.float64)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise LCSInputError(f"{name}: expected an array of shape {tuple(shape)} (NaN where learned), "
+                            f"received {type(value).__name__} {value!r}") from exc
+    if tuple(t.shape) != tuple(shape):
+        raise LCSInputError(f"{name}: expected an array of shape {tuple(shape)} (NaN where learned), "
+                            f"received shape {tuple(t.shape)}")
+    if bool(torch.isinf(t).any()):
+        raise LCSInputError(f"{name}: expected finite values to hold (NaN where learned), received inf")
+    return t
+
+
 def as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
     """A mask pattern as a CPU bool tensor of exactly ``shape``, or a clear error."""
     if isinstance(value, torch.Tensor):

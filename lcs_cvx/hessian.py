@@ -52,7 +52,8 @@ import torch
 
 from ._checks import LCSInputError, SolverError, as_matrix, as_transitions, check_positive
 from .losses import violation_fast
-from .system import LCS, PARAMETER_NAMES, F_adjoint
+from .parameters import F_adjoint
+from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
     "violation_hessian",
@@ -166,7 +167,7 @@ def _delta_rows(f: torch.Tensor, R: int) -> torch.Tensor:
 
 
 def _flat_GH(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`lcs_cvx.system.F_adjoint` of ``T_F`` ``(..., n, n)``, each block flattened
+    """:func:`lcs_cvx.parameters.F_adjoint` of ``T_F`` ``(..., n, n)``, each block flattened
     row-major to ``(..., n * n)`` (the Jacobians' column layout)."""
     dG, dH = F_adjoint(T_F, G)
     return dG.flatten(-2), dH.flatten(-2)

@@ -41,7 +41,8 @@ from .parameter_constraints import (
     restrict_structure_,
     row_lstsq,
 )
-from .system import LCS, split_F
+from .parameters import split_F
+from .system import LCS
 
 __all__ = ["keep_units", "eliminate_unit", "add_units", "prune_units", "refit_dynamics"]
 

@@ -3,9 +3,9 @@ r"""The linear complementarity system, eq. (1), as a ``torch.nn.Module``.
     x' = A x + B u + C lam + d
     0 <= lam  _|_  D x + E u + F lam + c >= 0,      F = G G^T + H - H^T + s I
 
-The parameterisation of F (paper Sec. 5) makes ``F + F^T >= 2 s I > 0`` for every value of the
-learnable ``G`` and ``H`` and the fixed ``stiffness`` ``s > 0`` -- Assumption 1 holds by
-construction, so the LCP has a unique solution for every ``(x, u)``.
+The parameterisation of F (paper Sec. 5, :mod:`lcs_cvx.parameters`) makes ``F + F^T >= 2 s I >
+0`` for every value of the learnable ``G`` and ``H`` and the fixed ``stiffness`` ``s > 0`` --
+Assumption 1 holds by construction, so the LCP has a unique solution for every ``(x, u)``.
 
 :class:`LCS` and :func:`lcs_cvx.data.random_lcs` share their defaults (``stiffness`` :data:`DEFAULT_STIFFNESS`,
 ``seed`` 0): a default model's set of ``F`` contains every default ground truth's ``F``.
@@ -21,22 +21,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from ._checks import LCSInputError, as_batch, as_matrix, as_pattern, check_positive
-from ._kernels import losses as kernel
-from ._kernels.arrays import TORCH
+from ._checks import LCSInputError, as_batch, as_held, as_matrix, as_pattern, check_positive
 from .lcp import LCPSolution, active_set_solve, solve_lcp_unchecked
+from .parameters import MASKABLE, MATRIX_NAMES, PARAMETER_NAMES, F_matrix, parameter_shapes, split_F
 from .problems import sym_min_eig
 
 __all__ = ["LCS", "PARAMETER_NAMES", "MATRIX_NAMES", "ACTIVE_TOL", "DEFAULT_STIFFNESS", "MASKABLE",
-           "C3_NAMES", "parameter_shapes", "F_matrix", "F_adjoint", "split_F"]
-
-#: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
-PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
-#: Parameters that take a sparsity mask (:meth:`LCS.mask`). ``G`` and ``H`` do not: they
-#: parameterise ``F`` as a whole (fix them, or ``F``, instead).
-MASKABLE = ("A", "B", "C", "d", "D", "E", "c")
-#: Matrices of the LCS as exported by :meth:`LCS.to_matrices`.
-MATRIX_NAMES = ("A", "B", "C", "d", "D", "E", "F", "c")
+           "C3_NAMES", "parameter_shapes", "F_matrix", "split_F"]
 
 #: ``lam_i > ACTIVE_TOL`` marks unit ``i`` active (:meth:`LCS.active_set`,
 #: :func:`lcs_cvx.count_modes`, the studies' mode counts). The fast solver's inactive ``lam_i`` are
@@ -47,46 +38,6 @@ ACTIVE_TOL = 1e-5
 
 #: The default ``stiffness`` ``s`` of :class:`LCS` and :func:`random_lcs`.
 DEFAULT_STIFFNESS = 0.5
-
-
-def parameter_shapes(n_x: int, n_u: int, n_lam: int) -> dict[str, tuple[int, ...]]:
-    """The shape of every parameter of :data:`PARAMETER_NAMES` and of ``F``, by name."""
-    return {
-        "A": (n_x, n_x),
-        "B": (n_x, n_u),
-        "C": (n_x, n_lam),
-        "d": (n_x,),
-        "D": (n_lam, n_x),
-        "E": (n_lam, n_u),
-        "G": (n_lam, n_lam),
-        "H": (n_lam, n_lam),
-        "F": (n_lam, n_lam),
-        "c": (n_lam,),
-    }
-
-
-def F_matrix(G: torch.Tensor, H: torch.Tensor, stiffness: torch.Tensor | float) -> torch.Tensor:
-    """``F = G G^T + H - H^T + s I`` (Sec. 5) from ``G``, ``H`` ``(n, n)`` (differentiable)."""
-    return kernel.F_matrix(TORCH, G, H, stiffness)
-
-
-def F_adjoint(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The chain rule of ``F = G G^T + H - H^T + s I`` (Sec. 5): given ``T_F[..., j, m] =
-    d(.)/dF_jm`` ``(..., n, n)``, return ``d(.)/dG = (T_F + T_F^T) G`` and
-    ``d(.)/dH = T_F - T_F^T``, each ``(..., n, n)``."""
-    return kernel.F_adjoint(T_F, G)
-
-
-def split_F(F: torch.Tensor, stiffness: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` ``(n, n)`` whose symmetric part is
-    ``>= s I``, the inverse of :func:`F_matrix`: ``H = (F - F^T) / 4`` and ``G = V sqrt(D)`` from
-    the eigen-decomposition ``V D V^T`` of ``(F + F^T) / 2 - s I``. Below ``s I`` the symmetric
-    part's eigenvalues are raised to ``s``: the nearest ``F`` of the model's set in the symmetric
-    part."""
-    n = F.shape[0]
-    sym = 0.5 * (F + F.mT) - float(stiffness) * torch.eye(n, dtype=F.dtype, device=F.device)
-    vals, vecs = torch.linalg.eigh(sym)
-    return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
 
 
 #: C3's name of each matrix -> ours (C3 writes ``x' = A x + B u + D lam + d``,
@@ -267,17 +218,11 @@ class LCS(nn.Module):
             (-0.0981, [True, False], -0.0981)
         """
         shapes = parameter_shapes(self.n_x, self.n_u, self.n_lam)
-        given: dict[str, torch.Tensor] = {}
-        for k, v in values.items():
-            if k not in MASKABLE:
-                raise LCSInputError(f"{k}: expected a name among {MASKABLE} to hold entries of, received {k!r}")
-            t = torch.as_tensor(np.asarray(v, dtype=np.float64))
-            if tuple(t.shape) != tuple(shapes[k]):
-                raise LCSInputError(f"{k}: expected an array of shape {tuple(shapes[k])} (NaN where learned), "
-                                    f"received shape {tuple(t.shape)}")
-            if bool(torch.isinf(t).any()):
-                raise LCSInputError(f"{k}: expected finite values to hold (NaN where learned), received inf")
-            given[k] = t
+        unknown = [k for k in values if k not in MASKABLE]
+        if unknown:
+            raise LCSInputError(f"{unknown[0]}: expected a name among {MASKABLE} to hold entries of, "
+                                f"received {unknown[0]!r}")
+        given = {k: as_held(k, v, shapes[k]) for k, v in values.items()}
         with torch.no_grad():
             for k, t in given.items():
                 p = getattr(self, k)

@@ -21,7 +21,7 @@ from lcs_cvx._kernels import losses as kernel_losses
 from lcs_cvx._kernels.arrays import ARRAYS, TORCH, ArrayOps, array_ops
 from lcs_cvx._kernels.pivoting import block_pivoting, unconverged
 from lcs_cvx.lcp import solve_lcp_fast
-from lcs_cvx.system import F_adjoint, F_matrix
+from lcs_cvx.parameters import F_adjoint, F_matrix
 
 F64 = torch.float64
 KERNELS = ("numpy", "torch")

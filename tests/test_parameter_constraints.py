@@ -285,6 +285,8 @@ def test_hold_sets_values_and_is_checked(system, tmp_path):
         LCS(3, 1, 2).hold(G=np.zeros((2, 2)))
     with pytest.raises(LCSInputError, match=r"^d: expected an array of shape \(3,\) \(NaN where learned\), received shape \(2,\)"):
         LCS(3, 1, 2).hold(d=[0.0, 1.0])
+    with pytest.raises(LCSInputError, match=r"^d: expected an array of shape \(3,\) \(NaN where learned\), received str"):
+        LCS(3, 1, 2).hold(d="gravity")
     with pytest.raises(LCSInputError, match=r"^d: expected finite values to hold"):
         LCS(3, 1, 2).hold(d=[0.0, float("inf"), float("nan")])
 

@@ -224,7 +224,7 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
     # every state's training set, end to end; state k's samples start at starts[k]
     trains = [st.train for st in states]
     X, U, XN = (torch.cat([getattr(d, f) for d in trains]) for f in ("x", "u", "x_next"))
-    starts = torch.tensor([0] + [len(d) for d in trains]).cumsum(0)[:-1]
+    starts = torch.tensor([0] + [len(d) for d in trains]).cumsum(0)[:-1].to(X.device)
     # the last active sets of every sample (warm starts) and whether it was seen, on the data's
     # device (as in TrainState)
     active: torch.Tensor | None = None
@@ -233,12 +233,12 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
         eps, lr = phase.eps_at(it), phase.lr_at(it)
         for group in adam.param_groups:
             group["lr"] = lr
-        idx = torch.stack([states[k].next_batch(batch).cpu() for k in alive])
-        rows = (idx + starts[alive][:, None]).reshape(-1)  # (K * B,), model-major
-        on_device = rows.to(X.device)
-        x, u, x_next = (T.index_select(0, on_device).reshape(len(alive), batch, -1) for T in (X, U, XN))
-        warm_start = None if active is None else active.index_select(0, on_device).reshape(len(alive), batch, -1)
-        warm = seen.index_select(0, on_device).reshape(len(alive), batch).all(1)
+        # (K * B,), model-major, on the data's device (TrainState draws its indices there)
+        idx = torch.stack([states[k].next_batch(batch) for k in alive])
+        rows = (idx + starts[alive][:, None]).reshape(-1)
+        x, u, x_next = (T.index_select(0, rows).reshape(len(alive), batch, -1) for T in (X, U, XN))
+        warm_start = None if active is None else active.index_select(0, rows).reshape(len(alive), batch, -1)
+        warm = seen.index_select(0, rows).reshape(len(alive), batch).all(1)
         if obj.loss == "violation":
             info = violation_losses(ens, x, u, x_next, gamma=obj.gamma, eps=eps,
                                     warm_start=warm_start, warm=warm)
@@ -246,8 +246,8 @@ def _adam_loop(states: list[TrainState], o: FitOptions, batch: int, errors: list
             info = prediction_losses(ens, x, u, x_next, warm_start=warm_start, warm=warm)
         if active is None:
             active = torch.zeros(len(X), info.active.shape[2], dtype=torch.bool, device=X.device)
-        active[on_device] = info.active.reshape(len(rows), -1).to(active.device)
-        seen[on_device] = True
+        active[rows] = info.active.reshape(len(rows), -1).to(active.device)
+        seen[rows] = True
         value = info.loss + obj.reg * (ens.C**2).sum((1, 2))
         adam.zero_grad()
         value.sum().backward()
