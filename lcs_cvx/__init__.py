@@ -22,6 +22,7 @@ from .hessian import violation_hvp as violation_hvp
 from .io import load_metadata as load_metadata
 from .io import load_model as load_model
 from .io import save_model as save_model
+from .kinematics import Kinematics as Kinematics
 from .lcp import LCPSolution as LCPSolution
 from .lcp import solve_lcp as solve_lcp
 from .losses import LossInfo as LossInfo
@@ -67,6 +68,7 @@ __all__ = [
     "fit_ensemble",
     "FitOptions",
     "FitResult",
+    "Kinematics",
     "LayerAccuracyWarning",
     "PlanGapWarning",
     "LCPSolution",

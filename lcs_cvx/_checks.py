@@ -215,3 +215,4 @@ def as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
             f"values (e.g. {shown})"
         )
     return t != 0
+

@@ -215,7 +215,8 @@ def make_dataset(
             xb = x[i : i + batch_size].to(system.dtype)
             ub = u[i : i + batch_size].to(system.dtype)
             lam = system.solve_lcp(xb, ub).lam
-            xs.append(xb @ system.A.mT + ub @ system.B.mT + lam @ system.C.mT + system.d)
+            xn = xb @ system.A.mT + ub @ system.B.mT + lam @ system.C.mT + system.d
+            xs.append(xn if system.kinematics is None else system.kinematics.integrate(xb, xn))
             lams.append(lam)
     x_next = torch.cat(xs).to(f64) + noise_draw
     return Dataset(x, u, x_next, torch.cat(lams).to(f64))

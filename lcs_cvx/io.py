@@ -27,6 +27,8 @@ The known structure travels with the model: ``meta["fixed"]`` lists the fixed pa
 at its stored value (format version 3: 0 for :meth:`~lcs_cvx.LCS.mask`, any value for
 :meth:`~lcs_cvx.LCS.hold`; version 2 held masked entries at 0 only, and such files load as
 before). Files of version 1 (no structure) load as models with every parameter learnable.
+``meta["kinematics"]`` (version 4) is the model's :class:`lcs_cvx.Kinematics` as a JSON object
+(:meth:`~lcs_cvx.Kinematics.to_dict`), or null.
 
 All numeric arrays have the model's dtype (float32 or float64). The path is used exactly as
 given: unlike ``np.savez``, no ``.npz`` is appended when it is missing.
@@ -45,6 +47,7 @@ import torch
 
 from ._checks import LCSInputError
 from ._version import __version__
+from .kinematics import Kinematics
 from .system import LCS, MASKABLE, PARAMETER_NAMES, parameter_shapes
 
 __all__ = ["save_model", "load_model", "load_metadata", "atomic_write", "FORMAT", "FORMAT_VERSION"]
@@ -54,7 +57,8 @@ FORMAT = "lcs_cvx.model"
 #: Version of the file layout written by :func:`save_model`; files of a newer version are refused.
 #: 2: the fixed parameters (``meta["fixed"]``) and masks (``mask_*`` arrays, ``meta["masks"]``).
 #: 3: masked entries hold their stored values (:meth:`lcs_cvx.LCS.hold`), not only 0.
-FORMAT_VERSION = 3
+#: 4: the known kinematics (``meta["kinematics"]``).
+FORMAT_VERSION = 4
 #: Arrays every model file holds.
 ARRAY_NAMES = PARAMETER_NAMES + ("stiffness", "F", "meta")
 
@@ -98,6 +102,7 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         "metadata": dict(metadata) if metadata is not None else {},
         "fixed": [k for k in PARAMETER_NAMES if not getattr(model, k).requires_grad],
         "masks": [k for k in MASKABLE if k in model.masks],
+        "kinematics": None if model.kinematics is None else model.kinematics.to_dict(),
     }
     try:
         meta_json = json.dumps(meta, allow_nan=False)
@@ -196,6 +201,11 @@ def load_model(path: str | os.PathLike) -> LCS:
         model.replace_masks(masks, zero=False)  # held at the stored values
     for name in meta["fixed"]:
         getattr(model, name).requires_grad_(False)
+    if meta.get("kinematics") is not None:
+        try:
+            model.with_kinematics(Kinematics.from_dict(meta["kinematics"]))
+        except (LCSInputError, TypeError) as exc:
+            raise LCSInputError(f"path: 'kinematics' in {path_s!r}: {exc}") from None
     return model
 
 
@@ -206,7 +216,8 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
     ``"lcs_cvx_version"`` (the package that wrote it), ``"n_x"``, ``"n_u"``, ``"n_lam"``,
     ``"stiffness"``, ``"dtype"`` (``"float32"`` or ``"float64"``), ``"metadata"`` (the
     user's dict given to :func:`save_model`; ``{}`` if none), ``"fixed"`` and ``"masks"``
-    (the names of the fixed and of the masked parameters; ``[]`` in version-1 files).
+    (the names of the fixed and of the masked parameters; ``[]`` in version-1 files) and
+    ``"kinematics"`` (:meth:`lcs_cvx.Kinematics.to_dict`'s dict, or None; None before version 4).
     """
     return _read(path)[2]
 
@@ -327,6 +338,7 @@ def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
     if not isinstance(meta.get("metadata", {}), dict):
         raise LCSInputError(f"{where}: expected 'metadata' a JSON object, received {meta['metadata']!r}")
     meta.setdefault("metadata", {})
+    meta.setdefault("kinematics", None)
     for key, allowed in (("fixed", PARAMETER_NAMES), ("masks", MASKABLE)):  # version 1: none
         names = meta.setdefault(key, [])
         if not isinstance(names, list) or not all(n in allowed for n in names) \

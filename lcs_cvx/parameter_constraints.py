@@ -173,7 +173,7 @@ def _restrict(name: str, t: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
 
 def copy_structure_(src: LCS, dst: LCS) -> LCS:
     """Give ``dst`` (same sizes as ``src``) ``src``'s fixed parameters -- values and flags --
-    and masks, its masked entries set to ``src``'s held values; returns ``dst``. A fresh
+    masks and kinematics, its masked entries set to ``src``'s held values; returns ``dst``. A fresh
     restart keeps what the user stated this way."""
     with torch.no_grad():
         for name in PARAMETER_NAMES:
@@ -181,6 +181,7 @@ def copy_structure_(src: LCS, dst: LCS) -> LCS:
             if not p.requires_grad:
                 getattr(dst, name).copy_(p).requires_grad_(False)
     dst.replace_masks(src.masks, held=src._held)
+    dst._kinematics = src.kinematics
     return dst
 
 
@@ -193,6 +194,7 @@ def restrict_structure_(src: LCS, dst: LCS, keep: list[int]) -> None:
         if not getattr(src, name).requires_grad:
             getattr(dst, name).requires_grad_(False)
     dst.replace_masks({k: _restrict(k, m, idx) for k, m in src.masks.items()}, zero=False)
+    dst._kinematics = src.kinematics
 
 
 def keeps_structure(candidate: LCS, model: LCS, keep: list[int]) -> bool:
@@ -259,6 +261,7 @@ def grow_structure_(src: LCS, dst: LCS) -> None:
         masks[name] = mask.clone()
     # held values: 0 on the unit-indexed parameters (growth_blocker), the source's elsewhere
     dst.replace_masks(masks, held={k: v for k, v in src._held.items() if k not in UNIT_AXES})
+    dst._kinematics = src.kinematics
 
 
 def allowed_extra_units(model: LCS, option: int | str, n_extra: int) -> int:

@@ -9,13 +9,18 @@ is its chain rule and :func:`split_F` its inverse; :class:`lcs_cvx.LCS` holds th
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import torch
 
+from ._checks import LCSInputError
 from ._kernels import losses as kernel
 from ._kernels.arrays import TORCH
+from .problems import sym_min_eig
 
 __all__ = ["PARAMETER_NAMES", "MASKABLE", "MATRIX_NAMES", "parameter_shapes", "F_matrix", "F_adjoint",
-           "split_F"]
+           "split_F", "factor_F", "lcs_sizes"]
 
 #: Learnable parameters, in the order used for flattening (Lemma 4's Hessian).
 PARAMETER_NAMES = ("A", "B", "C", "d", "D", "E", "G", "H", "c")
@@ -54,13 +59,49 @@ def F_adjoint(T_F: torch.Tensor, G: torch.Tensor) -> tuple[torch.Tensor, torch.T
     return kernel.F_adjoint(T_F, G)
 
 
-def split_F(F: torch.Tensor, stiffness: float) -> tuple[torch.Tensor, torch.Tensor]:
+def split_F(F: torch.Tensor, stiffness: float, strict: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """``(G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` ``(n, n)`` whose symmetric part is
     ``>= s I``, the inverse of :func:`F_matrix`: ``H = (F - F^T) / 4`` and ``G = V sqrt(D)`` from
     the eigen-decomposition ``V D V^T`` of ``(F + F^T) / 2 - s I``. Below ``s I`` the symmetric
     part's eigenvalues are raised to ``s``: the nearest ``F`` of the model's set in the symmetric
-    part."""
+    part; with ``strict``, an :class:`LCSInputError` instead (beyond round-off)."""
     n = F.shape[0]
+    if strict:
+        low, s = 0.5 * float(sym_min_eig(F)), float(stiffness)  # of the symmetric part (F + F^T) / 2
+        if low < s - 1e-12 * (1.0 + float(F.abs().max())):
+            raise LCSInputError(
+                f"F: expected a symmetric part (F + F^T) / 2 >= s I with s = {s:.6g} (the "
+                f"model's stiffness), received smallest eigenvalue {low:.6g}; build the model "
+                "with a smaller stiffness")
     sym = 0.5 * (F + F.mT) - float(stiffness) * torch.eye(n, dtype=F.dtype, device=F.device)
     vals, vecs = torch.linalg.eigh(sym)
     return vecs * vals.clamp(min=0.0).sqrt(), 0.25 * (F - F.mT)
+
+
+def factor_F(F: torch.Tensor) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """``(s, G, H)`` with ``G G^T + H - H^T + s I = F`` for ``F`` ``(n, n)`` float64 with ``F + F^T``
+    positive definite (Assumption 1; else :class:`LCSInputError`): ``s = sigma_min(F + F^T) / 4``,
+    ``H = (F - F^T) / 4`` and ``G`` the Cholesky factor of ``(F + F^T) / 2 - s I``."""
+    smin = float(sym_min_eig(F))
+    if not smin > 0:
+        raise LCSInputError(
+            "F: expected F + F^T positive definite (Assumption 1), received "
+            f"sigma_min(F + F^T) = {smin:.6g}"
+        )
+    s = smin / 4.0
+    sym = 0.5 * (F + F.mT) - s * torch.eye(F.shape[0], dtype=F.dtype, device=F.device)
+    return s, torch.linalg.cholesky(sym), 0.25 * (F - F.mT)
+
+
+def lcs_sizes(A: Any, B: Any, C: Any) -> tuple[int, int, int]:
+    """``(n_x, n_u, n_lam)`` from the shapes of ``A`` ``(n_x, n_x)``, ``B`` ``(n_x, n_u)`` and
+    ``C`` ``(n_x, n_lam)`` (arrays or tensors); :class:`LCSInputError` for another rank or a
+    non-square ``A``."""
+    dims = {k: tuple(np.shape(v.detach().cpu() if isinstance(v, torch.Tensor) else np.asarray(v, dtype=np.float64)))
+            for k, v in (("A", A), ("C", C), ("B", B))}
+    if len(dims["A"]) != 2 or dims["A"][0] != dims["A"][1]:
+        raise LCSInputError(f"A: expected a square (n_x, n_x) matrix, received shape {dims['A']}")
+    for k, want in (("C", "(n_x, n_lam)"), ("B", "(n_x, n_u)")):
+        if len(dims[k]) != 2:
+            raise LCSInputError(f"{k}: expected shape {want}, received shape {dims[k]}")
+    return dims["A"][0], dims["B"][1], dims["C"][1]

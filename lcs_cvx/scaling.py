@@ -27,8 +27,11 @@ is exactly the LCS of eq. (1) in the user's units with the same ``lam`` and ``F`
 
 and :meth:`Scaling.to_normalised` is its inverse. Known structure survives the change: every map
 above is diagonal in each parameter's entries except for ``d`` and ``c``, so a sparsity mask keeps
-its pattern, and a model whose ``d`` or ``c`` is fixed or masked is scaled without centring
-(``m = 0``: then ``d = S_y d̂`` and ``c = ĉ``). ``K_ii = 0`` where a mask holds ``A_ii = 0``.
+its pattern. A fixed or masked entry of ``d`` (of ``c``) stays constant through learning when
+the rest of its row of ``A - K`` and ``B`` (of ``D`` and ``E``) is fixed or masked too (the
+configuration rows of :class:`lcs_cvx.Kinematics`); otherwise ``x`` and ``u`` are not centred
+(``m_x = m_u = 0``), and no row of ``y`` whose ``d`` is constrained is (then ``d = S_y d̂`` there
+and ``c = ĉ``). ``K_ii = 0`` where a mask holds ``A_ii`` at 0.
 A fixed parameter is copied back bit for bit after the fold-back.
 """
 
@@ -50,15 +53,31 @@ X_SPREAD = 10.0 / 3.0**0.5
 U_SPREAD = 5.0 / 3.0**0.5
 
 
-def _constrained(model: LCS, name: str) -> bool:
-    return not getattr(model, name).requires_grad or name in model.masks
+def _constrained_entries(model: LCS, name: str) -> torch.Tensor:
+    """Bool, the parameter's shape (CPU): True where the entry is fixed or masked."""
+    p = getattr(model, name)
+    if not p.requires_grad:
+        return torch.ones(p.shape, dtype=torch.bool)
+    mask = model.masks.get(name)
+    return torch.zeros(p.shape, dtype=torch.bool) if mask is None else ~mask
 
 
-def _moments(a: torch.Tensor, center: bool, spread: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean (0 without centring) and scale of each column: its standard deviation (RMS without
-    centring) over ``spread``; a column whose deviation is at round-off level of its magnitude
-    (a constant column) gets 1."""
-    m = a.mean(0) if center else torch.zeros(a.shape[1], dtype=a.dtype, device=a.device)
+def _held_rows_vary(model: LCS, name: str, others: tuple[str, ...]) -> bool:
+    """Whether a constrained entry of the offset ``name`` (``d`` or ``c``) sits in a row in which
+    ``others`` have free entries: its normalised value would then move with them unless ``x``
+    and ``u`` are not centred."""
+    rows = _constrained_entries(model, name)
+    free = torch.zeros_like(rows)
+    for other in others:
+        free |= ~_constrained_entries(model, other).all(1)
+    return bool((rows & free).any())
+
+
+def _moments(a: torch.Tensor, center: bool | torch.Tensor, spread: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean (0 without centring; ``center`` per column or for all) and scale of each column: its
+    standard deviation (RMS without centring) over ``spread``; a column whose deviation is at
+    round-off level of its magnitude (a constant column) gets 1."""
+    m = a.mean(0) * torch.as_tensor(center, dtype=a.dtype)
     s = (a - m).pow(2).mean(0).sqrt()
     floor = 1e-12 * a.abs().amax(0) if a.shape[0] else torch.zeros_like(s)
     return m, torch.where(s > floor, s / spread, torch.ones_like(s))
@@ -98,14 +117,14 @@ class Scaling:
         """The scaling of ``data`` (statistics in float64) for learning ``model``'s structure
         (its fixed and masked parameters decide centring and ``K``; None: none)."""
         x, u, xn = (t.detach().to("cpu", torch.float64) for t in (data.x, data.u, data.x_next))
-        center_xu = center_y = True
+        center_xu, center_y = True, torch.ones(x.shape[1], dtype=torch.bool)
         k = torch.ones(x.shape[1], dtype=torch.float64)
         if model is not None:
-            center_xu = not (_constrained(model, "d") or _constrained(model, "c"))
-            center_y = not _constrained(model, "d")
             mask_A = model.masks.get("A")
-            if mask_A is not None:
-                k = mask_A.diagonal().to(torch.float64)
+            if mask_A is not None:  # K_ii = 0 where A_ii is held at 0
+                k = (mask_A.diagonal() | (model._held["A"].diagonal() != 0)).to(torch.float64)
+            center_xu = not (_held_rows_vary(model, "d", ("A", "B")) or _held_rows_vary(model, "c", ("D", "E")))
+            center_y = ~_constrained_entries(model, "d")
         mx, sx = _moments(x, center_xu, X_SPREAD)
         mu, su = _moments(u, center_xu, U_SPREAD)
         my, sy = _moments(xn - k * x, center_y, 1.0)
@@ -194,7 +213,9 @@ def in_user_coordinates(scaling: Scaling | None, learner: LCS, like: LCS) -> LCS
     itself without a scaling."""
     if scaling is None:
         return learner
-    return scaling.to_physical(learner, out=copy.deepcopy(like) if learner.n_lam == like.n_lam else None)
+    out = scaling.to_physical(learner, out=copy.deepcopy(like) if learner.n_lam == like.n_lam else None)
+    out._kinematics = like.kinematics
+    return out
 
 
 def fold_back(scaling: Scaling | None, learner: LCS, model: LCS) -> None:

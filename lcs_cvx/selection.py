@@ -157,6 +157,7 @@ def select_n_lam(
     tolerance: float = 0.1,
     make_model: Callable[[int], LCS] | None = None,
     stiffness: float = DEFAULT_STIFFNESS,
+    kinematics: Any = None,
     seed: int = 0,
     refit: bool = False,
     progress: bool = True,
@@ -186,6 +187,8 @@ def select_n_lam(
             known structure (``model.fix(...)``, ``model.mask(...)``); it must return an
             :class:`lcs_cvx.LCS` with ``train``'s ``n_x``, ``n_u`` and ``n_lam = n``.
         stiffness: ``s`` of the default models (ignored with ``make_model``).
+        kinematics: an :class:`lcs_cvx.Kinematics` attached to the default models (ignored
+            with ``make_model``).
         seed: seed of the held-out split, of the default models' initialisation and of each
             training run (passed to ``fit`` as ``seed``, over the one of ``options``).
         refit: retrain the chosen ``n_lam`` on the whole of ``train`` (only without
@@ -272,7 +275,7 @@ def select_n_lam(
     def build(n: int) -> LCS:
         if make_model is None:
             device = train.x.device if isinstance(train, Dataset) else torch.device("cpu")
-            return LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed).to(device)
+            return LCS(train.n_x, train.n_u, n, stiffness=stiffness, seed=seed, kinematics=kinematics).to(device)
         model = make_model(n)
         if not isinstance(model, LCS) or (model.n_x, model.n_u, model.n_lam) != (train.n_x, train.n_u, n):
             got = (f"n_x={model.n_x}, n_u={model.n_u}, n_lam={model.n_lam}" if isinstance(model, LCS)

@@ -23,7 +23,16 @@ from torch import nn
 
 from ._checks import LCSInputError, as_batch, as_held, as_matrix, as_pattern, check_positive
 from .lcp import LCPSolution, active_set_solve, solve_lcp_unchecked
-from .parameters import MASKABLE, MATRIX_NAMES, PARAMETER_NAMES, F_matrix, parameter_shapes, split_F
+from .parameters import (
+    MASKABLE,
+    MATRIX_NAMES,
+    PARAMETER_NAMES,
+    F_matrix,
+    factor_F,
+    lcs_sizes,
+    parameter_shapes,
+    split_F,
+)
 from .problems import sym_min_eig
 
 __all__ = ["LCS", "PARAMETER_NAMES", "MATRIX_NAMES", "ACTIVE_TOL", "DEFAULT_STIFFNESS", "MASKABLE",
@@ -65,6 +74,7 @@ class LCS(nn.Module):
         seed: seed of the initialisation (default 0; None: torch's global generator).
         dtype: floating dtype of the parameters (float64 recommended: the LCPs can be stiff).
         mask: optional ``{name: pattern}``, applied with :meth:`mask` after the initialisation.
+        kinematics: optional :class:`lcs_cvx.Kinematics`, attached with :meth:`with_kinematics`.
 
     Batched methods take ``x`` ``(N, n_x)`` and ``u`` ``(N, n_u)``; a 1-D input is one sample.
 
@@ -94,6 +104,7 @@ class LCS(nn.Module):
         seed: int | None = 0,
         dtype: torch.dtype = torch.float64,
         mask: Mapping[str, Any] | None = None,
+        kinematics: Any = None,
     ) -> None:
         super().__init__()
         # name -> CPU bool tensor (True: learnable entry); a plain attribute, not a buffer, so
@@ -102,6 +113,7 @@ class LCS(nn.Module):
         # name -> CPU tensor of the parameter's shape: the values of its masked entries (0 at
         # the learned ones); restored by every optimiser step (parameter_constraints.project_)
         self._held: dict[str, torch.Tensor] = {}
+        self._kinematics: Any = None  # a Kinematics: the configuration rows integrated in step
         self.n_x = check_positive("n_x", n_x, integer=True)
         if isinstance(n_u, bool) or not isinstance(n_u, (int, np.integer)) or n_u < 0:
             raise LCSInputError(f"n_u: expected an integer >= 0, received {n_u!r}")
@@ -124,6 +136,8 @@ class LCS(nn.Module):
                     f"mask: expected a dict {{parameter name: pattern}} or None, received {mask!r}"
                 )
             self.mask(**mask)
+        if kinematics is not None:
+            self.with_kinematics(kinematics)
 
     # -- known structure ----------------------------------------------------------------
     def fix(self, **values: Any) -> LCS:
@@ -168,15 +182,7 @@ class LCS(nn.Module):
                     f"the given ones for hold), received {int(off.sum())} other values there"
                 )
         if "F" in new:
-            F, s = new.pop("F"), float(self.stiffness)
-            low = 0.5 * float(sym_min_eig(F))  # of the symmetric part (F + F^T) / 2
-            if low < s - 1e-12 * (1.0 + float(F.abs().max())):
-                raise LCSInputError(
-                    f"F: expected a symmetric part (F + F^T) / 2 >= s I with s = {s:.6g} (the "
-                    f"model's stiffness), received smallest eigenvalue {low:.6g}; build the model "
-                    "with a smaller stiffness"
-                )
-            new["G"], new["H"] = split_F(F, s)
+            new["G"], new["H"] = split_F(new.pop("F"), float(self.stiffness), strict=True)
         with torch.no_grad():
             for k, v in new.items():
                 getattr(self, k).copy_(v)
@@ -272,6 +278,25 @@ class LCS(nn.Module):
         self._held = {k: getattr(self, k).detach().cpu().clone().masked_fill_(m, 0.0) for k, m in new.items()}
         return self
 
+    def with_kinematics(self, kinematics: Any) -> LCS:
+        """Attach known kinematics (:class:`lcs_cvx.Kinematics`); returns ``self``. The
+        configuration rows of ``A, B, C, d`` are held at ``x'_q = x_q`` (:meth:`hold`, other
+        held entries kept) and :meth:`step` integrates them from the predicted velocities."""
+        from .kinematics import attach
+
+        return attach(self, kinematics)
+
+    @property
+    def kinematics(self) -> Any:
+        """The attached :class:`lcs_cvx.Kinematics`, or None."""
+        return self._kinematics
+
+    def as_lcs(self, about: Any = None, u: Any = None) -> LCS:
+        """The model as a plain LCS (:meth:`lcs_cvx.Kinematics.to_lcs`: exact with positions,
+        a quaternion block linearised about the state ``about`` and input ``u``); ``self``
+        without kinematics."""
+        return self if self._kinematics is None else self._kinematics.to_lcs(self, about, u)
+
     @property
     def masks(self) -> dict[str, torch.Tensor]:
         """``{name: bool tensor}`` (copies, on the CPU) of the masked parameters: True where
@@ -280,47 +305,19 @@ class LCS(nn.Module):
 
     # -- construction -------------------------------------------------------------------
     @classmethod
-    def from_matrices(
-        cls,
-        *,
-        A: Any,
-        B: Any,
-        C: Any,
-        d: Any,
-        D: Any,
-        E: Any,
-        F: Any,
-        c: Any,
-        dtype: torch.dtype = torch.float64,
-    ) -> LCS:
+    def from_matrices(cls, *, A: Any, B: Any, C: Any, d: Any, D: Any, E: Any, F: Any, c: Any,
+                      dtype: torch.dtype = torch.float64) -> LCS:
         """Build a system from explicit matrices (``F`` given directly).
 
         ``F`` must satisfy Assumption 1 (``F + F^T`` positive definite); it is stored as
         ``G G^T + H - H^T + s I`` with ``s = sigma_min(F + F^T) / 4``, ``H = (F - F^T) / 4`` and
         ``G`` the Cholesky factor of the rest, so ``model.F`` reproduces ``F`` to round-off.
         """
-        dims = {k: tuple(np.shape(v.detach().cpu() if isinstance(v, torch.Tensor) else np.asarray(v, dtype=np.float64)))
-                for k, v in (("A", A), ("C", C), ("B", B))}
-        if len(dims["A"]) != 2 or dims["A"][0] != dims["A"][1]:
-            raise LCSInputError(f"A: expected a square (n_x, n_x) matrix, received shape {dims['A']}")
-        for k, want in (("C", "(n_x, n_lam)"), ("B", "(n_x, n_u)")):
-            if len(dims[k]) != 2:
-                raise LCSInputError(f"{k}: expected shape {want}, received shape {dims[k]}")
-        n_x, n_lam, n_u = dims["A"][0], dims["C"][1], dims["B"][1]
+        n_x, n_u, n_lam = lcs_sizes(A, B, C)
         shapes = parameter_shapes(n_x, n_u, n_lam)
         given = {"A": A, "B": B, "C": C, "d": d, "D": D, "E": E, "F": F, "c": c}
         mats = {k: as_matrix(k, v, shapes[k], dtype=torch.float64) for k, v in given.items()}
-        Fm = mats["F"]
-        smin = float(sym_min_eig(Fm))
-        if not smin > 0:
-            raise LCSInputError(
-                "F: expected F + F^T positive definite (Assumption 1), received "
-                f"sigma_min(F + F^T) = {smin:.6g}"
-            )
-        s = smin / 4.0
-        sym = 0.5 * (Fm + Fm.mT) - s * torch.eye(n_lam, dtype=torch.float64)
-        G = torch.linalg.cholesky(sym)
-        H = 0.25 * (Fm - Fm.mT)
+        s, G, H = factor_F(mats["F"])
         model = cls(n_x, n_u, n_lam, stiffness=s, init_scale=0.0, dtype=dtype)
         with torch.no_grad():
             for k in ("A", "B", "C", "d", "D", "E", "c"):
@@ -382,10 +379,12 @@ class LCS(nn.Module):
         return sol
 
     def step(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
-        """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)``."""
+        """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)``; with
+        :attr:`kinematics`, its configuration rows then integrated from the velocities."""
         x, u = self._xu(x, u)
         lam = self.solve_lcp(x, u, method=method).lam
-        return x @ self.A.mT + u @ self.B.mT + lam @ self.C.mT + self.d
+        out = x @ self.A.mT + u @ self.B.mT + lam @ self.C.mT + self.d
+        return out if self._kinematics is None else self._kinematics.integrate(x, out)
 
     def forward(self, x: Any, u: Any) -> torch.Tensor:
         """Same as :meth:`step`."""
@@ -419,25 +418,23 @@ class LCS(nn.Module):
             return self.solve_lcp(x, u).lam > tol
 
     def to_matrices(self) -> dict[str, np.ndarray]:
-        """The LCS as numpy arrays, keys ``"A", "B", "C", "d", "D", "E", "F", "c"``."""
+        """The LCS as numpy arrays, keys ``"A", "B", "C", "d", "D", "E", "F", "c"`` (with
+        :attr:`kinematics`, the stored rows: :meth:`as_lcs` for the model's step)."""
         with torch.no_grad():
             out = {k: getattr(self, k).detach().cpu().numpy().copy() for k in MATRIX_NAMES if k != "F"}
             out["F"] = self.F.detach().cpu().numpy().copy()
         return {k: out[k] for k in MATRIX_NAMES}
 
     def extra_repr(self) -> str:
-        return (
-            f"n_x={self.n_x}, n_u={self.n_u}, n_lam={self.n_lam}, "
-            f"stiffness={float(self.stiffness):.3g}, dtype={self.dtype}"
-        )
+        kin = "" if self._kinematics is None else f", kinematics={self._kinematics}"
+        return (f"n_x={self.n_x}, n_u={self.n_u}, n_lam={self.n_lam}, "
+                f"stiffness={float(self.stiffness):.3g}, dtype={self.dtype}{kin}")
 
     def to_c3(self) -> dict[str, np.ndarray]:
-        """The LCS in the convention of the C3 MPC code, as numpy arrays: C3 writes
+        """The LCS (:meth:`as_lcs`) in the convention of the C3 MPC code, as numpy arrays: C3 writes
         ``x' = A x + B u + D lam + d``, ``0 <= lam _|_ E x + F lam + H u + c >= 0``, eq. (1) with
-        our ``C, D, E`` renamed ``D, E, H`` (:data:`C3_NAMES`). Keys ``"A", "B", "D", "d", "E",
-        "F", "H", "c"``; shapes ``A (n_x, n_x)``, ``B (n_x, n_u)``, ``D (n_x, n_lam)``, ``d (n_x,)``,
-        ``E (n_lam, n_x)``, ``F (n_lam, n_lam)``, ``H (n_lam, n_u)``, ``c (n_lam,)``."""
-        m = self.to_matrices()
+        our ``C, D, E`` renamed ``D, E, H`` (:data:`C3_NAMES`); same shapes."""
+        m = self.as_lcs().to_matrices()
         return {c3: m[ours] for c3, ours in C3_NAMES.items()}
 
     @classmethod

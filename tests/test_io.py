@@ -137,6 +137,7 @@ def test_metadata(tmp_path):
         "metadata": {"fit": settings},
         "fixed": [],
         "masks": [],
+        "kinematics": None,
     }
     save_model(model, tmp_path / "plain.npz")
     assert load_metadata(tmp_path / "plain.npz")["metadata"] == {}

@@ -268,7 +268,7 @@ def test_hold_sets_values_and_is_checked(system, tmp_path):
     assert model.held["d"][1].item() == truth.d[1].item() and math.isnan(model.held["d"][0].item())
     lcs_cvx.save_model(model, tmp_path / "held.npz")
     loaded = lcs_cvx.load_model(tmp_path / "held.npz")
-    assert lcs_cvx.load_metadata(tmp_path / "held.npz")["format_version"] == 3
+    assert lcs_cvx.load_metadata(tmp_path / "held.npz")["format_version"] == lcs_cvx.io.FORMAT_VERSION
     assert all(torch.equal(getattr(loaded, k), getattr(model, k)) for k in PARAMETER_NAMES)
     assert {k: v.tolist() for k, v in loaded.masks.items()} == {k: v.tolist() for k, v in model.masks.items()}
     assert torch.equal(torch.nan_to_num(loaded.held["d"]), torch.nan_to_num(model.held["d"]))

@@ -60,6 +60,16 @@ def positive_float(text: str) -> float:
     return value
 
 
+def kinematics_spec(text: str) -> Any:
+    """``"dt=0.01 positions=0:2,1:3"`` -> :class:`lcs_cvx.Kinematics` (:meth:`~lcs_cvx.Kinematics.parse`)."""
+    from ..kinematics import Kinematics
+
+    try:
+        return Kinematics.parse(text)
+    except LCSInputError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("kinematics: ")) from None
+
+
 def sizes(text: str) -> list[tuple[int, int, int]]:
     """``"10,4,4;128,4,10"`` -> ``[(10, 4, 4), (128, 4, 10)]``."""
     try:

@@ -20,6 +20,7 @@ from ._args import (
     fraction,
     horizons,
     jsonable,
+    kinematics_spec,
     n_lam_or_auto,
     nonnegative_float,
     positive_float,
@@ -57,6 +58,10 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     add_column_options(p)
     p.add_argument("--stiffness", type=positive_float, default=1.0,
                    help="s in F = G G^T + H - H^T + s I of the learned LCS (default: 1.0)")
+    p.add_argument("--kinematics", type=kinematics_spec, default=None, metavar="SPEC",
+                   help="known kinematics, integrated rather than learned (lcs_cvx.Kinematics), as "
+                        "'dt=0.01 positions=0:2,1:3' (configuration:velocity column indices) and "
+                        "'quaternions=q0:w0 frame=body|world' for unit quaternions (scalar first)")
     # None = not given: lcs_cvx.fit's own defaults and recipes decide
     p.add_argument("--loss", choices=("violation", "prediction"), default=None)
     p.add_argument("--optimizer", choices=("adam", "gauss-newton", "newton"), default=None)
@@ -175,7 +180,8 @@ def run_fit(args: argparse.Namespace) -> int:
         selection = _train(args, lambda: select_n_lam(
             trajectories if trajectories is not None else train, cands,
             validation_runs if validation_runs is not None else validation, holdout=holdout, tolerance=tolerance,
-            stiffness=args.stiffness, seed=seed, progress=True, test=test, **options))
+            stiffness=args.stiffness, kinematics=args.kinematics, seed=seed, progress=True, test=test,
+            **options))
         result, n_lam = selection.results[selection.n_lam], selection.n_lam
         print("\n".join(selection.summary().splitlines()[:-1]))
         where = (f"--validation {args.validation!r}" if validation is not None
@@ -185,8 +191,9 @@ def run_fit(args: argparse.Namespace) -> int:
               f"{result.heldout_score if trajectories is not None else 'relative error'} on {where})")
     else:
         n_lam = args.n_lam
-        model = LCS(train.n_x, train.n_u, n_lam, stiffness=args.stiffness, seed=seed)
-        print(f"model: n_lam={n_lam}, stiffness {args.stiffness:g}, init seed {seed}", flush=True)
+        model = LCS(train.n_x, train.n_u, n_lam, stiffness=args.stiffness, seed=seed, kinematics=args.kinematics)
+        print(f"model: n_lam={n_lam}, stiffness {args.stiffness:g}, init seed {seed}"
+              + (f", kinematics {args.kinematics}" if args.kinematics is not None else ""), flush=True)
         # a trajectory file is passed whole: fit holds out whole trajectories
         data = trajectories if trajectories is not None else train
         result = _train(args, lambda: fit_lcs(model, data, test=test, progress=True, **options))
@@ -194,7 +201,8 @@ def run_fit(args: argparse.Namespace) -> int:
 
     metadata = {
         "fit": jsonable(result.settings.flat()),
-        "init": {"n_lam": n_lam, "stiffness": args.stiffness, "seed": seed},
+        "init": {"n_lam": n_lam, "stiffness": args.stiffness, "seed": seed,
+                 **({"kinematics": str(args.kinematics)} if args.kinematics is not None else {})},
         "data": {"train": args.data, "test": args.test, "n_train": len(train)},
     }
     if selection is not None:

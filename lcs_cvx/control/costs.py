@@ -108,7 +108,9 @@ class Horizon:
         """The stack of ``model`` (one :class:`lcs_cvx.LCS`, or a list of ``horizon`` of them of one
         size, for a time-varying system). Every ``F`` satisfies Assumption 1 (``F + F^T``
         positive definite, a unique LCP solution): an ``LCS`` holds it by construction, and
-        :meth:`lcs_cvx.LCS.from_matrices` refuses an ``F`` without it, naming ``F``."""
+        :meth:`lcs_cvx.LCS.from_matrices` refuses an ``F`` without it, naming ``F``. A model with
+        known kinematics (:class:`lcs_cvx.Kinematics`) enters as :meth:`lcs_cvx.LCS.as_lcs`:
+        exact for positions; a quaternion block asks for ``as_lcs(about=x)``."""
         if isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer)) or horizon < 1:
             raise LCSInputError(f"horizon: expected an integer >= 1, received {horizon!r}")
         models = list(model) if isinstance(model, Sequence) else [model] * int(horizon)
@@ -124,7 +126,11 @@ class Horizon:
                     f"model: every step's LCS must have (n_x, n_u, n_lam) = "
                     f"{(models[0].n_x, models[0].n_u, models[0].n_lam)}, step {k} has {(m.n_x, m.n_u, m.n_lam)}"
                 )
-        mats = [m.to_matrices() for m in models]
+            if m.kinematics is not None and m.kinematics.quaternions:
+                raise LCSInputError(
+                    f"model: expected an LCS, received one whose kinematics integrate a quaternion (step {k}), "
+                    "which no LCS does; pass model.as_lcs(about=x) (linearised about the state x)")
+        mats = [m.as_lcs().to_matrices() for m in models]  # positions integrate linearly: exact
         stack = {key: np.stack([m[key] for m in mats]) for key in ("A", "B", "C", "d", "D", "E", "F", "c")}
         return cls(**stack)
 

@@ -230,7 +230,10 @@ def fit(
 
     # the coordinates of learning: normalised (folded back at the end) or the user's own
     scaling = Scaling.fit(fit_user, model) if r.normalize else None
-    fit_data = scaling.encode(fit_user) if scaling is not None else fit_user
+    # known kinematics: the one-step losses train the velocity rows (the held configuration rows'
+    # targets are their own prediction); rollouts and scores integrate the configuration
+    fit_rows = model.kinematics.one_step(fit_user) if model.kinematics is not None else fit_user
+    fit_data = scaling.encode(fit_rows) if scaling is not None else fit_rows
     test_data = scaling.encode(test) if scaling is not None and test is not None else test
 
     def in_units(m: LCS) -> LCS:
@@ -299,7 +302,8 @@ def fit(
             learner = learner_for(restart)
             state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
                                windows=windows, scaling=scaling,
-                               validate=holdout_score if holdout is not None else None, threads=threads)
+                               validate=holdout_score if holdout is not None else None, threads=threads,
+                               kinematics=model.kinematics if scaling is not None else None)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:

@@ -356,7 +356,8 @@ class RolloutPhase(Phase):
         idx = torch.randint(len(w), (min(ro.batch_size, len(w)),), generator=state.generator)
         kw = {"dtype": state.model.dtype, "device": state.model.device}
         x0, us, xs = (t.to(**kw) for t in w.batch(idx))
-        value = simulation_error(state.model, x0, us, xs, state.scaling) + regularizer(state.model, obj.reg)
+        value = (simulation_error(state.model, x0, us, xs, state.scaling, state.kinematics)
+                 + regularizer(state.model, obj.reg))
         loss = _adam_step(state.rollout_adam, state.model, value, state.iteration + 1, ro.lr)
         if state.steps["rollout"] + 1 == ro.iterations and state.rollout_start is not None:
             before, params = state.rollout_start  # kept only where it pays on held-out data

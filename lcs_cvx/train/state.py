@@ -54,16 +54,17 @@ class TrainState:
     def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
                  restart: int, score: Callable[[LCS], float] | None = None,
                  windows: Windows | None = None, scaling: Scaling | None = None,
-                 validate: Callable[[LCS], float] | None = None, threads: int | None = None) -> None:
+                 validate: Callable[[LCS], float] | None = None, threads: int | None = None,
+                 kinematics: Any = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
         # the compiled kernels' threads, and the training data as arrays for the one-call steps
         # (:mod:`lcs_cvx.train.onecall`; None where they are not float64 CPU tensors)
         self.threads = threads
         self.arrays = data_arrays(train)
-        # the simulation-error phase: windows of the training trajectories (user's units) and the
-        # coordinates the model is learned in
-        self.windows, self.scaling = windows, scaling
+        # the simulation-error phase: windows of the training trajectories (user's units), the
+        # coordinates the model is learned in and the user's model's kinematics
+        self.windows, self.scaling, self.kinematics = windows, scaling, kinematics
         # the held-out score (None: no held-out part) that decides whether the simulation-error
         # phase's result is kept; the model and score before that phase; whether it was kept
         self.validate = validate
