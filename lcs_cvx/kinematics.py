@@ -58,9 +58,10 @@ class Kinematics:
         frame: ``"body"`` (``q ⊗ exp(dt w / 2)``) or ``"world"`` (``exp(dt w / 2) ⊗ q``).
 
     Example:
-        >>> k = Kinematics(0.01, positions={0: 1})
-        >>> k.integrate(torch.tensor([[1.0, 2.0]]), torch.tensor([[1.0, 3.0]])).tolist()
-        [[1.03, 3.0]]
+        >>> k = Kinematics(0.5, positions={0: 1})
+        >>> x, x_next = torch.tensor([[1.0, 2.0]]), torch.tensor([[1.0, 3.0]])  # x_next: eq. (1)'s
+        >>> k.integrate(x, x_next).tolist()  # x'_0 = x_0 + dt x'_1
+        [[2.5, 3.0]]
     """
 
     dt: float
