@@ -11,7 +11,10 @@ q'_i = q_i + \Delta t\, v'_{j(i)} \ \text{(positions, angles)}, \qquad
 $$
 
 ``exp(dt w / 2) ⊗ q`` for an angular velocity in the world frame; quaternions are scalar
-first ``(w, x, y, z)``. Attached to a model (:meth:`lcs_cvx.LCS.with_kinematics`), the model's
+first ``(w, x, y, z)``, body to world. A body's *up* coordinates ``g = R(q)^T e_z`` (the world's
+vertical in the body frame) follow its integrated quaternion: with them in the state, the height
+``p_z + r · g`` of a point ``r`` of the body is linear in the state, so an LCS's gap ``D x + c``
+can be a contact's. Attached to a model (:meth:`lcs_cvx.LCS.with_kinematics`), the model's
 configuration rows of ``A, B, C, d`` are held at ``x'_q = x_q`` (:meth:`Kinematics.holds`) and
 its :meth:`~lcs_cvx.LCS.step` integrates them (:meth:`Kinematics.integrate`), so every rollout,
 score and the simulation-error loss see the exact integration; the one-step losses train the
@@ -34,7 +37,7 @@ import torch
 
 from ._checks import LCSInputError
 
-__all__ = ["Kinematics", "quaternion_product", "quaternion_exp"]
+__all__ = ["Kinematics", "quaternion_product", "quaternion_exp", "up_in_body"]
 
 FRAMES = ("body", "world")
 
@@ -56,6 +59,8 @@ class Kinematics:
         quaternions: ``(q0, w0)`` pairs: the unit quaternion ``x[q0:q0 + 4]`` (scalar first)
             integrated with the angular velocity ``x'[w0:w0 + 3]``.
         frame: ``"body"`` (``q ⊗ exp(dt w / 2)``) or ``"world"`` (``exp(dt w / 2) ⊗ q``).
+        up: ``(g0, q0)`` pairs: ``x[g0:g0 + 3] = R(q)^T e_z`` of the declared quaternion
+            ``x[q0:q0 + 4]``, computed from it (a coordinate the complementarity rows can see).
 
     Example:
         >>> k = Kinematics(0.5, positions={0: 1})
@@ -68,14 +73,20 @@ class Kinematics:
     positions: tuple[tuple[int, int], ...]
     quaternions: tuple[tuple[int, int], ...]
     frame: str
+    up: tuple[tuple[int, int], ...]
 
     def __init__(self, dt: float, positions: Mapping[int, int] | Iterable[tuple[int, int]] = (),
-                 quaternions: Iterable[tuple[int, int]] = (), frame: str = "body") -> None:
+                 quaternions: Iterable[tuple[int, int]] = (), frame: str = "body",
+                 up: Iterable[tuple[int, int]] = ()) -> None:
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not math.isfinite(dt) or dt <= 0:
             raise LCSInputError(f"dt: expected a finite number > 0, received {dt!r}")
         pairs = list(positions.items()) if isinstance(positions, Mapping) else list(positions)
         pos = tuple((_index("positions", p[0]), _index("positions", p[1])) for p in pairs)
         quats = tuple((_index("quaternions", p[0]), _index("quaternions", p[1])) for p in quaternions)
+        ups = tuple((_index("up", p[0]), _index("up", p[1])) for p in up)
+        if any(q0 not in [q for q, _ in quats] for _, q0 in ups):
+            raise LCSInputError(f"up: expected (g0, q0) pairs whose q0 starts a declared quaternion "
+                                f"{[q for q, _ in quats]}, received {list(ups)}")
         if frame not in FRAMES:
             raise LCSInputError(f"frame: expected one of {FRAMES}, received {frame!r}")
         if not pos and not quats:
@@ -85,6 +96,7 @@ class Kinematics:
         object.__setattr__(self, "positions", pos)
         object.__setattr__(self, "quaternions", quats)
         object.__setattr__(self, "frame", frame)
+        object.__setattr__(self, "up", ups)
         rows = self.rows
         if len(set(rows)) != len(rows):
             raise LCSInputError(f"positions, quaternions: expected each configuration index once, received "
@@ -97,7 +109,8 @@ class Kinematics:
     @property
     def rows(self) -> tuple[int, ...]:
         """The configuration indices (integrated, not learned), in declaration order."""
-        return tuple(i for i, _ in self.positions) + tuple(q + k for q, _ in self.quaternions for k in range(4))
+        return (tuple(i for i, _ in self.positions) + tuple(q + k for q, _ in self.quaternions for k in range(4))
+                + tuple(g + k for g, _ in self.up for k in range(3)))
 
     @property
     def velocities(self) -> tuple[int, ...]:
@@ -114,7 +127,8 @@ class Kinematics:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-serialisable dict; :meth:`from_dict` is its inverse (model files)."""
         return {"dt": self.dt, "positions": [list(p) for p in self.positions],
-                "quaternions": [list(p) for p in self.quaternions], "frame": self.frame}
+                "quaternions": [list(p) for p in self.quaternions], "frame": self.frame,
+                "up": [list(p) for p in self.up]}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> Kinematics:
@@ -122,19 +136,20 @@ class Kinematics:
         if not isinstance(d, Mapping):
             raise LCSInputError(f"kinematics: expected a dict, received {type(d).__name__}")
         return cls(d.get("dt"), [tuple(p) for p in d.get("positions", [])],
-                   [tuple(p) for p in d.get("quaternions", [])], d.get("frame", "body"))
+                   [tuple(p) for p in d.get("quaternions", [])], d.get("frame", "body"),
+                   [tuple(p) for p in d.get("up", [])])
 
     @classmethod
     def parse(cls, spec: str) -> Kinematics:
-        """From ``"dt=0.01 positions=0:2,1:3 quaternions=3:10 frame=body"`` (the CLI's
+        """From ``"dt=0.01 positions=0:2,1:3 quaternions=3:10 frame=body up=13:3"`` (the CLI's
         ``--kinematics``): ``positions`` as ``configuration:velocity`` pairs, ``quaternions`` as
-        ``q0:w0`` pairs, comma separated; ``dt`` required."""
+        ``q0:w0`` pairs, ``up`` as ``g0:q0`` pairs, comma separated; ``dt`` required."""
         fields: dict[str, str] = {}
         for part in str(spec).split():
             key, eq, value = part.partition("=")
-            if not eq or key not in ("dt", "positions", "quaternions", "frame") or key in fields:
+            if not eq or key not in ("dt", "positions", "quaternions", "frame", "up") or key in fields:
                 raise LCSInputError(f"kinematics: expected 'dt=... positions=i:j,... quaternions=q0:w0,... "
-                                    f"frame=body|world' (each key once), received {spec!r}")
+                                    f"frame=body|world up=g0:q0,...' (each key once), received {spec!r}")
             fields[key] = value
 
         def pairs(key: str) -> list[tuple[int, int]]:
@@ -150,14 +165,15 @@ class Kinematics:
             dt = float(fields["dt"])
         except (KeyError, ValueError):
             raise LCSInputError(f"kinematics: expected dt=<step in seconds>, received {spec!r}") from None
-        return cls(dt, pairs("positions"), pairs("quaternions"), fields.get("frame", "body"))
+        return cls(dt, pairs("positions"), pairs("quaternions"), fields.get("frame", "body"), pairs("up"))
 
     def __str__(self) -> str:
         out = f"dt={self.dt!r}"
-        for key in ("positions", "quaternions"):
+        for key in ("positions", "quaternions", "up"):
             if getattr(self, key):
                 out += f" {key}=" + ",".join(f"{a}:{b}" for a, b in getattr(self, key))
-        return out + (f" frame={self.frame}" if self.quaternions else "")
+                out += f" frame={self.frame}" if key == "quaternions" else ""
+        return out
 
     # -- the model's rows --------------------------------------------------------------------
     def holds(self, n_x: int, n_u: int, n_lam: int) -> dict[str, torch.Tensor]:
@@ -193,6 +209,8 @@ class Kinematics:
         for q0, w0 in self.quaternions:
             new = _step(x[..., q0:q0 + 4], x_next[..., w0:w0 + 3], self.dt, self.frame)
             out = out.index_copy(last, torch.arange(q0, q0 + 4, device=x.device), new)
+        for g0, q0 in self.up:
+            out = out.index_copy(last, torch.arange(g0, g0 + 3, device=x.device), up_in_body(out[..., q0:q0 + 4]))
         return out
 
     # -- the model as one LCS ----------------------------------------------------------------
@@ -230,17 +248,20 @@ class Kinematics:
         return out
 
     def _linearise(self, rows: dict, new: dict, xa: torch.Tensor, raw: torch.Tensor, q0: int, w0: int) -> None:
+        """The quaternion ``x[q0:q0+4]``'s rows, and those of its up coordinates, linearised."""
         qs, ws = slice(q0, q0 + 4), slice(w0, w0 + 3)
+        out = torch.tensor([q0 + k for k in range(4)] + [g + k for g, q in self.up if q == q0 for k in range(3)])
 
         def f(q: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-            return _step(q, w, self.dt, self.frame)
+            turned = _step(q, w, self.dt, self.frame)
+            return torch.cat([turned] + [up_in_body(turned) for _, q in self.up if q == q0])
 
         qa, wa = xa[qs], raw[ws]
         Jq, Jw = torch.autograd.functional.jacobian(f, (qa, wa))
         fa = f(qa, wa)
         for k in ("A", "B", "C"):
-            new[k][qs] = Jq @ rows[k][qs] + Jw @ rows[k][ws]
-        new["d"][qs] = fa - Jq @ qa - Jw @ wa + Jq @ rows["d"][qs] + Jw @ rows["d"][ws]
+            new[k][out] = Jq @ rows[k][qs] + Jw @ rows[k][ws]
+        new["d"][out] = fa - Jq @ qa - Jw @ wa + Jq @ rows["d"][qs] + Jw @ rows["d"][ws]
 
 
 def attach(model: Any, kinematics: Any) -> Any:
@@ -263,6 +284,13 @@ def _step(q: torch.Tensor, w: torch.Tensor, dt: float, frame: str) -> torch.Tens
     delta = quaternion_exp(dt * w)
     new = quaternion_product(q, delta) if frame == "body" else quaternion_product(delta, q)
     return new / new.norm(dim=-1, keepdim=True)
+
+
+def up_in_body(q: torch.Tensor) -> torch.Tensor:
+    """``R(q)^T e_z`` ``(..., 3)``: the world's vertical in the body frame of the unit quaternion
+    ``q`` ``(..., 4)`` (scalar first, body to world)."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1)
 
 
 def quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

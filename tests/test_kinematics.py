@@ -264,3 +264,26 @@ def test_cli_fit_takes_the_kinematics(tmp_path, capsys):
     assert lcs_cvx.load_metadata(out)["metadata"]["init"]["kinematics"] == "dt=0.1 positions=0:2,1:3"
     assert main(argv[:-4] + ["--kinematics", "dt=0.1 positions=0-2", "--out", str(out)]) == 2
     assert "positions as index:index pairs" in capsys.readouterr().err
+
+
+def test_up_coordinates_follow_the_integrated_quaternion_and_make_heights_linear():
+    k = Kinematics(0.05, quaternions=[(0, 4)], up=[(7, 0)])
+    truth = lcs_cvx.random_lcs(10, 1, 2, seed=0)
+    with torch.no_grad():
+        truth.A[4:7] *= 0.3
+    truth.with_kinematics(k)
+    x0 = torch.cat([_unit_quat_states(1, seed=5)[0], torch.zeros(3, dtype=torch.float64)])
+    x0[7:] = lcs_cvx.kinematics.up_in_body(x0[:4])
+    xs = truth.rollout(x0, torch.randn(30, 1, dtype=torch.float64)).detach()
+    q = xs[:, :4].numpy()
+    # R(q)^T e_z written out: the third row of the rotation matrix
+    w, a, b, c = q.T
+    want = np.stack([2 * (a * c - w * b), 2 * (b * c + w * a), 1 - 2 * (a * a + b * b)], axis=1)
+    np.testing.assert_allclose(xs[:, 7:], want, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(np.linalg.norm(xs[:, 7:], axis=1), 1.0, rtol=0, atol=1e-13)
+    lin = truth.as_lcs(about=xs[3])  # the up rows linearised with the quaternion's
+    u0 = torch.zeros(1, 1, dtype=torch.float64)
+    np.testing.assert_allclose(lin.step(xs[3:4], u0).detach(), truth.step(xs[3:4], u0).detach(), rtol=0, atol=1e-13)
+    assert Kinematics.parse(str(k)) == k and Kinematics.from_dict(k.to_dict()) == k
+    with pytest.raises(LCSInputError, match=r"^up: expected \(g0, q0\) pairs whose q0 starts a declared quaternion"):
+        Kinematics(0.05, quaternions=[(0, 4)], up=[(7, 1)])
