@@ -23,7 +23,12 @@ specs, in the order of the tables (:func:`specs`):
   (:func:`structured_lcs`);
 - ``LCS, one-step losses only``: ``LCS`` without the simulation-error phase
   (``rollout_horizon=None``), at the ``n_lam`` ``LCS`` chose at the same size (one fit instead
-  of one per candidate; all of :data:`N_LAMS` when that cell has no record): what the phase buys.
+  of one per candidate; all of :data:`N_LAMS` when that cell has no record): what the phase buys;
+- ``LCS, known kinematics``: ``LCS`` with ``p`` and ``q`` integrated exactly and gravity held
+  (:func:`studies.cube.kinematic.kinematic_lcs`);
+- ``LCS, contact coordinates``: the same on the state with the up coordinates, its first units
+  started at the corner heights, ``n_lam`` among
+  :data:`studies.cube.kinematic.CONTACT_N_LAMS` (:func:`studies.cube.kinematic.contact_lcs`).
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ import lcs_cvx
 from lcs_cvx.datasets import CUBE_DT
 from lcs_cvx.metrics import AffineMap, affine_lstsq
 
+from . import kinematic
 from .metrics import Stepper
 
 __all__ = ["Spec", "specs", "structured_lcs", "ResidualMLP", "validation_score",
@@ -123,12 +129,6 @@ def validation_score(step: Stepper, val: lcs_cvx.Trajectories, stride: int = 1) 
     except Exception:  # noqa: BLE001 - a model whose rollout fails is never chosen
         return math.inf
     return e if math.isfinite(e) else math.inf
-
-
-def lcs_stepper(model: lcs_cvx.LCS) -> Stepper:
-    def step(x: torch.Tensor) -> torch.Tensor:
-        return model.step(x, EMPTY_U.new_zeros(x.shape[0], 0))
-    return step
 
 
 # ----------------------------------------------------------------------------- affine
@@ -283,20 +283,29 @@ def _num(v: Any) -> Any:
     return v if math.isfinite(v) else str(v)
 
 
-def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, dict[str, Any]]]:
+def _plain_lcs(n: int) -> lcs_cvx.LCS:
+    return lcs_cvx.LCS(13, 0, n, seed=0)
+
+
+def _fit_lcs(make: Callable[[int], lcs_cvx.LCS], rollout: bool, augmented: bool = False,
+             candidates: tuple[int, ...] | None = None) -> Callable[..., tuple[Stepper, dict[str, Any]]]:
     """The LCS of a user: :func:`lcs_cvx.select_n_lam` on the training tosses as
     :class:`lcs_cvx.Trajectories`, the validation tosses as ``validation`` with the rollout score
     at :data:`VALIDATION_HORIZON` (by which ``n_lam`` is chosen and, by ``fit``'s default on
     trajectories, the best iterate kept) and otherwise the library's defaults: with ``rollout``
     the simulation-error phase runs (its default on trajectories), without it the one-step losses
-    only (``rollout_horizon=None``)."""
+    only (``rollout_horizon=None``). ``make(n)`` builds each candidate; ``augmented``: on the
+    state with the up coordinates (:func:`studies.cube.kinematic.augment`); ``candidates``: the
+    ``n_lam`` tried instead of the budget's."""
     def fit(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Budget, path: str,
             n_lams: tuple[int, ...] | None = None) -> tuple[Stepper, dict[str, Any]]:
         t0 = time.perf_counter()
-        make = (lambda n: structured_lcs(n)) if structured else (lambda n: lcs_cvx.LCS(13, 0, n, seed=0))
+        val13 = val
+        if augmented:
+            train, val = kinematic.augment(train), kinematic.augment(val)
         phase = {"rollout_iterations": budget.rollout_iterations, "rollout_horizon": budget.rollout_horizon}
         extra = {k: v for k, v in phase.items() if v is not None} if rollout else {"rollout_horizon": None}
-        sel = lcs_cvx.select_n_lam(train, list(n_lams or budget.n_lams), validation=val, make_model=make,
+        sel = lcs_cvx.select_n_lam(train, list(n_lams or candidates or budget.n_lams), validation=val, make_model=make,
                                    iterations=budget.lcs_iterations, holdout_horizon=VALIDATION_HORIZON,
                                    progress=False, seed=0, **extra)
         table: list[dict[str, Any]] = []
@@ -311,10 +320,10 @@ def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, di
                           "refinement_kept": res.refinement_kept, "keep_best": res.settings.run.keep_best,
                           "best_iteration": None if best is None else best[0],
                           "val_one_step": lcs_cvx.relative_error(res.model, val.to_transitions()),
-                          "val_rollout": validation_score(lcs_stepper(res.model), val, budget.val_stride),
+                          "val_rollout": validation_score(kinematic.stepper(res.model), val13, budget.val_stride),
                           "wall": row["wall_time"]})
         model = sel.model
-        lcs_cvx.save_model(model, path, metadata={"n_lam": sel.n_lam, "structured": structured, "rollout": rollout})
+        lcs_cvx.save_model(model, path, metadata={"n_lam": sel.n_lam, "rollout": rollout})
         chosen = next(r for r in table if r["n_lam"] == sel.n_lam)
         info = {"wall": time.perf_counter() - t0, "n_lam": sel.n_lam, "candidates": table,
                 "val_rollout": chosen["val_rollout"], "beats_affine": chosen["beats_affine"],
@@ -323,7 +332,7 @@ def _fit_lcs(structured: bool, rollout: bool) -> Callable[..., tuple[Stepper, di
             for k, v in list(row.items()):
                 if isinstance(v, float):
                     row[k] = _num(v)
-        return lcs_stepper(model), info
+        return kinematic.stepper(model), info
     return fit
 
 
@@ -349,7 +358,7 @@ def _load_increment(path: str) -> Stepper:
 
 
 def _load_lcs(path: str) -> Stepper:
-    return lcs_stepper(lcs_cvx.load_model(path))
+    return kinematic.stepper(lcs_cvx.load_model(path))
 
 
 def specs() -> list[Spec]:
@@ -358,9 +367,12 @@ def specs() -> list[Spec]:
         Spec("affine LS", "affine", "npz", _fit_affine, _load_affine),
         Spec("constant increment", "increment", "npz", _fit_increment, _load_increment),
         Spec("MLP", "mlp", "pt", _fit_mlp, _load_mlp),
-        Spec("LCS", "lcs", "npz", _fit_lcs(False, True), _load_lcs),
-        Spec("LCS, known structure", "lcs_structured", "npz", _fit_lcs(True, True), _load_lcs),
-        Spec("LCS, one-step losses only", "lcs_one_step", "npz", _fit_lcs(False, False), _load_lcs, twin="lcs"),
+        Spec("LCS", "lcs", "npz", _fit_lcs(_plain_lcs, True), _load_lcs),
+        Spec("LCS, known structure", "lcs_structured", "npz", _fit_lcs(structured_lcs, True), _load_lcs),
+        Spec("LCS, one-step losses only", "lcs_one_step", "npz", _fit_lcs(_plain_lcs, False), _load_lcs, twin="lcs"),
+        Spec("LCS, known kinematics", "lcs_kinematics", "npz", _fit_lcs(kinematic.kinematic_lcs, True), _load_lcs),
+        Spec("LCS, contact coordinates", "lcs_contact", "npz",
+             _fit_lcs(kinematic.contact_lcs, True, augmented=True, candidates=kinematic.CONTACT_N_LAMS), _load_lcs),
     ]
 
 
