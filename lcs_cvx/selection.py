@@ -109,8 +109,9 @@ class Selection:
             :func:`select_n_lam`).
         table: one dict per candidate, by increasing ``n_lam``: ``n_lam``,
             ``validation_error`` (relative error on the held-out transitions),
-            ``train_error`` (on the transitions it trained on) and ``wall_time`` (seconds of
-            its training run).
+            ``train_error`` (on the transitions it trained on), ``wall_time`` (seconds of
+            its training run) and ``grows_more`` (on held-out trajectories, its
+            :attr:`lcs_cvx.FitResult.grows_more`: such a candidate is not chosen).
         results: the :class:`lcs_cvx.FitResult` of each candidate, by ``n_lam``.
         tolerance: the rule's tolerance.
         validation: where the held-out errors were measured: ``"validation set"`` or
@@ -297,14 +298,16 @@ def select_n_lam(
             result = fit(build(n), part, progress=False, seed=seed, **fit_options)
             held_error, part_error = relative_error(result.model, held), relative_error(result.model, part)
         wall = time.perf_counter() - t0
-        row = {"n_lam": n, "validation_error": held_error, "train_error": part_error, "wall_time": wall}
+        row = {"n_lam": n, "validation_error": held_error, "train_error": part_error, "wall_time": wall,
+               "grows_more": bool(result.grows_more) if by_trajectory else False}
         table.append(row)
         results[n] = result
         if report:
             print(f"select_n_lam: n_lam={n} ({i}/{len(cands)}): validation error "
                   f"{row['validation_error']:.4e}, train error {row['train_error']:.4e}, "
                   f"{wall:.1f} s", file=sys.stderr, flush=True)
-    chosen = choose({r["n_lam"]: r["validation_error"] for r in table}, tolerance)
+    # a candidate whose held-out rollouts grow more than the data's and the affine map's is not chosen
+    chosen = choose({r["n_lam"]: math.inf if r["grows_more"] else r["validation_error"] for r in table}, tolerance)
     model, again = results[chosen].model, None
     if refit:
         again = fit(build(chosen), train, progress=False, seed=seed, **fit_options)

@@ -119,6 +119,42 @@ def test_a_model_whose_rollouts_grow_more_is_never_better(data):
     assert dataclasses.replace(lower, heldout_growth=math.nan).beats_affine is False
 
 
+def test_choices_never_keep_a_model_whose_rollouts_leave_the_data_range(truth, data, monkeypatch):
+    """The choice score is the held-out score where the held-out rollouts stay within the growth
+    bound (the verdict's rule) and inf past it; keep_best and the restarts then never return an
+    iterate that grows past it when an earlier one did not."""
+    from lcs_cvx.train.holdout import Split
+    from lcs_cvx.train.result import GROWTH_SLACK
+
+    split = split_data(data, None, RunOptions(), "auto")
+    assert split.growth_bound == GROWTH_SLACK * max(1.0, split.affine_growth())
+    stable = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    assert split.choice_score(stable) == split.score(stable) < math.inf
+    exploding = lcs_cvx.random_lcs(2, 1, 2, seed=0)
+    with torch.no_grad():
+        exploding.A.mul_(3.0)
+    assert split.growth(exploding) > split.growth_bound and math.isfinite(split.score(exploding))
+    assert split.choice_score(exploding) == math.inf
+    # every iterate after the first grows (a stand-in growth): the start is kept, and reported as such
+    calls = []
+    real = Split.growth
+
+    def growth(self, model):
+        calls.append(1)
+        return real(self, model) if len(calls) == 1 else 100.0
+
+    monkeypatch.setattr(Split, "growth", growth)
+    model = lcs_cvx.random_lcs(2, 1, 2, seed=0).requires_grad_(True)
+    with torch.no_grad():
+        model.A.add_(0.01)  # a start training improves on
+    start = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    result = lcs_cvx.fit(model, data, init="model", normalize=False, iterations=30, eval_every=10,
+                         rollout_horizon=None, holdout_horizon=4, progress=False)
+    assert [h["e_test"] for h in result.history] == [math.inf] * len(result.history)
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, start[k]), k
+
+
 def test_affine_if_better_returns_the_affine_map_for_a_growing_model(data, monkeypatch):
     """The driver asks the same judgement: a model whose held-out rollouts grow past the slack
     (here made so by a stand-in growth of 100) is replaced by the affine map with

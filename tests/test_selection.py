@@ -83,7 +83,7 @@ def selection(data) -> Selection:
 def test_select_on_a_small_system(data, selection):
     sel = selection
     assert [row["n_lam"] for row in sel.table] == [1, 2, 3]  # by increasing n_lam
-    assert all(set(row) == {"n_lam", "validation_error", "train_error", "wall_time"} for row in sel.table)
+    assert all(set(row) == {"n_lam", "validation_error", "train_error", "wall_time", "grows_more"} for row in sel.table)
     assert sorted(sel.results) == [1, 2, 3]
     assert all(sel.results[n].model.n_lam == n for n in (1, 2, 3))
     assert all(sel.results[n].settings.run.seed == 0 and sel.results[n].settings.flat()["iterations"] == 30

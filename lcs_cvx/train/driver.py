@@ -242,8 +242,8 @@ def fit(
     def score_on(data: Dataset) -> Callable[[LCS], float]:
         return lambda m: relative_error(in_units(m), data)
 
-    def holdout_score(m: LCS) -> float:
-        return split.score(in_units(m))
+    def holdout_score(m: LCS) -> float:  # inf where the held-out rollouts leave the data's range
+        return split.choice_score(in_units(m))
 
     def run_score() -> Callable[[LCS], float] | None:
         """What a run records as ``e_test`` and ``keep_best`` follows: ``test``'s error, else the

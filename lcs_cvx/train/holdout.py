@@ -19,12 +19,17 @@ the training transitions (:func:`lcs_cvx.simulation_error.change_error`; ``"auto
 simulation-error phase's horizon, :data:`AUTO_ROLLOUT_HORIZON` steps or the longest held-out
 run's). One score, asked by every choice a run makes: the kept iterate (``keep_best``), the
 kept restart, whether the simulation-error phase is kept, :func:`lcs_cvx.select_n_lam`'s
-table, and the verdict against the affine map (:meth:`Split.judge`).
+table, and the verdict against the affine map (:meth:`Split.judge`). The choices ask it through
+:meth:`Split.choice_score`: a model whose open-loop rollouts over the whole held-out
+trajectories grow past :attr:`Split.growth_bound` (:data:`~lcs_cvx.train.result.GROWTH_SLACK`
+times the larger of 1, the data's own, and the affine map's growth) scores ``inf`` there and is
+never chosen over one that stays in the data's range.
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +43,7 @@ from ..simulation_error import change_error, rollout_growth
 from ..system import LCS
 from ..trajectories import Trajectories
 from .phase_options import RunOptions
+from .result import GROWTH_SLACK
 
 __all__ = ["Split", "split_data", "affine_lcs", "heldout_runs", "AUTO_ROLLOUT_HORIZON", "MIN_HELDOUT_RUNS"]
 
@@ -140,6 +146,27 @@ class Split:
     def affine_growth(self) -> float:
         """:meth:`growth` of :attr:`affine` (its rollouts through the same whole trajectories)."""
         return rollout_growth(self.affine, self.holdout)
+
+    @functools.cached_property
+    def growth_bound(self) -> float | None:
+        """The largest held-out rollout growth of a model a choice may keep:
+        :data:`~lcs_cvx.train.result.GROWTH_SLACK` times the larger of 1 and
+        :meth:`affine_growth` (None with held-out transitions); the verdict's rule
+        (:attr:`lcs_cvx.FitResult.grows_more`)."""
+        if not isinstance(self.holdout, Trajectories):
+            return None
+        affine = self.affine_growth()
+        return GROWTH_SLACK * max(1.0, affine if math.isfinite(affine) else 1.0)
+
+    def choice_score(self, model: Any) -> float:
+        """:meth:`score`, or ``inf`` when ``model``'s held-out rollouts grow past
+        :attr:`growth_bound`: what the kept iterate, the kept restart and the simulation-error
+        phase's keep are chosen by."""
+        score = self.score(model)
+        bound = self.growth_bound
+        if bound is None or not math.isfinite(score):
+            return score
+        return score if self.growth(model) <= bound else math.inf
 
 
 def _as_transitions(name: str, data: Any) -> Dataset:

@@ -22,6 +22,9 @@ tosses have ``n_u = 0``). State columns: :data:`lcs_cvx.datasets.CUBE_COLUMNS`.
   stops the evaluation) and its rollout counted as diverged. Diverged rollouts are never dropped:
   the mean errors over all rollouts are then ``inf``, and the means over the rollouts that did
   not diverge are reported beside the count.
+- :func:`dair_pll_errors`: dair_pll's whole-toss metrics (``pos_int_traj``, ``angle_int_traj``
+  of ``dair_pll/experiment.py``): per toss the mean over the rollout's steps of the Euclidean
+  position error and of the rotation angle, averaged over the tosses.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import numpy as np
 import torch
 
 __all__ = ["GROUPS", "DIVERGED_GROWTH", "CUTOFF_GROWTH", "geodesic_angle", "one_step", "rollout",
-           "rollouts", "Stepper"]
+           "rollouts", "dair_pll_errors", "Stepper"]
 
 #: A model: next states of a batch of states (float64 tensors ``(N, 13)``).
 Stepper = Callable[[torch.Tensor], torch.Tensor]
@@ -190,3 +193,25 @@ def rollouts(step: Stepper, xs: Sequence[torch.Tensor], horizons: Sequence[int] 
         true = np.stack([xs[i][s:s + H + 1].numpy() for i, s in starts])
         out[f"H{H}"] = _summary(*_errors(pred, true, sc))
     return out
+
+
+def dair_pll_errors(step: Stepper, xs: Sequence[torch.Tensor]) -> dict[str, float]:
+    """Whole-toss open-loop rollouts of ``step`` from each toss's first state: dair_pll's
+    position error (m; the mean over steps of ``||p_hat - p||``, averaged over tosses), its
+    rotation error (rad; the mean angle), ours beside them (``pos_rms``: the RMS position error,
+    averaged), and the count of rollouts that diverged (their errors are then inf)."""
+    T = max(t.shape[0] for t in xs)
+    maxnorm = torch.tensor([float(torch.linalg.vector_norm(t, dim=1).max()) for t in xs], dtype=torch.float64)
+    pred = rollout(step, torch.stack([t[0] for t in xs]), T - 1, maxnorm).numpy()
+    dist, rms, rot = [], [], []
+    for i, t in enumerate(xs):
+        n, true = t.shape[0], t.numpy()
+        with np.errstate(invalid="ignore", over="ignore"):
+            d = np.linalg.norm(pred[i, 1:n, P] - true[1:, P], axis=-1)
+            a = geodesic_angle(true[1:, Q], pred[i, 1:n, Q])
+        ok = np.isfinite(pred[i, 1:n]).all()
+        dist.append(d.mean() if ok else math.inf)
+        rms.append(np.sqrt((d ** 2).mean()) if ok else math.inf)
+        rot.append(a.mean() if ok else math.inf)
+    return {"pos": float(np.mean(dist)), "rot": float(np.mean(rot)), "pos_rms": float(np.mean(rms)),
+            "diverged": int(np.sum(~np.isfinite(dist)))}

@@ -1,0 +1,106 @@
+r"""The cube study's models beside dair_pll's recorded results on the same tosses, in dair_pll's
+whole-toss metric (:func:`studies.cube.metrics.dair_pll_errors`).
+
+dair_pll's numbers are the means over its recorded runs at 512 training tosses
+(``helpers/results_cluster.json`` of DAIRLab/dair_pll; hyperparameter variants included), with
+whole-toss rollouts on its test tosses: ``pos_int_traj`` (the mean over the rollout's steps of
+the Euclidean position error) and ``angle_int_traj`` (the mean rotation angle). Ours: the models
+the study fitted on its 275 training tosses (:mod:`studies.cube.study`), rolled out over the
+study's 137 test tosses from each toss's first state.
+
+    python -m studies.cube.contactnets --out studies/results/cube [--size 275]
+
+writes ``OUT/contactnets.md`` (and ``contactnets.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import time
+
+import torch
+
+from lcs_cvx.datasets import cube_tosses
+
+from . import models as M
+from .metrics import dair_pll_errors
+from .tosses import DATE, MACHINE, study_parts, subset
+
+__all__ = ["DAIR_PLL", "compare", "main"]
+
+#: dair_pll's recorded means at 512 training tosses: method -> (position m, rotation rad).
+DAIR_PLL = {
+    "ContactNets": (0.036, math.radians(24)),
+    "ContactNets + residual": (0.026, math.radians(25)),
+    "Drake, nominal parameters": (0.048, math.radians(18)),
+    "differentiable simulation": (0.069, math.radians(35)),
+    "end-to-end MLP": (0.288, math.radians(49)),
+}
+#: The targets: better than every method above, at 256 or more training tosses.
+TARGET = (0.026, math.radians(18))
+
+
+def compare(out: str, size: int) -> list[dict]:
+    """dair_pll's metric of every spec's model fitted at ``size`` tosses (those in ``out``)."""
+    torch.set_num_threads(1)
+    data = cube_tosses()
+    test = subset(data, study_parts(len(data))["test"])
+    rows = []
+    for spec in M.specs():
+        path = M.model_path(out, size, spec)
+        if not os.path.exists(path):
+            continue
+        t0 = time.perf_counter()
+        err = dair_pll_errors(spec.load(path), test.xs)
+        rows.append({"model": spec.name, **err, "wall": time.perf_counter() - t0})
+    return rows
+
+
+def _deg(rad: float) -> str:
+    return "inf" if not math.isfinite(rad) else f"{math.degrees(rad):.1f}°"
+
+
+def _mm(m: float) -> str:
+    return "inf" if not math.isfinite(m) else f"{1000 * m:.1f} mm"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="The cube study's models in dair_pll's whole-toss metric.")
+    ap.add_argument("--out", default=os.path.join("studies", "results", "cube"))
+    ap.add_argument("--size", type=int, default=275)
+    args = ap.parse_args(argv)
+    rows = compare(args.out, args.size)
+    with open(os.path.join(args.out, "contactnets.json"), "w") as f:
+        json.dump({"size": args.size, "rows": rows}, f, indent=1)
+    lines = [
+        "# The cube beside dair_pll: whole-toss rollouts in dair_pll's metric", "",
+        f"Written by `python -m studies.cube.contactnets --out {args.out} --size {args.size}` on {DATE} "
+        f"({MACHINE}).", "",
+        "Metric (dair_pll's `pos_int_traj`, `angle_int_traj`): one open-loop rollout per test toss from its "
+        "first state to its end; per toss the mean over the rollout's steps of the Euclidean position error "
+        "and of the rotation angle, then the mean over the tosses. dair_pll: the means over its recorded runs "
+        "at 512 training tosses (`helpers/results_cluster.json` of DAIRLab/dair_pll). lcs_cvx study: the "
+        f"models fitted on {args.size} training tosses, on the study's 137 test tosses; the study's own "
+        "position metric (RMS over the rollout, `studies/results/cube/report.md`) beside it.", "",
+        "| method | training tosses | position | rotation | position, RMS | diverged |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, (pos, rot) in DAIR_PLL.items():
+        lines.append(f"| dair_pll: {name} | 512 | {_mm(pos)} | {_deg(rot)} | | |")
+    for r in rows:
+        lines.append(f"| lcs_cvx study: {r['model']} | {args.size} | {_mm(r['pos'])} | {_deg(r['rot'])} | "
+                     f"{_mm(r['pos_rms'])} | {r['diverged']} / 137 |")
+    met = [r["model"] for r in rows if r["pos"] <= TARGET[0] and r["rot"] <= TARGET[1]]
+    lines += ["", f"Target (better than every dair_pll method): position ≤ {_mm(TARGET[0])} and rotation ≤ "
+              f"{_deg(TARGET[1])}. Met by: {', '.join(met) if met else 'none'}.", ""]
+    with open(os.path.join(args.out, "contactnets.md"), "w") as f:
+        f.write("\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
