@@ -111,7 +111,8 @@ class Selection:
             ``validation_error`` (relative error on the held-out transitions),
             ``train_error`` (on the transitions it trained on), ``wall_time`` (seconds of
             its training run) and ``grows_more`` (on held-out trajectories, its
-            :attr:`lcs_cvx.FitResult.grows_more`: such a candidate is not chosen).
+            :attr:`lcs_cvx.FitResult.grows_more`: such a candidate is not chosen while
+            another is not).
         results: the :class:`lcs_cvx.FitResult` of each candidate, by ``n_lam``.
         tolerance: the rule's tolerance.
         validation: where the held-out errors were measured: ``"validation set"`` or
@@ -306,8 +307,11 @@ def select_n_lam(
             print(f"select_n_lam: n_lam={n} ({i}/{len(cands)}): validation error "
                   f"{row['validation_error']:.4e}, train error {row['train_error']:.4e}, "
                   f"{wall:.1f} s", file=sys.stderr, flush=True)
-    # a candidate whose held-out rollouts grow more than the data's and the affine map's is not chosen
-    chosen = choose({r["n_lam"]: math.inf if r["grows_more"] else r["validation_error"] for r in table}, tolerance)
+    # a candidate whose held-out rollouts grow more than the data's and the affine map's is not
+    # chosen while another does not (its verdict says so when every one does)
+    bounded = not all(r["grows_more"] for r in table)
+    chosen = choose({r["n_lam"]: math.inf if r["grows_more"] and bounded else r["validation_error"] for r in table},
+                    tolerance)
     model, again = results[chosen].model, None
     if refit:
         again = fit(build(chosen), train, progress=False, seed=seed, **fit_options)

@@ -306,6 +306,20 @@ def test_select_n_lam_on_trajectories_scores_by_fit(data):
     assert "trajectories" in sel.validation
 
 
+def test_select_n_lam_passes_over_a_candidate_whose_rollouts_grow_more(data, monkeypatch):
+    """A candidate that grows past the bound is not chosen while another is not, however low its
+    error; when every candidate grows, the errors alone choose (the verdicts say it)."""
+    from lcs_cvx.train.result import FitResult
+
+    kw = {"iterations": 50, "progress": False, "holdout": 0.3, "holdout_horizon": 3, "tolerance": 1e9}
+    assert lcs_cvx.select_n_lam(data, [1, 2], **kw).n_lam == 1  # the huge tolerance takes the smallest
+    monkeypatch.setattr(FitResult, "grows_more", property(lambda self: self.model.n_lam == 1))
+    sel = lcs_cvx.select_n_lam(data, [1, 2], **kw)
+    assert sel.n_lam == 2 and [r["grows_more"] for r in sel.table] == [True, False]
+    monkeypatch.setattr(FitResult, "grows_more", property(lambda self: True))
+    assert lcs_cvx.select_n_lam(data, [1, 2], **kw).n_lam == 1
+
+
 @pytest.mark.parametrize("kw, match", [
     ({"rollout_horizon": 3}, "rollout_horizon: the simulation-error phase rolls out windows of trajectories"),
     ({"holdout_horizon": 3}, "holdout_horizon: a rollout score needs held-out trajectories"),

@@ -14,6 +14,7 @@ import torch
 from lcs_cvx.datasets import CUBE_DT, cube_tosses
 from lcs_cvx.metrics import AffineMap, affine_lstsq
 
+from . import kinematic
 from . import models as M
 from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout, rollouts
 from .tosses import DATE, MACHINE, SPLIT_SEED, study_parts, subset
@@ -293,7 +294,16 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         "unmasked entries of A are learned, as `LCS.fix` fixes whole parameters, not entries "
         "(`studies.cube.models.structured_lcs`);",
         "- *LCS, one-step losses only*: *LCS* with `rollout_horizon=None` (no simulation-error phase), at "
-        "the n_λ *LCS* chose at the same size: what the phase buys.",
+        "the n_λ *LCS* chose at the same size: what the phase buys;",
+        "- *LCS, known kinematics*: *LCS* with `lcs_cvx.Kinematics` declared: p' = p + dt v' and "
+        "q' = q ⊗ exp(dt w'/2) (body angular velocity, renormalised) integrated exactly from the learned "
+        "velocity rows, and gravity held in `d` (v_z' gains −g dt; `LCS.hold`) "
+        "(`studies.cube.kinematic.kinematic_lcs`);",
+        "- *LCS, contact coordinates*: the same on the state with the cube's up coordinates appended, "
+        "g = R(q)ᵀ e_z (`Kinematics(..., up=...)`: computed from the integrated quaternion), in which the "
+        "height p_z + r_c · g of each of the 8 corners r_c is linear; its first 8 units start with "
+        "D x + c at those heights, n_λ among "
+        f"{list(kinematic.CONTACT_N_LAMS)} (`studies.cube.kinematic.contact_lcs`).",
     ]
     L += [
         "",
@@ -317,7 +327,9 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
           "between mode switches) predict the rotation with one linear map per mode, while the MLP can "
           "represent it; and the height of a corner of the cube, what contact depends on, is "
           "p_z + (R(q) r)_z, quadratic in q, so the LCS's gap D x + c can only approximate it with a "
-          "plane. The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
+          "plane. The two kinematic LCSs take both off the learner: the first integrates the quaternion "
+          "exactly, the second also makes the corner heights linear in its state. "
+          "The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
           f"validation rollout error at H = {M.VALIDATION_HORIZON} against the affine map's.", ""]
     L += _verdicts(records)
     floor = linear_floor(test)
