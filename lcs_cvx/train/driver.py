@@ -14,7 +14,6 @@ uninterrupted one (wall times aside).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import os
@@ -36,7 +35,7 @@ from ..simulation_error import Windows
 from ..system import LCS
 from ..trajectories import Trajectories
 from .ensemble import train_together
-from .holdout import Split, affine_lcs, split_data
+from .holdout import split_data
 from .inputs import check_data, fit_options, resolve_keep_best
 from .options import FitOptions
 from .phases import run_phases
@@ -216,7 +215,7 @@ def fit(
     resolve_threads(threads)
     opts = fit_options(options, recipe, overrides)
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
-    opts = resolve_keep_best(opts, split.trajectories is not None and split.holdout is not None)
+    opts = resolve_keep_best(opts, split.holds_out_runs)
     fit_user = check_data("train", split.fit, model)
     split = dataclasses.replace(split, fit=fit_user)  # the affine reference on the model's device too
     if isinstance(split.holdout, Dataset):
@@ -332,23 +331,4 @@ def fit(
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
     result = FitResult(model, history, opts, scores, elapsed(), scaling, refinement_kept=refinement_kept)
-    return _against_affine(result, split, r.affine_if_better) if holdout is not None else result
-
-
-def _against_affine(result: FitResult, split: Split, affine_if_better: bool) -> FitResult:
-    """``result`` with the held-out scores of its model and of the least-squares affine map on
-    the same split, the growth of their held-out rollouts and the per-run spread
-    (:meth:`Split.judge`; :attr:`FitResult.verdict` says which is better); with
-    ``affine_if_better``, when the LCS is not better (:attr:`FitResult.beats_affine`), the
-    affine map (as an LCS, ``C = 0``) written into the returned model, the learned one kept as
-    ``learned``."""
-    model = result.model
-    result = dataclasses.replace(result, **split.judge(model))
-    if result.beats_affine or not affine_if_better:
-        return result
-    learned = copy.deepcopy(model)
-    affine = affine_lcs(split.affine, model)
-    with torch.no_grad():
-        for name in ("A", "B", "C", "d"):
-            getattr(model, name).copy_(getattr(affine, name))
-    return dataclasses.replace(result, learned=learned, returned_affine=True)
+    return split.conclude(result, r.affine_if_better) if holdout is not None else result

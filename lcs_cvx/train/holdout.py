@@ -28,6 +28,8 @@ never chosen over one that stays in the data's range.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -143,6 +145,27 @@ class Split:
                 "heldout_run_errors": self.run_scores(model),
                 "affine_heldout_run_errors": self.run_scores(self.affine)}
 
+    @property
+    def holds_out_runs(self) -> bool:
+        """Whether whole trajectories are held out (then ``keep_best`` defaults to on)."""
+        return self.trajectories is not None and self.holdout is not None
+
+    def conclude(self, result: Any, affine_if_better: bool) -> Any:
+        """``result`` (a :class:`lcs_cvx.FitResult`) with :meth:`judge`'s fields for its model
+        (:attr:`lcs_cvx.FitResult.verdict` says which is better); with ``affine_if_better``,
+        when the LCS is not better (:attr:`lcs_cvx.FitResult.beats_affine`), the affine map (as
+        an LCS, ``C = 0``) written into the returned model, the learned one kept as ``learned``."""
+        model = result.model
+        result = dataclasses.replace(result, **self.judge(model))
+        if result.beats_affine or not affine_if_better:
+            return result
+        learned = copy.deepcopy(model)
+        affine = affine_lcs(self.affine, model)
+        with torch.no_grad():
+            for name in ("A", "B", "C", "d"):
+                getattr(model, name).copy_(getattr(affine, name))
+        return dataclasses.replace(result, learned=learned, returned_affine=True)
+
     def affine_growth(self) -> float:
         """:meth:`growth` of :attr:`affine` (its rollouts through the same whole trajectories)."""
         return rollout_growth(self.affine, self.holdout)
@@ -224,8 +247,6 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
 def affine_lcs(affine: AffineMap, like: LCS) -> LCS:
     """The affine map ``x' = A x + B u + d`` as an LCS of ``like``'s sizes with ``C = 0`` (its
     units have no effect); ``like``'s other parameters are kept."""
-    import copy
-
     model = copy.deepcopy(like)
     W = affine.W.to(dtype=model.dtype, device=model.device)
     n_x, n_u = model.n_x, model.n_u
