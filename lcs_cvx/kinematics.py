@@ -4,10 +4,13 @@ A state ``x = (q, v)`` of configuration and velocity coordinates; the LCS of eq.
 the velocities (and ``lam``), and the configuration follows from them, known, not learned:
 
 $$
-v' = A_v x + B_v u + C_v \lambda + d_v, \qquad
-q'_i = q_i + \Delta t\, v'_{j(i)} \ \text{(positions, angles)}, \qquad
-\mathbf q' = \frac{\mathbf q \otimes \exp(\Delta t\, \omega' / 2)}{\|\cdot\|}
-\ \text{(unit quaternion, body } \omega\text{)},
+v' = A_v x + B_v u + C_v \lambda + d_v, \qquad q'_i = q_i + \Delta t\, v'_{j(i)},
+$$
+
+for positions and angles, and for a unit quaternion with a body angular velocity
+
+$$
+\mathbf q' = \mathbf q \otimes \exp(\Delta t\, \omega' / 2) \,/\, \|\cdot\|,
 $$
 
 ``exp(dt w / 2) ⊗ q`` for an angular velocity in the world frame; quaternions are scalar

@@ -80,9 +80,10 @@ class StackedLCS(nn.Module):
                     f"received {got}"
                 )
             if m.masks:
+                why = " (its kinematics hold the configuration rows)" if m.kinematics is not None else ""
                 raise LCSInputError(
                     f"models[{k}]: expected a model without masks (an ensemble does not train masked "
-                    f"entries yet), received masks on {sorted(m.masks)}"
+                    f"entries yet), received masks on {sorted(m.masks)}{why}; fit them one at a time"
                 )
             fixed = [name for name in PARAMETER_NAMES if not getattr(m, name).requires_grad]
             fixed0 = [name for name in PARAMETER_NAMES if not getattr(first, name).requires_grad]

@@ -287,3 +287,11 @@ def test_up_coordinates_follow_the_integrated_quaternion_and_make_heights_linear
     assert Kinematics.parse(str(k)) == k and Kinematics.from_dict(k.to_dict()) == k
     with pytest.raises(LCSInputError, match=r"^up: expected \(g0, q0\) pairs whose q0 starts a declared quaternion"):
         Kinematics(0.05, quaternions=[(0, 4)], up=[(7, 1)])
+
+
+def test_an_ensemble_names_the_kinematics_it_cannot_train():
+    from lcs_cvx.stacked import StackedLCS
+
+    models = [lcs_cvx.LCS(4, 1, 2, seed=s, kinematics=POS) for s in (0, 1)]
+    with pytest.raises(LCSInputError, match=r"kinematics hold the configuration rows\); fit them one at a time"):
+        StackedLCS(models)
