@@ -272,12 +272,7 @@ def attach(model: Any, kinematics: Any) -> Any:
     (:meth:`Kinematics.holds`; entries held before stay held at their values) and attach."""
     if not isinstance(kinematics, Kinematics):
         raise LCSInputError(f"kinematics: expected an lcs_cvx.Kinematics, received {type(kinematics).__name__}")
-    values = kinematics.holds(model.n_x, model.n_u, model.n_lam)
-    for k, v in values.items():
-        before = model.held.get(k)
-        if before is not None:
-            v.copy_(torch.where(torch.isnan(v), before.to(v), v))
-    model.hold(**values)
+    model.hold(**kinematics.holds(model.n_x, model.n_u, model.n_lam))
     model._kinematics = kinematics
     return model
 

@@ -211,7 +211,8 @@ class LCS(nn.Module):
 
         Keywords are names of :data:`MASKABLE`; each value is an array or tensor of the
         parameter's exact shape, NaN where the entry is learned and the value to hold elsewhere
-        (e.g. gravity's increment in ``d``). The held entries are set now and stay bit-identical
+        (e.g. gravity's increment in ``d``); entries held before (``mask``, ``hold``, the
+        kinematics) stay held. The held entries are set now and stay bit-identical
         through :func:`lcs_cvx.fit` (their gradients are zeroed, every step restores them);
         :attr:`masks` shows them as masked, :attr:`held` their values. Nothing changes unless
         every value is valid.
@@ -229,11 +230,13 @@ class LCS(nn.Module):
             raise LCSInputError(f"{unknown[0]}: expected a name among {MASKABLE} to hold entries of, "
                                 f"received {unknown[0]!r}")
         given = {k: as_held(k, v, shapes[k]) for k, v in values.items()}
+        for k, t in given.items():  # entries held before stay held (unless given again)
+            if k in self._masks:
+                t.copy_(torch.where(torch.isnan(t) & ~self._masks[k], self._held[k].to(t), t))
         with torch.no_grad():
             for k, t in given.items():
                 p = getattr(self, k)
-                keep = ~torch.isnan(t)
-                p.copy_(torch.where(keep.to(p.device), t.to(p), p))
+                p.copy_(torch.where(~torch.isnan(t).to(p.device), t.to(p), p))
         others = {k: v for k, v in self._held.items() if k not in given}
         return self.replace_masks({**self._masks, **{k: torch.isnan(t) for k, t in given.items()}}, zero=False,
                                   held=others)

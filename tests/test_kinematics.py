@@ -295,3 +295,12 @@ def test_an_ensemble_names_the_kinematics_it_cannot_train():
     models = [lcs_cvx.LCS(4, 1, 2, seed=s, kinematics=POS) for s in (0, 1)]
     with pytest.raises(LCSInputError, match=r"kinematics hold the configuration rows\); fit them one at a time"):
         StackedLCS(models)
+
+
+def test_a_later_hold_keeps_the_configuration_rows_held():
+    """hold adds to what is held (a held entry is replaced only where a value is given again)."""
+    model = lcs_cvx.LCS(4, 1, 2, kinematics=POS).hold(d=[math.nan, math.nan, math.nan, -0.98])
+    assert model.held["d"].tolist()[:2] == [0.0, 0.0] and model.held["d"][3].item() == -0.98
+    assert torch.isnan(model.held["d"][2])
+    again = model.hold(d=[0.5, math.nan, math.nan, math.nan])  # given again: replaced
+    assert again.held["d"][0].item() == 0.5 and again.held["d"][3].item() == -0.98

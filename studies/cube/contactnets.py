@@ -16,6 +16,7 @@ writes ``OUT/contactnets.md`` (and ``contactnets.json``).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -23,8 +24,10 @@ import time
 
 import torch
 
+import lcs_cvx
 from lcs_cvx.datasets import cube_tosses
 
+from . import kinematic
 from . import models as M
 from .metrics import dair_pll_errors
 from .tosses import DATE, MACHINE, study_parts, subset
@@ -55,8 +58,28 @@ def compare(out: str, size: int) -> list[dict]:
             continue
         t0 = time.perf_counter()
         err = dair_pll_errors(spec.load(path), test.xs)
-        rows.append({"model": spec.name, **err, "wall": time.perf_counter() - t0})
+        row = {"model": spec.name, **err, "wall": time.perf_counter() - t0}
+        model = lcs_cvx.load_model(path) if spec.ext == "npz" and spec.key.startswith("lcs") else None
+        if model is not None and model.n_x == 16:
+            row["activity"] = contact_activity(model, list(test.xs))
+        rows.append(row)
     return rows
+
+
+def contact_activity(model: lcs_cvx.LCS, xs: list[torch.Tensor], near: float = 0.005, far: float = 0.02
+                     ) -> dict[str, float]:
+    """Of the test states of a model on the state with the up coordinates, the fraction with a
+    unit active (``lam_i > ACTIVE_TOL``) where the lowest corner is within ``near`` of the floor
+    (at contact) and where it is above ``far`` (in flight)."""
+    x = kinematic.augment(lcs_cvx.Trajectories(xs, [t[:-1, :0] for t in xs])).xs
+    x = torch.cat(x)
+    corners = torch.tensor(list(itertools.product((-kinematic.HALF_SIDE, kinematic.HALF_SIDE), repeat=3)),
+                           dtype=torch.float64)
+    low = (x[:, 6:7] + x[:, 13:16] @ corners.T).min(1).values
+    active = model.active_set(x, x[:, :0]).any(1)
+    at, fly = low < near, low > far
+    return {"at_contact": float(active[at].double().mean()), "in_flight": float(active[fly].double().mean()),
+            "states_at_contact": int(at.sum()), "states_in_flight": int(fly.sum())}
 
 
 def _deg(rad: float) -> str:
@@ -93,6 +116,12 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         lines.append(f"| lcs_cvx study: {r['model']} | {args.size} | {_mm(r['pos'])} | {_deg(r['rot'])} | "
                      f"{_mm(r['pos_rms'])} | {r['diverged']} / 137 |")
+    for r in rows:
+        a = r.get("activity")
+        if a is not None:
+            lines += ["", f"*{r['model']}*: a unit is active in {100 * a['at_contact']:.0f} % of the test states "
+                      f"whose lowest corner is within 5 mm of the floor ({a['states_at_contact']} states) and in "
+                      f"{100 * a['in_flight']:.0f} % of those above 20 mm, in flight ({a['states_in_flight']})."]
     met = [r["model"] for r in rows if r["pos"] <= TARGET[0] and r["rot"] <= TARGET[1]]
     lines += ["", f"Target (better than every dair_pll method): position ≤ {_mm(TARGET[0])} and rotation ≤ "
               f"{_deg(TARGET[1])}. Met by: {', '.join(met) if met else 'none'}.", ""]

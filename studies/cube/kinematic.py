@@ -9,8 +9,11 @@ angular velocity, linear velocity; the recorded tosses follow ``p' = p + dt v'``
   rest of the velocity rows and the complementarity rows learned;
 - :func:`contact_lcs`: the same on the state with the body's up coordinates appended,
   ``g = R(q)^T e_z`` (16; :func:`augment`), in which the height of each of the cube's 8 corners
-  ``r_c`` is linear, ``p_z + r_c · g``; the first 8 units start at those heights (``D``, ``c``:
-  the complementarity of a corner's force with its height), further units at random.
+  ``r_c`` is linear, ``p_z + r_c · g``; free flight held as well, ``v' = v - g dt e_z`` and
+  ``w' = w`` (a cube's inertia is isotropic: no torque, no change of the body angular velocity)
+  plus ``C lam``, so that only the contacts change the velocities; the first 8 units start at
+  the corner heights (``D``, ``c``: the complementarity of a corner's force with its height),
+  further units at random.
 
 The steppers keep the study's 13-state: the contact model appends ``g`` before a step and drops it
 after (:func:`stepper`).
@@ -56,9 +59,14 @@ def kinematic_lcs(n_lam: int, seed: int = 0) -> lcs_cvx.LCS:
 
 
 def contact_lcs(n_lam: int, seed: int = 0) -> lcs_cvx.LCS:
-    """``LCS(16, 0, n_lam)`` with :data:`CONTACT_KINEMATICS`, gravity held, and units ``0..7``
-    starting at the corner heights: ``D[c] x + c_c = p_z + r_c · g``."""
-    model = lcs_cvx.LCS(16, 0, n_lam, seed=seed, kinematics=CONTACT_KINEMATICS).hold(d=_gravity(16))
+    """``LCS(16, 0, n_lam)`` with :data:`CONTACT_KINEMATICS`, free flight held (the velocity
+    rows of ``A`` at the identity, of ``d`` at gravity), and units ``0..7`` starting at the corner
+    heights: ``D[c] x + c_c = p_z + r_c · g``."""
+    A = torch.full((16, 16), math.nan, dtype=torch.float64)
+    A[7:13] = torch.eye(16, dtype=torch.float64)[7:13]
+    d = torch.tensor(_gravity(16), dtype=torch.float64)
+    d[7:12] = 0.0
+    model = lcs_cvx.LCS(16, 0, n_lam, seed=seed, kinematics=CONTACT_KINEMATICS).hold(A=A, d=d)
     corners = list(itertools.product((-HALF_SIDE, HALF_SIDE), repeat=3))
     with torch.no_grad():
         for c, r in enumerate(corners[:n_lam]):

@@ -301,8 +301,9 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         "(`studies.cube.kinematic.kinematic_lcs`);",
         "- *LCS, contact coordinates*: the same on the state with the cube's up coordinates appended, "
         "g = R(q)ᵀ e_z (`Kinematics(..., up=...)`: computed from the integrated quaternion), in which the "
-        "height p_z + r_c · g of each of the 8 corners r_c is linear; its first 8 units start with "
-        "D x + c at those heights, n_λ among "
+        "height p_z + r_c · g of each of the 8 corners r_c is linear, and free flight held too "
+        "(v' = v − g dt e_z and w' = w plus C λ: only the contacts change the velocities); its first 8 "
+        "units start with D x + c at those heights, n_λ among "
         f"{list(kinematic.CONTACT_N_LAMS)} (`studies.cube.kinematic.contact_lcs`).",
     ]
     L += [
