@@ -110,3 +110,14 @@ def test_split_is_by_toss_and_disjoint():
     for a, b in zip(small.xs, large.xs, strict=False):  # nested: a larger size extends a smaller one
         assert torch.equal(a, b)
     assert torch.equal(train.xs[0], data.xs[parts["train"][0]])
+
+
+def test_a_saved_mlp_loads_back_the_same_stepper(tmp_path):
+    """Its normalisation buffers load back as saved (they once shared one tensor on load)."""
+    mu, sigma, s = torch.linspace(0, 1, 13), torch.linspace(1, 2, 13), torch.linspace(2, 3, 13)
+    model = M.ResidualMLP(mu, sigma, s, (8,))
+    torch.save({"hidden": [8], "state": model.state_dict()}, tmp_path / "m.pt")
+    x = torch.randn(5, 13, dtype=torch.float64)
+    loaded = M._load_mlp(str(tmp_path / "m.pt"))
+    with torch.no_grad():
+        assert torch.equal(loaded(x), model.eval()(x))

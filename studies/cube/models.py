@@ -157,9 +157,11 @@ class ResidualMLP(nn.Module):
 
     def __init__(self, mu: torch.Tensor, sigma: torch.Tensor, s: torch.Tensor, hidden: tuple[int, ...]) -> None:
         super().__init__()
-        self.register_buffer("mu", mu.float())
-        self.register_buffer("sigma", sigma.float())
-        self.register_buffer("s", s.float())
+        # copies: ``.float()`` of a float32 tensor is the tensor itself, and buffers sharing one
+        # tensor would each load the last one's values
+        self.register_buffer("mu", mu.float().clone())
+        self.register_buffer("sigma", sigma.float().clone())
+        self.register_buffer("s", s.float().clone())
         dims = (13, *hidden)
         layers: list[nn.Module] = []
         for a, b in zip(dims[:-1], dims[1:], strict=True):
