@@ -293,6 +293,9 @@ def test_noisy_comparison_smoke_run(tmp_path, name):
     for sensor in sensors:
         r = s["results"][sensor]
         assert [(f["seed"], f["rollout_horizon"]) for f in r["fits"]] == [(0, None), (0, 5)]
+        # the MLP baseline, scored as the affine map is
+        assert set(r["mlp"]["scores"]) == set(r["affine"]["scores"] if "scores" in r["affine"] else r["affine"])
+        assert math.isfinite(r["mlp"]["scores"]["validation"]["20"]) and r["mlp"]["hidden"] == [16]
         for f in r["fits"]:
             assert f["error"] is None
             # the library's affine map is the one the table shows, on the same held-out trajectories

@@ -61,7 +61,7 @@ from .provenance import json_default
 
 __all__ = ["CONFIG_SECTIONS", "parse_config", "run_study", "main"]
 
-CONFIG_SECTIONS = ("plant", "data", "fit", "eval", "run")
+CONFIG_SECTIONS = ("plant", "data", "fit", "eval", "run", "mlp")
 _PLANTS = ("cartpole", "pusher")
 _DATA_DEFAULTS = {"n_train": 6000, "n_test": 3000, "seed_train": 0, "seed_test": 1, "val_every": 10,
                   "sensors": ["exact"]}
@@ -77,8 +77,11 @@ def _log(msg: str) -> None:
 def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     """Check a config of this module (a dict as TOML reads it) and fill in the defaults:
     ``[plant] name`` (``"cartpole"`` or ``"pusher"``), ``[data]``, ``[fit]`` (``options``: more
-    :func:`lcs_cvx.fit` keywords), ``[eval] horizons`` and ``[run]`` (the date, machine and command
+    :func:`lcs_cvx.fit` keywords), ``[eval] horizons``, ``[mlp]`` (the MLP baseline's options,
+    :func:`lcs_cvx.study.baselines.baseline_options`) and ``[run]`` (the date, machine and command
     written into the report)."""
+    from lcs_cvx.study.baselines import baseline_options
+
     from .sensor import SENSORS
 
     check_sections(config, CONFIG_SECTIONS)
@@ -93,7 +96,8 @@ def parse_config(config: dict[str, Any]) -> dict[str, Any]:
     fit = section(config, "fit", _FIT_DEFAULTS)
     horizons = [int(h) for h in section(config, "eval", _EVAL_DEFAULTS)["horizons"]]
     return {"name": config.get("name", f"{plant}_noisy"), "plant": plant, "data": data, "fit": fit,
-            "eval": {"horizons": horizons}, "run": section(config, "run", _RUN_DEFAULTS)}
+            "eval": {"horizons": horizons}, "run": section(config, "run", _RUN_DEFAULTS),
+            "mlp": baseline_options("mlp", config.get("mlp"), where="mlp")}
 
 
 # -- data ---------------------------------------------------------------------------------------
@@ -172,7 +176,33 @@ def fit_one(cfg: dict[str, Any], data: dict[str, Any], seed: int, rollout_horizo
             "restart_scores": list(res.restart_scores), "scores": _scores(res.model, data, horizons)}
 
 
-def _key(cfg: dict[str, Any], sensor: str, seed: int, rollout_horizon: int | None) -> str:
+class _Stepper:
+    """A baseline's ``step(x, u)`` with the attributes :func:`lcs_cvx.rollout_error` reads."""
+
+    def __init__(self, model: Any, like: Any) -> None:
+        import torch
+
+        self.model, self.n_x, self.n_u = model, like.n_x, like.n_u
+        self.dtype, self.device = torch.float64, torch.device("cpu")
+
+    def step(self, x: Any, u: Any) -> Any:
+        return self.model.step(x, u)
+
+
+def fit_mlp(data: dict[str, Any], options: dict[str, Any], horizons: list[int], seed: int = 0) -> dict[str, Any]:
+    """The MLP baseline (:mod:`lcs_cvx.study.baselines.mlp`: its grid tuned on held-out training
+    transitions; ``options`` complete, the config's ``[mlp]``) on the training runs' transitions,
+    and its scores as :func:`_scores`."""
+    from lcs_cvx.study.baselines.mlp import fit as mlp_fit
+
+    t0 = time.perf_counter()
+    model, info = mlp_fit(data["train"].to_transitions(), options, seed=seed, modes=0)
+    wall = time.perf_counter() - t0
+    return {"hidden": info["hidden"], "lr": info["lr"], "wall_time": wall,
+            "scores": _scores(_Stepper(model, data["train"]), data, horizons)}
+
+
+def _key(cfg: dict[str, Any], sensor: str, seed: int, rollout_horizon: int | str | None) -> str:
     what = {k: cfg[k] for k in ("plant", "data", "fit", "eval")}
     what = {**what, "data": {k: v for k, v in what["data"].items() if k != "sensors"},
             "fit": {k: v for k, v in what["fit"].items() if k not in ("seeds", "rollout_horizons")}}
@@ -221,8 +251,15 @@ def run_study(config: dict[str, Any], out_dir: str, workers: int = 1, scheduler:
                     r = partial[key]
                     _log(f"  {r.get('verdict', r.get('error'))} ({r['wall_time']:.0f} s)")
                 fits.append(copy.deepcopy(partial[key]))
+        key = _key(cfg, sensor, 0, "mlp:" + json.dumps(cfg["mlp"], sort_keys=True))
+        if key not in partial:
+            _log(f"{sensor}: the MLP baseline ...")
+            partial[key] = fit_mlp(data, cfg["mlp"], cfg["eval"]["horizons"])
+            with open(partial_path + ".tmp", "w") as fh:
+                json.dump(partial, fh, default=json_default)
+            os.replace(partial_path + ".tmp", partial_path)
         per_sensor[sensor] = {"counts": data["counts"], "affine": _scores(affine, data, cfg["eval"]["horizons"]),
-                              "fits": fits}
+                              "mlp": copy.deepcopy(partial[key]), "fits": fits}
     mod = _plant(cfg["plant"])
     from .sensor import sensor as get_sensor
 

@@ -262,6 +262,13 @@ def measured_with_noise(s: dict[str, Any]) -> list[str]:
         out.append("| " + " | ".join([sensor, "affine (least squares)", fmt(a["validation"][str(H)])]
                                      + [fmt(a["test"][str(h)]) for h in hs]
                                      + [fmt(a["test_clean"][str(H)]), "–", "–", "0"]) + " |")
+        m = r.get("mlp")
+        if m is not None:
+            sm = m["scores"]
+            label = f"MLP (tanh {'×'.join(map(str, m['hidden']))}, lr {m['lr']:g})"
+            out.append("| " + " | ".join([sensor, label, fmt(sm["validation"][str(H)])]
+                                         + [fmt(sm["test"][str(h)]) for h in hs]
+                                         + [fmt(sm["test_clean"][str(H)]), "–", "–", f"{m['wall_time']:.0f}"]) + " |")
     out += ["", "### The LCS against the affine map, and the refinement (computed)", ""]
     for sensor, r in s["results"].items():
         a = r["affine"]
@@ -272,6 +279,13 @@ def measured_with_noise(s: dict[str, Any]) -> list[str]:
         out.append(f"- `{sensor}`: the one-step fit beats the affine map on the held-out {H}-step rollouts in "
                    f"{won} of {len(default)} fits and on the test rollouts in {won_test} of {len(default)} "
                    f"(affine: held-out {a['validation'][str(H)]:.3g}, test {a['test'][str(H)]:.3g}).")
+        m = r.get("mlp")
+        if m is not None:
+            mh, mt = m["scores"]["validation"][str(H)], m["scores"]["test"][str(H)]
+            out.append(f"- `{sensor}`, against the MLP (the `lcs_cvx.study` baseline: its default grid, tuned on "
+                       f"held-out training transitions; held-out {mh:.3g}, test {mt:.3g}): the LCS fits are at or below "
+                       f"it held out in {sum(fr['heldout_error'] <= mh for fr in ok)} of {len(ok)}, on the test "
+                       f"rollouts in {sum(fr['scores']['test'][str(H)] <= mt for fr in ok)} of {len(ok)}.")
         for rh in f["rollout_horizons"]:
             refined = [fr for fr in ok if fr["rollout_horizon"] == rh]
             out.append(f"  - with the simulation-error phase (rollout_horizon={rh}): beats it on the held-out "
