@@ -215,4 +215,3 @@ def as_pattern(name: str, value: Any, shape: tuple[int, ...]) -> torch.Tensor:
             f"values (e.g. {shown})"
         )
     return t != 0
-

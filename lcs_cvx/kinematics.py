@@ -100,6 +100,9 @@ class Kinematics:
         object.__setattr__(self, "quaternions", quats)
         object.__setattr__(self, "frame", frame)
         object.__setattr__(self, "up", ups)
+        # the positions' index tensors, built once (integrate runs at every step of a rollout)
+        object.__setattr__(self, "_q_index", torch.tensor([i for i, _ in pos], dtype=torch.long))
+        object.__setattr__(self, "_v_index", torch.tensor([j for _, j in pos], dtype=torch.long))
         rows = self.rows
         if len(set(rows)) != len(rows):
             raise LCSInputError(f"positions, quaternions: expected each configuration index once, received "
@@ -206,8 +209,7 @@ class Kinematics:
         last = x_next.dim() - 1
         out = x_next
         if self.positions:
-            qi = torch.tensor([i for i, _ in self.positions], device=x.device)
-            vi = torch.tensor([j for _, j in self.positions], device=x.device)
+            qi, vi = self._q_index.to(x.device), self._v_index.to(x.device)
             out = out.index_copy(last, qi, x.index_select(last, qi) + self.dt * x_next.index_select(last, vi))
         for q0, w0 in self.quaternions:
             new = _step(x[..., q0:q0 + 4], x_next[..., w0:w0 + 3], self.dt, self.frame)
@@ -240,12 +242,11 @@ class Kinematics:
                 if xa.numel() != model.n_x or not bool(torch.isfinite(xa).all()):
                     raise LCSInputError(f"about: expected a finite state of shape ({model.n_x},), received "
                                         f"{tuple(torch.as_tensor(about).shape)}")
-                xa = xa.to(rows["A"])[None]
-                ua = torch.zeros(1, model.n_u).to(xa) if u is None else u
-                lam = model.solve_lcp(xa, ua).lam
-                raw = (xa @ rows["A"].mT + model._xu(xa, ua)[1] @ rows["B"].mT + lam @ rows["C"].mT + rows["d"])[0]
+                xa = xa.to(rows["A"])
+                # the model's step there: its velocity rows are eq. (1)'s (only configuration rows are integrated)
+                x_next = model.step(xa, torch.zeros(model.n_u, dtype=model.dtype, device=model.device) if u is None else u)[0]
                 for q0, w0 in self.quaternions:
-                    self._linearise(rows, new, xa[0], raw, q0, w0)
+                    self._linearise(rows, new, xa, x_next, q0, w0)
             for k, v in new.items():
                 getattr(out, k).copy_(v)
         return out

@@ -120,9 +120,9 @@ class Scaling:
         center_xu, center_y = True, torch.ones(x.shape[1], dtype=torch.bool)
         k = torch.ones(x.shape[1], dtype=torch.float64)
         if model is not None:
-            mask_A = model.masks.get("A")
-            if mask_A is not None:  # K_ii = 0 where A_ii is held at 0
-                k = (mask_A.diagonal() | (model._held["A"].diagonal() != 0)).to(torch.float64)
+            held_A = model.held.get("A")  # NaN where learned
+            if held_A is not None:  # K_ii = 0 where A_ii is held at 0
+                k = (held_A.diagonal() != 0).to(torch.float64)
             center_xu = not (_held_rows_vary(model, "d", ("A", "B")) or _held_rows_vary(model, "c", ("D", "E")))
             center_y = ~_constrained_entries(model, "d")
         mx, sx = _moments(x, center_xu, X_SPREAD)

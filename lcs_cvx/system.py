@@ -230,9 +230,9 @@ class LCS(nn.Module):
             raise LCSInputError(f"{unknown[0]}: expected a name among {MASKABLE} to hold entries of, "
                                 f"received {unknown[0]!r}")
         given = {k: as_held(k, v, shapes[k]) for k, v in values.items()}
-        for k, t in given.items():  # entries held before stay held (unless given again)
+        for k in given:  # entries held before stay held (unless given again); the caller's array untouched
             if k in self._masks:
-                t.copy_(torch.where(torch.isnan(t) & ~self._masks[k], self._held[k].to(t), t))
+                given[k] = torch.where(torch.isnan(given[k]) & ~self._masks[k], self._held[k], given[k])
         with torch.no_grad():
             for k, t in given.items():
                 p = getattr(self, k)

@@ -117,6 +117,9 @@ def test_a_model_whose_rollouts_grow_more_is_never_better(data):
     shrinking = dataclasses.replace(lower, affine_heldout_growth=0.5, heldout_growth=1.4)
     assert shrinking.beats_affine
     assert dataclasses.replace(lower, heldout_growth=math.nan).beats_affine is False
+    # a diverging affine map licenses nothing: the data's own range is the reference then
+    assert dataclasses.replace(lower, affine_heldout_growth=math.inf, heldout_growth=1.4).beats_affine
+    assert dataclasses.replace(lower, affine_heldout_growth=math.inf, heldout_growth=2.0).grows_more
 
 
 def test_choices_never_keep_a_model_whose_rollouts_leave_the_data_range(truth, data, monkeypatch):
@@ -150,7 +153,7 @@ def test_choices_never_keep_a_model_whose_rollouts_leave_the_data_range(truth, d
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
     result = lcs_cvx.fit(model, data, init="model", normalize=False, iterations=30, eval_every=10,
                          rollout_horizon=None, holdout_horizon=4, progress=False)
-    assert [h["e_test"] for h in result.history] == [math.inf] * len(result.history)
+    assert len(result.history) >= 3 and [h["e_test"] for h in result.history] == [math.inf] * len(result.history)
     for k, v in model.state_dict().items():
         assert torch.equal(v, start[k]), k
 

@@ -302,5 +302,7 @@ def test_a_later_hold_keeps_the_configuration_rows_held():
     model = lcs_cvx.LCS(4, 1, 2, kinematics=POS).hold(d=[math.nan, math.nan, math.nan, -0.98])
     assert model.held["d"].tolist()[:2] == [0.0, 0.0] and model.held["d"][3].item() == -0.98
     assert torch.isnan(model.held["d"][2])
-    again = model.hold(d=[0.5, math.nan, math.nan, math.nan])  # given again: replaced
+    values = torch.tensor([0.5, math.nan, math.nan, math.nan], dtype=torch.float64)
+    again = model.hold(d=values)  # given again: replaced
     assert again.held["d"][0].item() == 0.5 and again.held["d"][3].item() == -0.98
+    assert torch.isnan(values[1:]).all()  # the caller's array is left as it was

@@ -61,7 +61,8 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kinematics", type=kinematics_spec, default=None, metavar="SPEC",
                    help="known kinematics, integrated rather than learned (lcs_cvx.Kinematics), as "
                         "'dt=0.01 positions=0:2,1:3' (configuration:velocity column indices) and "
-                        "'quaternions=q0:w0 frame=body|world' for unit quaternions (scalar first)")
+                        "'quaternions=q0:w0 frame=body|world' for unit quaternions (scalar first), 'up=g0:q0' for "
+                        "the vertical in the body frame")
     # None = not given: lcs_cvx.fit's own defaults and recipes decide
     p.add_argument("--loss", choices=("violation", "prediction"), default=None)
     p.add_argument("--optimizer", choices=("adam", "gauss-newton", "newton"), default=None)

@@ -130,7 +130,8 @@ class Horizon:
                 raise LCSInputError(
                     f"model: expected an LCS, received one whose kinematics integrate a quaternion (step {k}), "
                     "which no LCS does; pass model.as_lcs(about=x) (linearised about the state x)")
-        mats = [m.as_lcs().to_matrices() for m in models]  # positions integrate linearly: exact
+        exported = {id(m): m.as_lcs().to_matrices() for m in models}  # positions integrate linearly: exact
+        mats = [exported[id(m)] for m in models]
         stack = {key: np.stack([m[key] for m in mats]) for key in ("A", "B", "C", "d", "D", "E", "F", "c")}
         return cls(**stack)
 

@@ -302,7 +302,7 @@ def fit(
             state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
                                windows=windows, scaling=scaling,
                                validate=holdout_score if holdout is not None else None, threads=threads,
-                               kinematics=model.kinematics if scaling is not None else None)
+                               kinematics=model.kinematics)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:

@@ -45,7 +45,7 @@ from ..simulation_error import change_error, rollout_growth
 from ..system import LCS
 from ..trajectories import Trajectories
 from .phase_options import RunOptions
-from .result import GROWTH_SLACK
+from .result import growth_limit
 
 __all__ = ["Split", "split_data", "affine_lcs", "heldout_runs", "AUTO_ROLLOUT_HORIZON", "MIN_HELDOUT_RUNS"]
 
@@ -173,13 +173,9 @@ class Split:
     @functools.cached_property
     def growth_bound(self) -> float | None:
         """The largest held-out rollout growth of a model a choice may keep:
-        :data:`~lcs_cvx.train.result.GROWTH_SLACK` times the larger of 1 and
-        :meth:`affine_growth` (None with held-out transitions); the verdict's rule
-        (:attr:`lcs_cvx.FitResult.grows_more`)."""
-        if not isinstance(self.holdout, Trajectories):
-            return None
-        affine = self.affine_growth()
-        return GROWTH_SLACK * max(1.0, affine if math.isfinite(affine) else 1.0)
+        :func:`~lcs_cvx.train.result.growth_limit` of :meth:`affine_growth` (None with held-out
+        transitions), the verdict's rule (:attr:`lcs_cvx.FitResult.grows_more`)."""
+        return growth_limit(self.affine_growth()) if isinstance(self.holdout, Trajectories) else None
 
     def choice_score(self, model: Any) -> float:
         """:meth:`score`, or ``inf`` when ``model``'s held-out rollouts grow past

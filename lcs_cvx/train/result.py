@@ -3,6 +3,7 @@ the rule that picks the kept run among restarts (:func:`lowest`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -10,7 +11,7 @@ from ..scaling import Scaling
 from ..system import LCS
 from .options import FitOptions
 
-__all__ = ["FitResult", "lowest", "DIVERGING_GROWTH", "GROWTH_SLACK"]
+__all__ = ["FitResult", "lowest", "growth_limit", "DIVERGING_GROWTH", "GROWTH_SLACK"]
 
 #: A held-out rollout that grows past this multiple of the largest recorded state is called
 #: diverging by :attr:`FitResult.verdict`.
@@ -21,6 +22,14 @@ DIVERGING_GROWTH = 10.0
 #: then :attr:`FitResult.beats_affine` is False whatever the errors say (an error over short
 #: windows does not see a model that leaves the data's range over a whole run).
 GROWTH_SLACK = 1.5
+
+
+def growth_limit(affine_growth: float | None) -> float:
+    """The largest held-out rollout growth that does not "grow more": :data:`GROWTH_SLACK` times
+    the larger of 1 (the data's own) and the affine map's growth (1 where that is None or not
+    finite: a diverging affine map licenses nothing)."""
+    finite = affine_growth is not None and math.isfinite(affine_growth)
+    return GROWTH_SLACK * max(1.0, affine_growth if finite else 1.0)
 
 
 def _spread(scores: tuple[float, ...] | None) -> str:
@@ -104,8 +113,7 @@ class FitResult:
         trajectories)."""
         if self.heldout_growth is None:
             return None
-        reference = max(1.0, self.affine_heldout_growth or 1.0)
-        return not self.heldout_growth <= GROWTH_SLACK * reference
+        return not self.heldout_growth <= growth_limit(self.affine_heldout_growth)
 
     @property
     def beats_affine(self) -> bool | None:
