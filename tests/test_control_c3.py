@@ -20,9 +20,11 @@ def cartpole():
 def controller(P, projection, **kw):
     """C3 with C3's published weights for ``projection``. Without the plan-gap check: from ``x0``
     the published projections plan with wall forces the model does not produce (a gap of 0.84
-    at the first solve for ``"c3+"``), and these tests are of C3 itself; the check has its own."""
+    at the first solve for ``"c3+"``), and these tests are of C3 itself; the check has its own.
+    Without the polish too (C3's ADMM as published; the polish has its own tests)."""
     G, U = P.weights["c3+" if projection in ("lcp", "auto") else projection]
     kw.setdefault("gap_tol", None)
+    kw.setdefault("polish", 0)
     return C3(P.model, P.horizon, Q=P.Q, R=P.R, QN="dare", G=G, U=U, projection=projection, **kw)
 
 
@@ -275,7 +277,7 @@ def test_auto_applies_the_plan_whose_model_rollout_costs_less():
     rollout says costs less (the same ADMM as each projection alone)."""
     model = learned_like(seed=1)
     X0 = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (8, 4)))
-    kw = dict(Q=np.ones(4), R=np.ones(1), gap_tol=None)
+    kw = dict(Q=np.ones(4), R=np.ones(1), gap_tol=None, polish=0)
     auto = C3(model, 6, projection="auto", **kw).solve(X0)
     each = {p: C3(model, 6, projection=p, **kw).solve(X0) for p in ("c3+", "lcp")}
     assert set(auto.projection) == {"c3+", "lcp"}  # both win somewhere on this model
@@ -291,7 +293,7 @@ def test_the_lcp_projection_plans_forces_the_model_produces():
     model does not reach (a PlanGapWarning, counted); "lcp" plans ones it does (no warning)."""
     model = learned_like(seed=1)
     x0 = np.array([1.0, -1.0, 0.5, 0.5])
-    kw = dict(Q=np.ones(4), R=0.1 * np.ones(1), gap_tol=0.1)  # the gap is 0.2 of the states' scale
+    kw = dict(Q=np.ones(4), R=0.1 * np.ones(1), gap_tol=0.1, polish=0)  # the gap is 0.2 of the states' scale
     per_unit = C3(model, 8, projection="c3+", **kw)
     with pytest.warns(lcs_cvx.PlanGapWarning, match="disagree with the model"):
         plan = per_unit.solve(x0)
@@ -370,3 +372,143 @@ def test_scale_lcs_is_the_admm_on_the_rescaled_system(cartpole, projection, lam_
     assert torch.allclose(a.u, b.u, rtol=0, atol=1e-12)
     assert torch.allclose(a.lam, s * b.lam, rtol=1e-12, atol=1e-12)
     assert torch.allclose(a.x, b.x, rtol=0, atol=1e-12) and torch.allclose(a.x_model, b.x_model, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- the polish
+
+def polish_pair(model, horizon=6, **kw):
+    """The same C3 without and with the polish (the default's 3 mode-fixed QPs)."""
+    kw = dict(dict(Q=np.ones(model.n_x), R=np.ones(model.n_u), gap_tol=None), **kw)
+    return C3(model, horizon, polish=0, **kw), C3(model, horizon, **kw)
+
+
+@pytest.mark.parametrize("u_bounds", [None, (-0.5, 0.5)])
+def test_the_polish_never_raises_the_cost_of_the_plan_applied(u_bounds):
+    """Per initial state the polished plan's model rollout costs at most the ADMM's (and less
+    where it was polished); with bounds its inputs meet them."""
+    model = learned_like(seed=1)
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (16, 4)))
+    plain, polished = polish_pair(model, u_bounds=u_bounds)
+    a, b = plain.solve(X0), polished.solve(X0)
+    assert bool(b.polished.any())
+    assert bool((b.cost <= a.cost + 1e-12 * (1 + a.cost.abs())).all())
+    assert bool((b.cost[b.polished] < a.cost[b.polished]).all())
+    assert torch.equal(b.u[~b.polished], a.u[~b.polished])
+    if u_bounds is not None:
+        assert float(b.u.abs().max()) <= 0.5 + 1e-9
+
+
+def test_a_polished_plan_is_the_models_own_rollout():
+    """Where polished, the plan's states are the model's rollout of its inputs (gap 0) and its
+    forces the model's LCP solutions (complementary)."""
+    model = learned_like(seed=2)
+    X0 = torch.tensor(np.random.default_rng(1).uniform(-1, 1, (8, 4)))
+    plan = polish_pair(model)[1].solve(X0)
+    done = plan.polished
+    assert bool(done.any())
+    assert torch.allclose(plan.x[done], plan.x_model[done], rtol=0, atol=1e-12)
+    assert float(plan.gap[done].max()) <= 1e-12
+    assert float(plan.complementarity[done].max()) <= 1e-9
+    for b in torch.flatten(done.nonzero()).tolist():
+        lam = model.solve_lcp(plan.x[b, :-1], plan.u[b]).lam.detach()
+        assert torch.allclose(plan.lam[b], lam, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_the_mode_fixed_qp_is_the_declared_problem(bounded):
+    """The polish's QP in the modes of a rollout (the kernel: condensed, solved exactly, by
+    active sets within the bounds) against the same problem declared in CVXPY with lam as
+    variables, the active units' eta = 0 and the others' lam = 0 (Clarabel): 1e-6."""
+    import cvxpy as cp
+
+    from lcs_cvx._kernels.arrays import array_ops
+    from lcs_cvx._kernels.c3 import model_rollout
+    from lcs_cvx._kernels.polish import _condensed, _minimise, mode_dynamics
+
+    model = learned_like(seed=3)
+    m = {k: np.asarray(v) for k, v in model.to_matrices().items()}
+    N, n_x, n_u, n_lam = 5, 4, 1, 3
+    mats = {k: np.repeat(m[k][None], N, 0) for k in "ABCdDEFc"}
+    rng = np.random.default_rng(4)
+    x0, u0 = rng.uniform(-1, 1, (2, n_x)), rng.uniform(-1, 1, (2, N, n_u))
+    xd, u_ref = rng.uniform(-0.5, 0.5, (2, N + 1, n_x)), np.zeros((2, N, n_u))
+    Q, R = np.repeat(np.diag([1.0, 2.0, 0.5, 1.0])[None], N, 0), np.repeat(np.eye(1)[None], N, 0)
+    QN = 3 * Q[0]
+    xp = array_ops(torch.zeros(1))
+
+    def lcp(k, q):
+        return lcs_cvx.solve_lcp(mats["F"][k], q).lam.numpy()
+
+    lams = []
+    model_rollout(x0, u0, mats, lcp, lams)
+    active = np.stack(lams, 1) > 0
+    assert active.any() and not active.all()
+    At, Bt, dt, singular = mode_dynamics(xp, mats, active)
+    H, f = _condensed(xp, x0, At, Bt, dt, xd, u_ref, Q, R, QN)
+    lo, hi = (np.full(N * n_u, -0.3), np.full(N * n_u, 0.3)) if bounded else (None, None)
+    U, failed = _minimise(xp, H, f, lo, hi)
+    assert not singular.any() and not failed.any()
+    for b in range(2):
+        x, u, lam = cp.Variable((N + 1, n_x)), cp.Variable((N, n_u)), cp.Variable((N, n_lam))
+        cons, cost = [x[0] == x0[b]], 0
+        for k in range(N):
+            a = active[b, k]
+            eta = m["D"] @ x[k] + m["E"] @ u[k] + m["F"] @ lam[k] + m["c"]
+            cons += [x[k + 1] == m["A"] @ x[k] + m["B"] @ u[k] + m["C"] @ lam[k] + m["d"]]
+            cons += [eta[i] == 0 if a[i] else lam[k, i] == 0 for i in range(n_lam)]
+            if bounded:
+                cons += [cp.abs(u[k]) <= 0.3]
+            cost += cp.quad_form(x[k] - xd[b, k], Q[k]) + cp.quad_form(u[k], R[k])
+        cost += cp.quad_form(x[N] - xd[b, N], QN)
+        cp.Problem(cp.Minimize(cost), cons).solve(solver=cp.CLARABEL)
+        assert np.allclose(U[b], u.value.ravel(), rtol=0, atol=1e-6)
+    if bounded:
+        assert np.isclose(np.abs(U).max(), 0.3)  # a bound is active
+
+
+def test_the_polish_plans_alike_on_both_back_ends_and_batched():
+    """NumPy and torch back-ends, and a batch against its members one by one, to round-off."""
+    model = learned_like(seed=1)
+    X0 = torch.tensor(np.random.default_rng(2).uniform(-1, 1, (6, 4)))
+    ctrl = polish_pair(model)[1]
+    on_torch = polish_pair(model, arrays="torch")[1]
+    a, b = ctrl.solve(X0), on_torch.solve(X0)
+    assert torch.equal(a.polished, b.polished)
+    assert torch.allclose(a.u, b.u, rtol=0, atol=1e-10)
+    for i in range(6):
+        one = ctrl.solve(X0[i])
+        assert bool(one.polished) == bool(a.polished[i])
+        assert torch.allclose(one.u, a.u[i], rtol=0, atol=1e-10)
+
+
+def test_a_polished_plan_keeps_the_model_within_the_state_bounds():
+    """With x_bounds, a polished plan is applied only where the model's rollout meets them."""
+    model = learned_like(seed=1)
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (16, 4)))
+    free = polish_pair(model)[1].solve(X0)
+    hi = np.full(4, np.inf)
+    hi[0] = float(np.median(free.x_model[free.polished][:, 1:, 0].amax(1).numpy()))
+    bounded = polish_pair(model, x_bounds=(-np.inf, hi))[1].solve(X0)
+    assert 0 < int(bounded.polished.sum()) < int(free.polished.sum())
+    assert float(bounded.x_model[bounded.polished][:, 1:, 0].max()) <= hi[0] + 1e-9
+
+
+@pytest.mark.parametrize("value", [-1, 1.5, True, "3"])
+def test_polish_is_checked(value):
+    with pytest.raises(lcs_cvx.LCSInputError, match="polish: expected a number of mode-fixed QPs"):
+        C3(learned_like(), 3, Q=np.ones(4), R=np.ones(1), polish=value)
+
+
+def test_the_polish_does_not_read_uninitialised_memory():
+    """A solve after memory full of NaN was freed plans as before (the condensed QP's arrays
+    start from zeros, not from whatever memory NumPy hands out)."""
+    model = learned_like(seed=1)
+    X0 = torch.tensor(np.random.default_rng(0).uniform(-1, 1, (4, 4)))
+    ctrl = polish_pair(model, horizon=6)[1]
+    first = ctrl.solve(X0)
+    for size in (6 * 6, 4 * 6 * 6, 4 * 4 * 6, 4 * 6):  # the sizes of the kernel's arrays
+        junk = [np.full(size, np.nan) for _ in range(64)]
+        del junk
+        again = ctrl.solve(X0)
+        assert torch.equal(again.polished, first.polished)
+        assert torch.equal(again.u, first.u)

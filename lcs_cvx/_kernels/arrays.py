@@ -155,6 +155,12 @@ class ArrayOps:
             return np.empty(shape, dtype=like.dtype)
         return torch.empty(shape, dtype=like.dtype, device=like.device)
 
+    def zeros(self, shape: tuple[int, ...], like: Any) -> Any:
+        """Zeros of ``shape`` with ``like``'s dtype (and device)."""
+        if self.np:
+            return np.zeros(shape, dtype=like.dtype)
+        return torch.zeros(shape, dtype=like.dtype, device=like.device)
+
     def ones_bool(self, n: int, like: Any) -> Any:
         """``n`` True values beside ``like``."""
         return np.ones(n, dtype=bool) if self.np else torch.ones(n, dtype=torch.bool, device=like.device)

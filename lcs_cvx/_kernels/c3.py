@@ -108,15 +108,19 @@ def project_lcp(xp: Any, c: Any, layout: Any, D: Any, E: Any, F: Any, cc: Any, l
     return out
 
 
-def model_rollout(x0: Any, u: Any, mats: dict[str, Any], lcp: Callable[[int, Any], Any]) -> list[Any]:
+def model_rollout(x0: Any, u: Any, mats: dict[str, Any], lcp: Callable[[int, Any], Any],
+                  forces: list[Any] | None = None) -> list[Any]:
     """The model's own states under the inputs ``u (B, N, n_u)`` from ``x0 (B, n_x)``:
     ``lam_k = LCP(F_k, D_k x_k + E_k u_k + c_k)``, ``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k +
-    d_k`` (eq. (1)); the ``N + 1`` states ``(B, n_x)``."""
+    d_k`` (eq. (1)); the ``N + 1`` states ``(B, n_x)`` (and the ``N`` forces ``(B, n_lam)``
+    appended to ``forces`` when given)."""
     A, Bm, C, d, D, E, c = (mats[k] for k in "ABCdDEc")
     xs = [x0]
     for k in range(A.shape[0]):
         x, uk = xs[-1], u[:, k]
         lam = lcp(k, x @ D[k].T + uk @ E[k].T + c[k])
+        if forces is not None:
+            forces.append(lam)
         xs.append(x @ A[k].T + uk @ Bm[k].T + lam @ C[k].T + d[k])
     return xs
 

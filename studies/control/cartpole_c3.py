@@ -7,7 +7,8 @@ model. Initial states are drawn uniformly (seed 0) from the box ``|x_c| <= 0.3``
 ``|theta| <= 0.6`` rad, ``|x_c'| <= 0.6`` m/s, ``|theta'| <= 0.6`` rad/s around C3's published
 ``x0 = (0.1, -0.5, 0.5, -0.4)``, which is run as well. Controllers:
 
-- ``c3+``: C3 with the closed-form C3+ projection on the fast (affine, batched) QP path;
+- ``c3+``: C3 with the closed-form C3+ projection on the fast (affine, batched) QP path (this and
+  the other named projections below without the polish: C3's ADMM as published);
 - ``c3+ cvxpy``: the same, the QP step solved by CVXPY + Clarabel (timing comparison; a few states);
 - ``qp``: C3 with C3's convex (QP) projection, CVXPY + Clarabel;
 - ``miqp``: C3 with the exact mixed-integer projection, CVXPY + SCIP (slow: a subset of states);
@@ -15,7 +16,10 @@ model. Initial states are drawn uniformly (seed 0) from the box ``|x_c| <= 0.3``
   every state;
 - ``lcp``: C3 with the projection onto the model's own forces (``projection="lcp"``), fast path;
 - ``auto``: C3's default projection (``"auto"``: the ADMM with ``"lcp"`` and with ``"c3+"``, the
-  plan whose model rollout costs less), fast path;
+  plan whose model rollout costs less), fast path, without the polish;
+- ``defaults``: C3's defaults: ``"auto"`` and the polish (``polish=3``: the inputs re-planned in
+  the modes the model visits under them), fast path; ``defaults, penalize_input_change``: the
+  same with the input cost measured from the previous plan's inputs;
 - ``lqr``: ``u = -K x`` from the Riccati equation of ``(A, B, Q, R)``, ignoring the walls.
 
 A run succeeds when ``|x|_inf <= 0.1`` holds for 30 consecutive steps within 600 steps (C3's
@@ -55,6 +59,7 @@ from .cartpole_c3_records import (
     FILE,
     HOLD,
     MACHINE,
+    OPTIONS,
     PROJECTION_SOLVER,
     TOL,
     TRAJ_STATES,
@@ -131,10 +136,11 @@ class Study:
             if spec is None:
                 self._ctrls[name] = LQR(self.P.model, self.Q, self.R)
             else:
-                proj, path = spec
+                proj, path, polish = spec
                 G, U = self.P.weights["c3+" if proj in ("lcp", "auto") else proj]
                 ctrl = C3(self.P.model, self.P.horizon, Q=self.P.Q, R=self.P.R, QN="dare", G=G, U=U,
-                          projection=proj, qp_path=path, projection_solver=PROJECTION_SOLVER.get(name))
+                          projection=proj, qp_path=path, projection_solver=PROJECTION_SOLVER.get(name),
+                          polish=polish, **OPTIONS.get(name, {}))
                 if not np.allclose(ctrl.QN, self.QN, rtol=1e-10, atol=1e-8):
                     raise RuntimeError("C3's terminal weight differs from the exact problem's")
                 self._ctrls[name] = ctrl
@@ -295,6 +301,9 @@ class Study:
         phases = [
             ("c3+", lambda: self.run_controller("c3+", ["x0"] + rand, st.steps)),
             ("auto", lambda: self.run_controller("auto", ["x0"] + rand, st.steps)),
+            ("defaults", lambda: self.run_controller("defaults", ["x0"] + rand, st.steps)),
+            ("defaults, penalize_input_change",
+             lambda: self.run_controller("defaults, penalize_input_change", ["x0"] + rand, st.steps)),
             ("lcp", lambda: self.run_controller("lcp", ["x0"] + rand, st.steps)),
             ("lqr", lambda: self.run_controller("lqr", ["x0"] + rand, st.steps)),
             ("exact", lambda: self.run_exact(["x0"] + [str(i) for i in range(max(st.states, st.miqp_states))])),

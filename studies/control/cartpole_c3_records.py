@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Settings", "initial_states", "unit_key", "load_records", "jsonable", "today", "CONTROLLERS", "LABELS",
+__all__ = ["Settings", "initial_states", "unit_key", "load_records", "jsonable", "today", "CONTROLLERS", "OPTIONS", "LABELS",
            "FILE"]
 
 #: half-widths of the box of initial states around the origin (cart position, pole angle,
@@ -24,18 +24,23 @@ SEED = 0
 TOL, HOLD = 0.1, 30
 MACHINE = "2-core x86-64 VM, 1 torch thread"
 #: controller name -> (projection, qp_path); None: the LQR baseline
-CONTROLLERS: dict[str, tuple[str, str | None] | None] = {
-    "c3+": ("c3+", "fast"), "lqr": None, "c3+ cvxpy": ("c3+", "cvxpy"), "qp": ("qp", None), "miqp": ("miqp", None),
-    "miqp enum": ("miqp", None), "lcp": ("lcp", "fast"), "auto": ("auto", "fast"),
+CONTROLLERS: dict[str, tuple[str, str | None, int] | None] = {
+    "c3+": ("c3+", "fast", 0), "lqr": None, "c3+ cvxpy": ("c3+", "cvxpy", 0), "qp": ("qp", None, 0),
+    "miqp": ("miqp", None, 0), "miqp enum": ("miqp", None, 0), "lcp": ("lcp", "fast", 0), "auto": ("auto", "fast", 0),
+    "defaults": ("auto", "fast", 3), "defaults, penalize_input_change": ("auto", "fast", 3),
 }
+#: other C3 options of a controller
+OPTIONS = {"defaults, penalize_input_change": {"penalize_input_change": True}}
 #: controllers whose projection is solved another way than by default
 PROJECTION_SOLVER = {"miqp enum": "enumerate"}
 LABELS = {"c3+": "C3, c3+ projection (fast path)", "c3+ cvxpy": "C3, c3+ projection (CVXPY QP path)",
           "qp": "C3, qp projection", "miqp": "C3, miqp projection (SCIP)",
           "miqp enum": "C3, miqp projection (active sets)", "lqr": "LQR ignoring contact",
-          "lcp": "C3, lcp projection (the model's own forces)", "auto": "C3, defaults (auto: lcp or c3+)"}
+          "lcp": "C3, lcp projection (the model's own forces)", "auto": "C3, auto projection (lcp or c3+), no polish",
+          "defaults": "C3, defaults (auto, polished)",
+          "defaults, penalize_input_change": "C3, defaults with penalize_input_change"}
 COLORS = {"c3+": "C0", "c3+ cvxpy": "C4", "qp": "C2", "miqp": "C3", "miqp enum": "C1", "lqr": "C7", "lcp": "C5",
-          "auto": "C6"}
+          "auto": "C6", "defaults": "C8", "defaults, penalize_input_change": "C9"}
 #: states whose trajectories (cart position, pole angle) are stored and drawn
 TRAJ_STATES = ("x0", "0", "1")
 FILE = "cartpole_c3"

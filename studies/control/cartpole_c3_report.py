@@ -48,7 +48,8 @@ def summarize(records: list[dict[str, Any]], settings: Settings) -> dict[str, An
     """The numbers of the report, from the units finished so far."""
     steps_of = {"c3+": settings.steps, "lqr": settings.steps, "c3+ cvxpy": settings.qp_steps,
                 "qp": settings.qp_steps, "miqp": settings.miqp_steps, "miqp enum": settings.steps,
-                "lcp": settings.steps, "auto": settings.steps}
+                "lcp": settings.steps, "auto": settings.steps, "defaults": settings.steps,
+                "defaults, penalize_input_change": settings.steps}
     runs: dict[str, dict[str, dict[str, Any]]] = {k: {} for k in CONTROLLERS}
     exact: dict[str, dict[str, Any]] = {}
     batch = None
@@ -147,7 +148,7 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
              + (f" (1-minute load average {min(loads):.1f} to {max(loads):.1f} while it ran: the two cores were "
                 "shared with other work, so absolute times are pessimistic)" if loads else "") + ".")
     C = s["controllers"]
-    order = [c for c in ("auto", "lcp", "c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C]
+    order = [c for c in ("defaults", "defaults, penalize_input_change", "auto", "lcp", "c3+", "qp", "miqp enum", "miqp", "lqr", "c3+ cvxpy") if c in C]
     L: list[str] = []
     w = L.append
     w("# C3 on the cart-pole with soft walls: closed loop, cost gap, time per solve\n")
@@ -239,6 +240,12 @@ def write_report(out: str, settings: Settings, cmd: str) -> dict[str, Any]:
       "the Riccati solution, and its optimum is u = −K x itself: LQR's gaps there are zero to rounding. "
       "C3's plans carry the consensus terms of its last QP step and stay slightly above the optimum even "
       "then.\n")
+    if "defaults" in C and C["defaults"]["gap_n"]:
+        d = C["defaults"]
+        w(f"C3's defaults polish the plan: its inputs re-planned in the contact modes the model's rollout of them "
+          f"visits, without the consensus terms (at most 3 QPs, the cheapest plan kept). Their first plans are at "
+          f"the optimum from {d['gap_optimal']} of {d['gap_n']} states (gap median {_fmt(d['gap_median'])}): where "
+          "the ADMM finds the optimal contact modes, the polish finds the optimal inputs in them.\n")
     e = s["exact"]
     if e:
         w(f"The exact problem: {e['n']} states solved ({e['errors']} failures). SCIP takes {_fmt(e['scip_median'])} s "

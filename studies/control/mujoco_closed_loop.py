@@ -30,6 +30,7 @@ Controllers (all with the stage weights ``Q = diag(5, 20, 0.5, 0.5)`` of ``mpc_e
 - ``C3 (defaults), ...``: C3 with the package's defaults (projection ``"auto"``, ``QN = "dare"``,
   default ``G``, ``U``) on the learned ``n_lam`` = 8, 4, 2 models and the hand-written LCS,
   ``R = 1`` and the actuator's limit as ``u_bounds`` (inside the QP step); ``C3 (defaults,
+  polish=0), ...``: the same without the polish (the ADMM's plan as it is); ``C3 (defaults,
   penalize_input_change), ...``: the same with the input cost measured from the previous plan;
   ``C3 (defaults, scale_lcs), ...``: the same with the ADMM on the rescaled ``lam``;
 - ``mode-sequence MPC, learned LCS n_lam=8``: :class:`studies.physics.mpc_example.LCSMPC`;
@@ -79,7 +80,7 @@ MODELS = os.path.join("studies", "results", "physics", "models")
 Q_STAGE = (5.0, 20.0, 0.5, 0.5)
 U_MAX = 4.0
 MACHINE = "2-core x86-64 VM, 1 torch thread"
-DATE = "2026-11-25 (the C3 rows 2026-11-27)"
+DATE = "2026-11-25 (the C3 rows 2026-11-27, the C3 (defaults) rows and their options 2026-11-28)"
 
 
 def starts(n: int, seed: int = 0) -> np.ndarray:
@@ -206,12 +207,12 @@ def _c3_learned(name: str, R: float, active_qn: bool) -> Callable[[dict[str, Any
         if not active_qn:
             m = model.to_matrices()
             qn = dare(m["A"], m["B"], np.diag(Q_STAGE), np.array([[R]]))
-        return C3Wrapper(C3(model, 10, Q=list(Q_STAGE), R=[R], QN=qn, projection="c3+"))
+        return C3Wrapper(C3(model, 10, Q=list(Q_STAGE), R=[R], QN=qn, projection="c3+", polish=0))
     return make
 
 
 def _c3_hand(ctx: dict[str, Any]) -> Any:
-    return C3Wrapper(C3(handwritten_lcs(), 10, Q=list(Q_STAGE), R=[0.3], QN="dare", projection="c3+"))
+    return C3Wrapper(C3(handwritten_lcs(), 10, Q=list(Q_STAGE), R=[0.3], QN="dare", projection="c3+", polish=0))
 
 
 def _c3_defaults(model: str | None, **options: Any) -> Callable[[dict[str, Any]], Any]:
@@ -247,6 +248,10 @@ CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "C3 (defaults), learned LCS n_lam=4": _c3_defaults("violation_nlam4"),
     "C3 (defaults), learned LCS n_lam=2": _c3_defaults("violation_nlam2"),
     "C3 (defaults), hand-written LCS": _c3_defaults(None),
+    "C3 (defaults, polish=0), learned LCS n_lam=8": _c3_defaults("violation_nlam8", polish=0),
+    "C3 (defaults, polish=0), learned LCS n_lam=4": _c3_defaults("violation_nlam4", polish=0),
+    "C3 (defaults, polish=0), learned LCS n_lam=2": _c3_defaults("violation_nlam2", polish=0),
+    "C3 (defaults, polish=0), hand-written LCS": _c3_defaults(None, polish=0),
     "C3 (defaults, penalize_input_change), learned LCS n_lam=8": _c3_defaults("violation_nlam8",
                                                                              penalize_input_change=True),
     "C3 (defaults, penalize_input_change), learned LCS n_lam=4": _c3_defaults("violation_nlam4",
@@ -416,25 +421,40 @@ _FINDINGS = [
     "",
     "The `C3 (defaults)` rows: `C3(model, 10, Q=Q, R=[1.0], u_bounds=(-4, 4))`, everything else "
     "the package's default: projection `\"auto\"` (the ADMM with the `\"c3+\"` and the `\"lcp\"` "
-    "projections, the plan whose rollout through the model's own LCP costs less), `QN = \"dare\"` "
-    "in the mode active at the target, default `G`, `U`, the input bound inside the QP step on the "
-    "fast path. On the learned `n_lam = 8` and `n_lam = 4` models they succeed from every start, "
-    "at about 2 ms per control step, as on the hand-written LCS, and their plans stay near what "
-    "the models do (median plan gap 0.10 and 0.15, against 1.8 to 2.1 for the per-unit `\"c3+\"` "
-    "projection on the same models and 0.002 on the hand-written LCS). The `\"lcp\"` projection sets `lam_k` to the model's own LCP "
-    "solution at the plan's `(x_k, u_k)`, so the QP step is pulled towards forces the model "
-    "produces; the per-unit `\"c3+\"` projection of the rows below ignores `D x + E u + F lam + c`, "
-    "which in a learned model (dense `F`, `E` not zero, `lam` active at the target) is far from "
-    "any point it proposes. The `n_lam = 2` model still parks the cart against the right wall in "
-    "28 of 50 starts (median final |x_c| 0.16 m): its wall is not where the plant's is (below), a "
-    "model error no controller setting removes. `penalize_input_change=True` (the input cost "
-    "measured from the previous plan's inputs, DAIRLab/c3's option) is not a default: it brings the "
-    "`n_lam = 4` runs closer to the target (median final |x_c| 0.002 m against 0.020) but loses "
-    "most starts on the `n_lam = 8` and `n_lam = 2` models (17/50 and 3/50). `scale_lcs=True` "
-    "(DAIRLab/c3's option: the ADMM on `lam = s lam_s`, `s = ||A|| / ||C||`, 4.4, 14.5 and 13.7 "
-    "on the `n_lam` = 8, 4, 2 models) is not a default either: with the default `G` and `U` the "
-    "weights on `lam` then act on forces `s` times larger, and the runs lose most starts "
-    "(12/50, 0/50, 0/50).",
+    "projections, the plan whose rollout through the model's own LCP costs less), then the polish "
+    "(at most three QPs in the contact modes the model visits under the plan's inputs, the plan "
+    "applied the one whose model rollout costs least), `QN = \"dare\"` in the mode active at the "
+    "target, default `G`, `U`, the input bound inside the QP step on the fast path. On every model, "
+    "the learned `n_lam` = 8, 4 and 2 LCSs and the hand-written one, they succeed from every start "
+    "at 2.0 to 2.5 ms per control step, and the plans applied are what the models do (median plan "
+    "gap 0.000: a polished plan is its model's own rollout).",
+    "",
+    "The `C3 (defaults, polish=0)` rows are the same controllers without the polish. There the "
+    "`n_lam = 2` model parks the cart against the right wall in 28 of 50 starts (median final "
+    "|x_c| 0.16 m), and the runs on the `n_lam` = 8 and 4 models end further from the target "
+    "(median final |x_c| 0.049 and 0.020 m against 0.002 and 0.005 with it): the ADMM's plan "
+    "relies on forces the model does not produce (median gap 0.10 to 0.40), and its inputs are "
+    "not the best ones in the contact modes it found. The ADMM finds the modes; the polish finds "
+    "the inputs that are optimal in them. (The `polish=0` rows ran on 2026-11-27, before C3's model "
+    "LCPs called the compiled kernel directly: their times per step are those of that code.) "
+    "(Without the polish, the `n_lam = 2` model's failures "
+    "looked like a model error: near the right wall it has no `lam` active and predicts that the "
+    "cart stays put; with the polish the same model succeeds from every start.) The `\"lcp\"` "
+    "projection sets `lam_k` to the model's own LCP solution at the plan's `(x_k, u_k)`, so the QP "
+    "step is pulled towards forces the model produces; the per-unit `\"c3+\"` projection of the "
+    "rows below ignores `D x + E u + F lam + c`, which in a learned model (dense `F`, `E` not zero, "
+    "`lam` active at the target) is far from any point it proposes.",
+    "",
+    "DAIRLab/c3's options, measured with the polish: `penalize_input_change=True` (the input cost "
+    "measured from the previous plan's inputs) succeeds from every start on the three learned "
+    "models too and ends nearest the target (median final ||x|| 0.003, 0.003 and 0.007 against "
+    "0.009, 0.012 and 0.015), at the same cost per step, and it did better on the pusher-slider "
+    "(`pusher_closed_loop.md`) and on C3's cart-pole (`cartpole_c3.md`) too. It stays an option: it "
+    "changes the problem solved (the input cost is measured from the previous plan, not from 0, so a "
+    "plan from `ctrl.solve(x0)` and one from `ctrl(x0)` differ), which a user asks for. `scale_lcs=True` "
+    "(the ADMM on `lam = s lam_s`, `s = ||A|| / ||C||`, 4.4, 14.5 and 13.7 on the `n_lam` = 8, "
+    "4, 2 models) gives the defaults' results to the third digit; without the polish it lost "
+    "most starts (12/50, 0/50, 0/50: the default `G` and `U` then weigh forces `s` times larger).",
     "",
     "## What makes C3 with the per-unit projection work, or not, on the learned LCS",
     "",
@@ -499,7 +519,8 @@ def _versus_mlp(summ: dict[str, dict[str, float]]) -> list[str]:
         return []
     out = []
     for n, s in summ.items():
-        if not (n.startswith("C3, learned") or n.startswith("C3 (defaults), learned")):
+        if not (n.startswith("C3, learned") or n.startswith("C3 (defaults), learned")
+                or n.startswith("C3 (defaults, polish=0), learned")):
             continue
         verdict = "does not beat" if s["success"] / s["runs"] <= mlp["success"] / mlp["runs"] else "beats"
         out.append(f"- **{n}** {verdict} the MLP controller: {s['success']}/{s['runs']} successes against "

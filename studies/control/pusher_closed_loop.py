@@ -34,15 +34,17 @@ Theta)`` about the target ``(-6, 0, 0, 0, 0, goal)``, i.e. the pusher touching t
 its centre and the box at rest at the goal; ``R`` on ``u``; terminal ``QN_FACTOR Q``):
 
 - ``C3, learned LCS``: :class:`lcs_cvx.control.C3` (``"c3+"``, fast path, horizon 10, 10 ADMM
-  iterations, default ``G``, ``U``, ``R = diag(1, 1)``) on the pose-augmented ``lcs_violation_n20000.npz`` or
+  iterations, default ``G``, ``U``, ``R = diag(1, 1)``, without the polish) on the pose-augmented ``lcs_violation_n20000.npz`` or
   ``lcs_prediction_n20000.npz`` (the models the pusher study selected at its largest size, both
   ``n_lam = 16``);
 - ``C3, hand-written LCS``: the quasi-static pusher-slider (:func:`handwritten_lcs`), one per
   contact offset ``p_y`` on a 1 cm grid, the nearest to the current ``p_y`` used;
-- ``C3 (defaults), ...``: the same three models with C3's default projection (``"auto"``) and
-  the actuator's limit as ``u_bounds`` (inside the QP step) instead of ``"c3+"`` and clipping;
-  ``C3 (defaults, 20 ADMM iterations), ...``: the learned models so, with 20 ADMM iterations
-  (the one setting changed, after probes on starts 0 to 7);
+- ``C3 (defaults), ...``: the same three models with C3's defaults (projection ``"auto"``, the
+  polish) and the actuator's limit as ``u_bounds`` (inside the QP step) instead of ``"c3+"``
+  and clipping; ``C3 (defaults, penalize_input_change), ...``: the learned models so, with the
+  input cost measured from the previous plan's inputs; ``C3 (defaults, polish=0), ...``: the
+  three models without the polish, and ``C3 (defaults, polish=0, 20 ADMM iterations), ...``:
+  the learned models so, with 20 ADMM iterations;
 - ``QP MPC, affine model``: linear MPC on the least-squares affine model with the pose appended
   (CVXPY, Clarabel, ``|u| <= 10`` as a constraint, horizon 10);
 - ``MPPI, MLP model``: sampling MPC (:class:`MPPI`) on a tanh MLP of the dynamics
@@ -133,7 +135,7 @@ class C3Controller:
         j = 0 if self.grid is None else int(np.argmin(np.abs(self.grid - x[1])))
         z0 = torch.from_numpy(np.concatenate([x, np.zeros(3)]))
         warm = self.prev.get(j) if j == self.last else None
-        plan = self.ctrls[j].solve(z0, x_des=_x_des(target), warm_start=warm)
+        plan = self.ctrls[j].solve(z0, x_des=_x_des(target), warm_start=warm, u_ref=warm)
         self.prev[j], self.last = plan, j
         self.violation.append(float(plan.complementarity))
         self.gap.append(float(plan.gap))
@@ -142,21 +144,22 @@ class C3Controller:
 
 def _build_c3(m: dict[str, np.ndarray], **kw: Any) -> Any:
     Q = np.diag(Q_STAGE)
-    opts = {"Q": Q, "R": list(R_STAGE), "QN": QN_FACTOR * Q, "projection": "c3+", "admm_iterations": 10}
+    opts = {"Q": Q, "R": list(R_STAGE), "QN": QN_FACTOR * Q, "projection": "c3+", "admm_iterations": 10, "polish": 0}
     opts.update(kw)
     return C3(as_lcs(augment(m)), HORIZON, **opts)
 
 
-def _c3_learned(name: str, defaults: bool = False, admm_iterations: int = 10) -> Callable[[dict[str, Any]], Any]:
-    """C3 on a learned model: ``"c3+"`` as tuned on the violation-loss model, or (``defaults``) the
-    package's default projection with the actuator's limit as ``u_bounds`` (and
-    ``admm_iterations``)."""
+def _c3_learned(name: str, defaults: bool = False, admm_iterations: int = 10, polish: int = 3,
+                **options: Any) -> Callable[[dict[str, Any]], Any]:
+    """C3 on a learned model: ``"c3+"`` as tuned on the violation-loss model (without the
+    polish), or (``defaults``) the package's default projection and polish with the actuator's
+    limit as ``u_bounds`` (and ``admm_iterations``, ``polish``)."""
     def make(ctx: dict[str, Any]) -> Any:
-        key = ("c3", name, defaults, admm_iterations)
+        key = ("c3", name, defaults, admm_iterations, polish, tuple(sorted(options)))
         if key not in ctx["cache"]:
             m = lcs_cvx.load_model(os.path.join(MODELS, f"lcs_{name}.npz")).to_matrices()
             kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX),
-                                  "admm_iterations": admm_iterations} if defaults else {}
+                                  "admm_iterations": admm_iterations, "polish": polish, **options} if defaults else {}
             ctx["cache"][key] = [_build_c3({k: np.asarray(v) for k, v in m.items()}, R=list(C3_LEARNED_R), **kw)]
         return C3Controller(ctx["cache"][key])
     return make
@@ -165,9 +168,9 @@ def _c3_learned(name: str, defaults: bool = False, admm_iterations: int = 10) ->
 HAND_GRID = np.arange(-4.0, 4.0 + 1e-9, 1.0)
 
 
-def _c3_hand(ctx: dict[str, Any], defaults: bool = False) -> Any:
-    key = ("c3", "hand", defaults)
-    kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX)} if defaults else {}
+def _c3_hand(ctx: dict[str, Any], defaults: bool = False, polish: int = 3) -> Any:
+    key = ("c3", "hand", defaults, polish)
+    kw: dict[str, Any] = {"projection": "auto", "u_bounds": (-U_MAX, U_MAX), "polish": polish} if defaults else {}
     if key not in ctx["cache"]:
         ctx["cache"][key] = [_build_c3(handwritten_lcs(float(py)), **kw) for py in HAND_GRID]
     return C3Controller(ctx["cache"][key], HAND_GRID)
@@ -265,8 +268,17 @@ CONTROLLERS: dict[str, Callable[[dict[str, Any]], Any]] = {
     "C3 (defaults), learned LCS (violation loss)": _c3_learned("violation_n20000", defaults=True),
     "C3 (defaults), learned LCS (prediction loss)": _c3_learned("prediction_n20000", defaults=True),
     "C3 (defaults), hand-written LCS": lambda ctx: _c3_hand(ctx, defaults=True),
-    "C3 (defaults, 20 ADMM iterations), learned LCS (violation loss)": _c3_learned("violation_n20000", True, 20),
-    "C3 (defaults, 20 ADMM iterations), learned LCS (prediction loss)": _c3_learned("prediction_n20000", True, 20),
+    "C3 (defaults, penalize_input_change), learned LCS (violation loss)": _c3_learned(
+        "violation_n20000", True, penalize_input_change=True),
+    "C3 (defaults, penalize_input_change), learned LCS (prediction loss)": _c3_learned(
+        "prediction_n20000", True, penalize_input_change=True),
+    "C3 (defaults, polish=0), learned LCS (violation loss)": _c3_learned("violation_n20000", True, polish=0),
+    "C3 (defaults, polish=0), learned LCS (prediction loss)": _c3_learned("prediction_n20000", True, polish=0),
+    "C3 (defaults, polish=0), hand-written LCS": lambda ctx: _c3_hand(ctx, defaults=True, polish=0),
+    "C3 (defaults, polish=0, 20 ADMM iterations), learned LCS (violation loss)": _c3_learned(
+        "violation_n20000", True, 20, polish=0),
+    "C3 (defaults, polish=0, 20 ADMM iterations), learned LCS (prediction loss)": _c3_learned(
+        "prediction_n20000", True, 20, polish=0),
     "QP MPC, affine model": _qp_affine,
     "MPPI, MLP model": _mppi_mlp,
 }

@@ -29,7 +29,7 @@ HORIZON = 10
 U_MAX = 10.0
 POS_TOL, HEADING_TOL = 2.0, 0.2
 MACHINE = "2-core x86-64 VM, 1 torch thread"
-DATE = "2026-11-25 (the C3 rows 2026-11-27)"
+DATE = "2026-11-25 (the C3 rows 2026-11-27, the C3 (defaults) rows 2026-11-28)"
 
 
 def starts(n: int, seed: int = 0) -> np.ndarray:
