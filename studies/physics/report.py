@@ -288,10 +288,15 @@ def measured_with_noise(s: dict[str, Any]) -> list[str]:
                        f"rollouts in {sum(fr['scores']['test'][str(H)] <= mt for fr in ok)} of {len(ok)}.")
         for rh in f["rollout_horizons"]:
             refined = [fr for fr in ok if fr["rollout_horizon"] == rh]
-            out.append(f"  - with the simulation-error phase (rollout_horizon={rh}): beats it on the held-out "
-                       f"rollouts in {sum(bool(fr['beats_affine']) for fr in refined)} of {len(refined)} and on the "
-                       f"test rollouts in {sum(fr['scores']['test'][str(H)] < a['test'][str(H)] for fr in refined)} "
-                       f"of {len(refined)}.")
+            mlp_part = ""
+            if m is not None:
+                mlp_part = (f"; at or below the MLP held out in {sum(fr['heldout_error'] <= mh for fr in refined)} of "
+                            f"{len(refined)}, on the test rollouts in "
+                            f"{sum(fr['scores']['test'][str(H)] <= mt for fr in refined)} of {len(refined)}")
+            out.append(f"  - with the simulation-error phase (rollout_horizon={rh}): beats the affine map on the "
+                       f"held-out rollouts in {sum(bool(fr['beats_affine']) for fr in refined)} of {len(refined)} and "
+                       f"on the test rollouts in {sum(fr['scores']['test'][str(H)] < a['test'][str(H)] for fr in refined)} "
+                       f"of {len(refined)}{mlp_part}.")
         for rh in f["rollout_horizons"]:
             pairs = [(d0, d1) for d0 in default for d1 in ok
                      if d1["rollout_horizon"] == rh and d1["seed"] == d0["seed"]]
