@@ -89,7 +89,8 @@ class Plan:
         dual_residual: ``(K,)`` ``max_k |delta_k - delta_k^{prev}|`` of each iteration.
         complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
         times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed
-            ``lam_0``), ``"model"`` (the plans' model rollouts), ``"polish"``, ``"total"`` (a CVXPY path's first solve includes its compilation).
+            ``lam_0``), ``"model"`` (the plans' model rollouts), ``"polish"``, ``"total"`` (a
+            CVXPY path's first solve includes its compilation).
         qp_failures: QP steps that failed (``"cvxpy"`` path; counted over the whole batch) and fell
             back to C3's plan ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning`
             says so).
@@ -193,8 +194,8 @@ class C3:
             initial state applies whichever plan's model rollout costs least, so the polish
             never raises it (a polished plan must also keep the model's rollout within
             ``x_bounds`` and ``lam_bounds``). 0: the ADMM's plan as it is. On the learned
-            pusher-slider it brings the box to 0.15 cm of the goal instead of 2 cm
-            (``studies/results/control/pusher_closed_loop.md``).
+            pusher-slider it brings the box to a median 0.15 cm of the goal, 1.95 cm without
+            it (``studies/results/control/pusher_closed_loop.md``).
         scale_lcs: DAIRLab/c3's option of that name: the ADMM runs on the same system with
             ``lam = s lam_s``, ``s = ||A_0||_F / ||C_0||_F`` (``C s``; ``D, E, c`` divided by
             ``s``, ``F`` kept: :meth:`~lcs_cvx.control.costs.Horizon.lam_scaled`), so that
