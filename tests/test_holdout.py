@@ -353,3 +353,13 @@ def test_uneven_time_steps_are_reported(tmp_path):
     with pytest.warns(UserWarning, match=r"time: trajectory 'a' .* uneven steps: from 0.01 to 0.015 \(spread 0.005"):
         tr = lcs_cvx.Trajectories.load(path, columns={"x": ["x_0"], "u": ["u_0"]}, time="t")
     assert tr.lengths == (4,)
+
+
+@pytest.mark.parametrize("holdout_horizon, expected", [("auto", 10), (1, 10), (4, 4), (20, 20), (25, 25)])
+def test_the_simulation_error_window_follows_a_named_holdout_horizon(data, holdout_horizon, expected):
+    """rollout_horizon="auto": the held-out horizon where holdout_horizon names one (> 1), else
+    10 steps; at most the longest training run (25 transitions here)."""
+    split = split_data(data, None, RunOptions(holdout=0.3, holdout_horizon=holdout_horizon), "auto")
+    assert split.rollout_horizon == min(expected, max(split.trajectories.lengths))
+    assert max(split.trajectories.lengths) == 25
+    assert split_data(data, None, RunOptions(holdout=0.3, holdout_horizon=holdout_horizon), 7).rollout_horizon == 7

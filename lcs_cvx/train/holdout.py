@@ -49,7 +49,8 @@ from .result import growth_limit
 
 __all__ = ["Split", "split_data", "affine_lcs", "heldout_runs", "AUTO_ROLLOUT_HORIZON", "MIN_HELDOUT_RUNS"]
 
-#: The simulation-error phase's window with ``rollout_horizon="auto"`` and trajectories as data.
+#: The simulation-error phase's window with ``rollout_horizon="auto"`` and trajectories as data,
+#: unless ``holdout_horizon`` names a rollout horizon (then that one).
 AUTO_ROLLOUT_HORIZON = 10
 
 #: The fewest trajectories held out of five or more (:func:`heldout_runs`).
@@ -236,7 +237,9 @@ def split_data(train: Any, validation: Any, run: RunOptions, rollout_horizon: in
         raise LCSInputError(f"rollout_horizon: expected at most {max(trajectories.lengths)} steps (the longest "
                             f"training trajectory's), received {rollout_horizon}")
     if auto and trajectories is not None:
-        rollout_horizon = min(AUTO_ROLLOUT_HORIZON, max(trajectories.lengths))
+        # train the rollouts at the horizon they are judged at, where the user named one
+        named = run.holdout_horizon if run.holdout_horizon != "auto" and run.holdout_horizon > 1 else None
+        rollout_horizon = min(named or AUTO_ROLLOUT_HORIZON, max(trajectories.lengths))
     return Split(fit, trajectories, holdout, horizon, rollout_horizon)
 
 

@@ -218,8 +218,9 @@ class RolloutOptions:
     (:meth:`lcs_cvx.train.holdout.Split.score`) is lower (:attr:`lcs_cvx.FitResult.refinement_kept`).
 
     Attributes:
-        horizon: ``H``, the steps of a window; ``"auto"`` (default): 10 steps (at most the longest
-            training trajectory) when the data are :class:`lcs_cvx.Trajectories`, no phase with
+        horizon: ``H``, the steps of a window; ``"auto"`` (default): when the data are
+            :class:`lcs_cvx.Trajectories`, the held-out horizon where ``holdout_horizon`` names
+            one (> 1), else 10 steps (at most the longest training trajectory); no phase with
             transitions; None: no phase. Flat keyword ``rollout_horizon``.
         iterations: Adam steps (``rollout_iterations``).
         lr: the learning rate, constant (``rollout_lr``).

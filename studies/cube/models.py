@@ -69,12 +69,14 @@ EMPTY_U = torch.zeros(0, 0, dtype=torch.float64)
 @dataclass(frozen=True)
 class Budget:
     """How long each model trains: LCS Adam iterations per candidate, the simulation-error phase's
-    steps and window (None: :func:`lcs_cvx.fit`'s defaults), MLP steps and evaluation interval,
-    the validation rollout's window stride."""
+    steps and window (None: :func:`lcs_cvx.fit`'s defaults; the window is 10 steps, the one the
+    study's records were fitted with, where ``fit``'s ``"auto"`` would now take the
+    ``holdout_horizon`` of 30), MLP steps and evaluation interval, the validation rollout's
+    window stride."""
 
     lcs_iterations: int = 10_000
     rollout_iterations: int | None = None
-    rollout_horizon: int | None = None
+    rollout_horizon: int | None = 10
     mlp_steps: int = 8000
     mlp_eval_every: int = 100
     mlp_patience: int = 15

@@ -24,9 +24,10 @@ noise from the differencing, ``"differenced"``):
    and the same test trajectories logged by the ``"differenced"`` sensor (exact positions,
    velocities by differences: the noise-free value of what a differencing sensor measures);
 2. fits: per seed of ``[fit] seeds``, ``lcs_cvx.fit(LCS(n_x, n_u, n_lam, seed), train,
-   validation=val, holdout_horizon=H, recipe=..., **options)`` -- the "default" fit, the
-   study's recipe and options -- and the same with the simulation-error refinement
-   (``rollout_horizon=`` each of ``[fit] rollout_horizons``);
+   validation=val, holdout_horizon=H, recipe=..., **options)`` with the one-step losses only
+   (``rollout_horizon=None``) and with the simulation-error phase (``rollout_horizon=`` each of
+   ``[fit] rollout_horizons``; ``"auto"``, fit's default: windows of ``H`` steps) -- the
+   "default" fit is the latter with ``"auto"``;
 3. scores: :attr:`lcs_cvx.FitResult.heldout_error` and
    :attr:`~lcs_cvx.FitResult.affine_heldout_error` (the ``H``-step rollout error on the held-out
    validation trajectories, measured data), :attr:`~lcs_cvx.FitResult.heldout_growth`, and
@@ -65,7 +66,7 @@ CONFIG_SECTIONS = ("plant", "data", "fit", "eval", "run", "mlp")
 _PLANTS = ("cartpole", "pusher")
 _DATA_DEFAULTS = {"n_train": 6000, "n_test": 3000, "seed_train": 0, "seed_test": 1, "val_every": 10,
                   "sensors": ["exact"]}
-_FIT_DEFAULTS = {"n_lam": 8, "seeds": [0], "recipe": "best", "options": {}, "rollout_horizons": [10]}
+_FIT_DEFAULTS = {"n_lam": 8, "seeds": [0], "recipe": "best", "options": {}, "rollout_horizons": ["auto"]}
 _EVAL_DEFAULTS = {"horizons": [1, 5, 20]}
 _RUN_DEFAULTS = {"date": None, "machine": None, "command": None}
 
@@ -159,7 +160,8 @@ def fit_one(cfg: dict[str, Any], data: dict[str, Any], seed: int, rollout_horizo
     train = data["train"]
     model = lcs_cvx.LCS(train.n_x, train.n_u, int(f["n_lam"]), seed=seed)
     # None: one-step losses only (the phase is on by default with trajectories)
-    extra = {"rollout_horizon": None if rollout_horizon is None else int(rollout_horizon)}
+    extra = {"rollout_horizon": None if rollout_horizon is None else
+             rollout_horizon if rollout_horizon == "auto" else int(rollout_horizon)}
     t0 = time.perf_counter()
     try:
         res = lcs_cvx.fit(model, train, validation=data["validation"], holdout_horizon=H, recipe=f["recipe"],

@@ -196,7 +196,7 @@ def _fit_label(f: dict[str, Any]) -> str:
         what = "LCS, one-step losses only"
     else:
         kept = f.get("refinement_kept")
-        what = (f"LCS + simulation error (rollout_horizon={rh}"
+        what = (f"LCS + simulation error (rollout_horizon={rh}" + (", the default" if rh == "auto" else "")
                 + ("" if kept is None else ", kept" if kept else ", undone: held-out score not lower") + ")")
     return f"{what}, seed {f['seed']}"
 
