@@ -275,7 +275,8 @@ class RunOptions:
             recorded change, each coordinate scaled by the spread of its one-step change
             (:func:`lcs_cvx.simulation_error.change_error`). ``"auto"``: 10 steps (at most the
             longest held-out trajectory's), the simulation-error phase's default window; with
-            transitions, the one-step relative error.
+            transitions, the one-step relative error. A horizon named here (> 1) is also the
+            simulation-error phase's window with ``rollout_horizon="auto"``.
         affine_if_better: return the least-squares affine map as an LCS (``C = 0``) when the
             learned LCS is not better (:attr:`lcs_cvx.FitResult.beats_affine`: its held-out
             score not lower, or its held-out rollouts growing more than the data's and the
