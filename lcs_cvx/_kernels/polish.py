@@ -86,9 +86,9 @@ def _condensed(xp: Any, x0: Any, At: Any, Bt: Any, dt: Any, x_des: Any, u_ref: A
 def _minimise(xp: Any, H: Any, f: Any, lo: np.ndarray | None, hi: np.ndarray | None) -> tuple[Any, Any]:
     """The minimiser ``U (B, M)`` of ``1/2 U^T H U + f^T U`` within ``lo <= U <= hi`` (``(M,)``,
     NumPy back-end only; None: no bounds), and ``failed (B,)``."""
-    U, info = xp.via_torch(torch.linalg.solve_ex, H, -f[..., None])
-    U = U[..., 0]
-    failed = info != 0
+    U, failed = xp.solve(H, -f)  # H = Gamma^T Q Gamma + R: positive definite where R is
+    if failed is None:
+        failed = xp.zeros_bool(U.shape[0], U)
     if lo is None:
         return U, failed
     P_all = np.linalg.inv(np.where(failed[:, None, None], np.eye(H.shape[-1]), H))

@@ -2,12 +2,12 @@
 between a QP over the horizon and a projection onto the complementarity set of eq. (1))."""
 
 from .c3 import C3 as C3
-from .c3 import Plan as Plan
 from .costs import Horizon as Horizon
 from .costs import Layout as Layout
 from .costs import dare as dare
 from .examples import CartpoleProblem as CartpoleProblem
 from .examples import c3_cartpole as c3_cartpole
+from .plan import Plan as Plan
 from .projection import project_enumerate as project_enumerate
 from .qp import Bounds as Bounds
 from .qp import qp_problem as qp_problem

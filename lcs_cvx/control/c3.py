@@ -43,13 +43,8 @@ import numpy as np
 import torch
 
 from .._checks import FallbackWarning, LCSInputError, PlanGapWarning, as_batch, check_positive
-from .._kernels import compiled
 from .._kernels.arrays import array_ops
 from .._kernels.c3 import admm, model_rollout, plan_cost, rollout, violation
-from .._kernels.lcp import PIVOT_TOL
-from .._kernels.pivoting import STALL
-from .._kernels.polish import polish
-from ..lcp import solve_lcp_fast
 from ..system import LCS
 from .costs import (
     PROJECTIONS,
@@ -62,67 +57,11 @@ from .costs import (
     mode_dynamics,
     weight_matrix,
 )
+from .plan import Plan, cheapest, lcp_at, model_lcp, polish_plan
 from .projection import Projection
 from .qp import Bounds, QPStep
 
-__all__ = ["C3", "Plan"]
-
-#: pivoting sweeps of the model's LCPs before a sample is solved by a reference (with a warning):
-#: :func:`lcs_cvx.solve_lcp_fast`'s
-MAX_SWEEPS = 1000
-
-
-@dataclasses.dataclass
-class Plan:
-    """A C3 plan from ``x0``. With one initial state ``(n_x,)`` the shapes are as listed; with a
-    batch ``(B, n_x)`` every array gains a leading ``B``.
-
-    Attributes:
-        x: ``(N + 1, n_x)`` planned states (``x[0] = x0``; the planned ``u`` and ``lam`` rolled
-            through the dynamics; a polished plan's are the model's own rollout).
-        u: ``(N, n_u)`` planned inputs (``u[0]`` is the control to apply).
-        lam: ``(N, n_lam)`` planned contact forces, from the last QP step (so slightly negative
-            where the plan's complementarity is not met; ``delta`` holds the projected ones); a
-            polished plan's are the model's own.
-        delta: ``(N, n_z)`` the last projection (the warm start of the next solve).
-        primal_residual: ``(K,)`` ``max_k |z_k - delta_k|`` after each ADMM iteration.
-        dual_residual: ``(K,)`` ``max_k |delta_k - delta_k^{prev}|`` of each iteration.
-        complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
-        times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed
-            ``lam_0``), ``"model"`` (the plans' model rollouts), ``"polish"``, ``"total"`` (a
-            CVXPY path's first solve includes its compilation).
-        qp_failures: QP steps that failed (``"cvxpy"`` path; counted over the whole batch) and fell
-            back to C3's plan ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning`
-            says so).
-        x_model: ``(N + 1, n_x)`` the model's own rollout under ``u``: ``lam_k`` the LCP
-            solution at ``(x_k, u_k)``, not the plan's ``lam`` (what the model predicts the plan
-            does).
-        lam_model: ``(N, n_lam)`` the model's own forces along ``x_model``.
-        gap: ``max_k |x_model_k - x_k|_inf``, the plan's disagreement with its model (a scalar;
-            ``(B,)`` for a batch).
-        cost: the horizon cost of ``x_model`` and ``u`` (the cost ``"auto"`` compares).
-        projection: the projection whose plan this is (``"c3+"`` or ``"lcp"`` under ``"auto"``;
-            a list for a batch).
-        polished: whether the polish replaced the ADMM's plan (a bool tensor, ``(B,)`` for a
-            batch): then ``x = x_model`` and the gap is 0.
-    """
-
-    x: torch.Tensor
-    u: torch.Tensor
-    lam: torch.Tensor
-    delta: torch.Tensor
-    primal_residual: torch.Tensor
-    dual_residual: torch.Tensor
-    complementarity: torch.Tensor
-    times: dict[str, float]
-    qp_failures: int = 0
-    x_model: torch.Tensor | None = None
-    lam_model: torch.Tensor | None = None
-    gap: torch.Tensor | None = None
-    cost: torch.Tensor | None = None
-    projection: str | list[str] | None = None
-    polished: torch.Tensor | None = None
-
+__all__ = ["C3"]
 
 class C3:
     """C3 for an LCS ``model`` over ``horizon`` steps.
@@ -328,10 +267,10 @@ class C3:
         x0_a, xd_a, delta_a = (xp.wrap(a.contiguous()) for a in (X0, xd, delta.to(X0)))
         mats = self._matrices.on(xp, X0)
         weights = self._weights.on(xp, X0)
-        lcp = self._lcp(xp, mats)
+        lcp = model_lcp(xp, mats)
         u_ref_a = xp.wrap(self._input_reference(u_ref, X0).contiguous())
         t = time.perf_counter()
-        lam0_a = self._lcp_at(xp, x0_a, mats) / self.lam_scale if self.fix_lam0 else None
+        lam0_a = lcp_at(xp, x0_a, mats) / self.lam_scale if self.fix_lam0 else None
         times = {"qp": 0.0, "projection": 0.0, "lcp": time.perf_counter() - t, "model": 0.0}
         plans, failures = [], 0
         with xp.threads():
@@ -363,18 +302,9 @@ class C3:
             warnings.warn(
                 f"C3: {failures} QP step(s) failed in {self.qp.solver}; their plans fell back to "
                 "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
-        # per initial state, the plan whose model rollout costs least; "lcp"'s (the first) unless
-        # another costs less by more than round-off (with bounds met, both plans may apply the
-        # same inputs: a tie, and "lcp"'s plan is the one the model agrees with)
-        chosen = torch.zeros(B, dtype=torch.long, device=X0.device)
-        best = plans[0]["cost"]
-        for i in range(1, len(plans)):
-            cheaper = plans[i]["cost"] < best - 1e-9 * (1.0 + best.abs())
-            chosen = torch.where(cheaper, i, chosen)
-            best = torch.where(cheaper, plans[i]["cost"], best)
-        pick = {key: self._pick([p[key] for p in plans], chosen) for key in plans[0]}
+        pick, chosen = cheapest(plans)
         t = time.perf_counter()
-        pick["polished"] = self._polish(xp, pick, x0_a, xd_a, u_ref_a, mats, weights, lcp)
+        pick["polished"] = polish_plan(xp, pick, x0_a, xd_a, u_ref_a, mats, weights, lcp, self.polish, self.bounds)
         times["polish"] = time.perf_counter() - t
         gap = (pick["x_model"] - pick["x"]).abs().flatten(1).amax(1)
         self._check_gap(gap, pick["x_model"])
@@ -407,50 +337,6 @@ class C3:
                                 f"received shape {tuple(r.shape)}")
         return r
 
-    def _polish(self, xp: Any, pick: dict[str, torch.Tensor], x0: Any, x_des: Any, u_ref: Any,
-                mats: dict[str, Any], weights: dict[str, Any], lcp: Any) -> torch.Tensor:
-        """Replace, in ``pick`` (the chosen plans, tensors), the plans that the polish
-        (:mod:`lcs_cvx._kernels.polish`) makes cheaper in the model's own rollout; ``(B,)``
-        bool, which ones."""
-        B = pick["u"].shape[0]
-        if not self.polish:
-            return torch.zeros(B, dtype=torch.bool, device=pick["u"].device)
-        start = {k: xp.wrap(pick[key].contiguous()) for k, key in
-                 (("u", "u"), ("x", "x_model"), ("lam", "lam_model"), ("cost", "cost"))}
-        out = polish(xp, x0, start, mats, lcp, weights, x_des, u_ref, self.bounds.u, self.polish,
-                     self._within_bounds if self.bounds.x or self.bounds.lam else None)
-        done = xp.unwrap(out["polished"])
-        if bool(done.any()):
-            new = {k: xp.unwrap(out[k]) for k in ("u", "x", "lam", "cost")}
-            N = new["u"].shape[1]
-            xs = [out["x"][:, k] for k in range(N + 1)]
-            new["complementarity"] = xp.unwrap(violation(xp, xs, out["u"], out["lam"], *(mats[k] for k in "DEFc")))[:, 0]
-            new["x_model"], new["lam_model"] = new["x"], new["lam"]
-            for key, value in new.items():
-                mask = done.reshape(-1, *[1] * (value.dim() - 1))
-                pick[key] = torch.where(mask, value, pick[key])
-        return done
-
-    def _within_bounds(self, xs: list[Any], lams: list[Any]) -> Any:
-        """``(B,)``: the model rollouts (NumPy) whose states ``x_1..x_N`` and forces meet
-        ``x_bounds`` and ``lam_bounds`` (to 1e-9 of their size)."""
-        ok = np.ones(xs[0].shape[0], dtype=bool)
-        for values, box in ((xs[1:], self.bounds.x), (lams, self.bounds.lam)):
-            if box is None:
-                continue
-            v = np.stack(values, 1)
-            tol = 1e-9 * (1.0 + np.abs(v))
-            ok &= ((v >= box[0] - tol) & (v <= box[1] + tol)).all(axis=(1, 2))
-        return ok
-
-    @staticmethod
-    def _pick(values: list[torch.Tensor], chosen: torch.Tensor) -> torch.Tensor:
-        """Per initial state (the leading axis), ``values[chosen[b]][b]``."""
-        out = values[0]
-        for i, v in enumerate(values[1:], start=1):
-            out = torch.where(chosen.reshape(-1, *[1] * (v.dim() - 1)) == i, v, out)
-        return out
-
     def _check_gap(self, gap: torch.Tensor, x_model: torch.Tensor) -> None:
         """Count (and warn of) the plans whose gap passes ``gap_tol (1 + max |x_model|)``."""
         if self.gap_tol is None:
@@ -465,31 +351,6 @@ class C3:
                 "plan's inputs; the plan relies on forces the model does not produce (projection "
                 f"{self.projection_name!r}; 'lcp' or 'auto' project onto the model's own forces)",
                 PlanGapWarning, stacklevel=4)
-
-    def _lcp(self, xp: Any, mats: dict[str, Any]) -> Any:
-        """``lcp(k, q) -> lam``: the exact LCP of step ``k``'s ``F`` on ``q (M, n_lam)``, on
-        ``xp``'s arrays (the pivoting kernel, batched)."""
-        def lcp(k: int, q: Any) -> Any:
-            if q.shape[-1] == 0:
-                return q
-            if xp.np and q.dtype == np.float64:  # the compiled kernel on the arrays themselves
-                lam, _, _, bad, _ = compiled.lcp(np.ascontiguousarray(mats["F"][k]), np.ascontiguousarray(q),
-                                                 PIVOT_TOL, MAX_SWEEPS, STALL, compiled.COLD)
-                if not len(bad):
-                    return lam
-            # (unconverged samples: the whole call again, which reports them and solves them by a reference)
-            return xp.wrap(solve_lcp_fast(xp.unwrap(mats["F"][k]), xp.unwrap(xp.contiguous(q)), residual=False).lam)
-        return lcp
-
-    def _lcp_at(self, xp: Any, x0: Any, mats: dict[str, Any]) -> Any:
-        """``lam_0 = LCP(F_0, D_0 x0 + c_0)`` ``(B, n_lam)`` (``E = 0``, or ``u = 0`` where
-        ``fix_lam0`` is forced) on ``xp``'s arrays: zero where ``q >= 0``, else the pivoting
-        kernel's exact solution."""
-        q = x0 @ mats["D"][0].T + mats["c"][0]
-        if bool((q >= 0).all()):
-            return q * 0.0
-        F0 = xp.unwrap(mats["F"][0])
-        return xp.wrap(solve_lcp_fast(F0, xp.unwrap(xp.contiguous(q)), residual=False).lam)
 
     def __call__(self, x0: Any, x_des: Any | None = None) -> torch.Tensor:
         """``plan.u[0]`` of the plan from ``x0`` (``(n_u,)``, or ``(B, n_u)`` for a batch),
