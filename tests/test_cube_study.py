@@ -121,3 +121,103 @@ def test_a_saved_mlp_loads_back_the_same_stepper(tmp_path):
     loaded = M._load_mlp(str(tmp_path / "m.pt"))
     with torch.no_grad():
         assert torch.equal(loaded(x), model.eval()(x))
+
+
+def _rotate(q, v):
+    """``v`` rotated by the unit quaternion ``q`` (``q ⊗ (0, v) ⊗ q*``)."""
+    from lcs_cvx.kinematics import quaternion_product
+    qv = torch.cat([torch.zeros(v.shape[0], 1, dtype=v.dtype), v], dim=1)
+    conj = q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    return quaternion_product(quaternion_product(q, qv), conj)[:, 1:]
+
+
+def test_the_cube_frames_are_its_rotations_and_their_quaternions_agree():
+    from studies.cube import symmetry as Y
+    rotations = Y._rotations()
+    assert len(rotations) == 24 and len({tuple(S.flatten().tolist()) for S in rotations}) == 24
+    for S in rotations:
+        assert torch.allclose(S @ S.T, torch.eye(3, dtype=torch.float64)) and torch.linalg.det(S) > 0
+        q = Y._quaternion(S).expand(3, 4)
+        assert torch.allclose(_rotate(q, torch.eye(3, dtype=torch.float64)), S.T, atol=1e-15)  # q e_j = S e_j
+    assert Y.FRAMES.shape == (6, 3, 3)
+    assert sorted(tuple(S[2].tolist()) for S in Y.FRAMES) == sorted(
+        tuple(v) for v in (torch.eye(3).tolist() + (-torch.eye(3)).tolist()))  # each face to +z once
+
+
+def test_a_state_in_its_frame_has_its_top_face_up_and_maps_back():
+    from lcs_cvx.kinematics import up_in_body
+    from studies.cube import symmetry as Y
+    x = torch.cat(lcs_cvx.datasets.cube_tosses().xs[:20])
+    k = Y.frame_of(x)
+    assert len(set(k.tolist())) > 1  # the tosses visit several frames
+    xs = Y.to_frame(x, k)
+    g, gs = up_in_body(x[:, :4]), up_in_body(xs[:, :4])
+    assert torch.allclose(gs, torch.einsum("nij,nj->ni", Y.FRAMES[k], g), atol=1e-12)  # g_S = S g
+    assert bool((gs[:, 2] >= gs[:, :2].abs().max(dim=1).values - 1e-12).all())
+    # the same rigid motion: the world position of a body point and the world angular velocity agree
+    r = torch.randn(x.shape[0], 3, dtype=torch.float64)
+    r_s = torch.einsum("nij,nj->ni", Y.FRAMES[k], r)
+    assert torch.allclose(_rotate(xs[:, :4], r_s), _rotate(x[:, :4], r), atol=1e-12)
+    assert torch.allclose(_rotate(xs[:, :4], xs[:, 7:10]), _rotate(x[:, :4], x[:, 7:10]), atol=1e-12)
+    assert torch.allclose(Y.from_frame(xs, k), x, atol=1e-12)
+    assert torch.equal(Y.frame_of(xs), torch.zeros_like(k) + Y.frame_of(xs)[0])  # all in the +z frame
+    assert bool((Y.FRAMES[Y.frame_of(xs)] == torch.eye(3, dtype=torch.float64)).all())
+
+
+def test_segments_keep_every_transition_once_in_the_frame_of_its_first_state():
+    from studies.cube import symmetry as Y
+    data = lcs_cvx.datasets.cube_tosses()
+    tosses = lcs_cvx.Trajectories(data.xs[:10], data.us[:10])
+    pieces = Y.segments(tosses)
+    assert len(pieces.xs) > len(tosses.xs) and sum(pieces.lengths) == sum(tosses.lengths)
+    x = torch.cat([t[:-1] for t in tosses.xs])
+    x_next = torch.cat([t[1:] for t in tosses.xs])
+    k = Y.frame_of(x)
+    ours = torch.cat([p[:-1] for p in pieces.xs]), torch.cat([p[1:] for p in pieces.xs])
+    assert torch.allclose(ours[0], Y.to_frame(x, k), atol=1e-14)
+    assert torch.allclose(ours[1], Y.to_frame(x_next, k), atol=1e-14)
+
+
+def test_the_symmetric_stepper_flies_a_cube_like_the_kinematics():
+    """In flight (every corner far above the floor, no unit active) the step is free flight in
+    any frame: ``v' = v - g dt e_z``, ``w' = w``, ``p`` and ``q`` integrated from them."""
+    from studies.cube import kinematic
+    from studies.cube import symmetry as Y
+    model = Y.symmetric_lcs(8)
+    assert bool((model.masks["D"][:, :6] == False).all()) and bool((model.D.detach()[:, :6] == 0).all())  # noqa: E712
+    x = torch.cat(lcs_cvx.datasets.cube_tosses().xs[:20])
+    x = x[Y.frame_of(x) != Y.frame_of(x)[0]][:50].clone()  # states in frames other than the first's
+    x[:, 6] = 1.0  # high above the floor
+    plain = kinematic.stepper(model)
+    with torch.no_grad():
+        assert torch.allclose(Y.stepper(model)(x), plain(x), atol=1e-12)
+        assert torch.allclose(plain(x)[:, 7:10], x[:, 7:10], atol=1e-12)
+
+
+def test_the_physics_reference_lets_a_flat_cube_fall_to_rest():
+    pytest.importorskip("mujoco")
+    from studies.cube import physics
+    x0 = torch.zeros(1, 13, dtype=torch.float64)
+    x0[0, 0], x0[0, 6], x0[0, 10] = 1.0, 0.2, 0.3  # level, 20 cm up, sliding along x
+    (traj,) = physics.simulate(physics.NOMINAL, [x0.expand(120, 13)])
+    assert traj.shape == (120, 13) and torch.equal(traj[0], x0[0])
+    end = traj[-1]
+    assert end[6].item() == pytest.approx(physics.NOMINAL.side / 2, abs=2e-3)  # resting on its face
+    assert float(end[7:13].abs().max()) < 1e-2 and end[4].item() > 0.0  # stopped, after sliding forward
+    assert float(geodesic_angle(x0[0, :4].numpy(), end[:4].numpy())) < 0.02
+    err = physics.errors(physics.NOMINAL, [traj])
+    assert err["pos"] == pytest.approx(0.0, abs=1e-12) and err["rot"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_seed_table_reports_every_fit_and_the_range(tmp_path):
+    from studies.cube import seeds
+
+    def rec(seed, rot):
+        roll = {h: {"pos": 0.01 * (seed + 1), "rot": rot, "diverged": 0} for h in ("H10", "H30", "end")}
+        return {"key": "lcs_symmetry", "model": "LCS, cube symmetry", "seed": seed, "size": 275, "n_lam": 16,
+                "heldout_error": 0.2, "rollout": roll, "dair_pll": {"pos": 0.03, "rot": rot}}
+    text = seeds.write(str(tmp_path), [rec(0, 0.5), rec(1, 0.7)], "cmd")
+    assert (tmp_path / "seeds.md").read_text() == text
+    assert text.count("| LCS, cube symmetry | 0 |") == 1 and text.count("| LCS, cube symmetry | 1 |") == 1
+    assert "| LCS, cube symmetry | 2 | 0.015 (0.01–0.02) | 0.6 (0.5–0.7) |" in text
+    assert f"{math.degrees(0.6):.4g} ({math.degrees(0.5):.4g}–{math.degrees(0.7):.4g})" in text

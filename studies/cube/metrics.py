@@ -36,8 +36,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from lcs_cvx.kinematics import up_in_body
+
 __all__ = ["GROUPS", "DIVERGED_GROWTH", "CUTOFF_GROWTH", "geodesic_angle", "one_step", "rollout",
-           "rollouts", "dair_pll_errors", "Stepper"]
+           "rollouts", "dair_pll_errors", "whole_toss_errors", "Stepper"]
 
 #: A model: next states of a batch of states (float64 tensors ``(N, 13)``).
 Stepper = Callable[[torch.Tensor], torch.Tensor]
@@ -196,22 +198,33 @@ def rollouts(step: Stepper, xs: Sequence[torch.Tensor], horizons: Sequence[int] 
 
 
 def dair_pll_errors(step: Stepper, xs: Sequence[torch.Tensor]) -> dict[str, float]:
-    """Whole-toss open-loop rollouts of ``step`` from each toss's first state: dair_pll's
-    position error (m; the mean over steps of ``||p_hat - p||``, averaged over tosses), its
-    rotation error (rad; the mean angle), ours beside them (``pos_rms``: the RMS position error,
-    averaged), and the count of rollouts that diverged (their errors are then inf)."""
+    """Whole-toss open-loop rollouts of ``step`` from each toss's first state, scored by
+    :func:`whole_toss_errors`."""
     T = max(t.shape[0] for t in xs)
     maxnorm = torch.tensor([float(torch.linalg.vector_norm(t, dim=1).max()) for t in xs], dtype=torch.float64)
     pred = rollout(step, torch.stack([t[0] for t in xs]), T - 1, maxnorm).numpy()
-    dist, rms, rot = [], [], []
-    for i, t in enumerate(xs):
-        n, true = t.shape[0], t.numpy()
+    return whole_toss_errors([pred[i, :t.shape[0]] for i, t in enumerate(xs)], xs)
+
+
+def whole_toss_errors(preds: Sequence[Any], xs: Sequence[torch.Tensor]) -> dict[str, float]:
+    """dair_pll's whole-toss errors of the predicted tosses ``preds`` (each ``(T_i, 13)``, row 0
+    the first recorded state) against the recorded ``xs``: its position error (m; the mean over
+    steps of ``||p_hat - p||``, averaged over tosses), its rotation error (rad; the mean angle),
+    ours beside them (``pos_rms``: the RMS position error, averaged), the count of rollouts
+    that diverged (their errors are then inf), and ``end_tilt``: the mean over tosses of the last
+    predicted state's tilt from resting on a face, ``acos max_k |g_k|`` with ``g = R(q)^T e_z``
+    (rad; the recorded tosses end at rest on a face, within about 1°)."""
+    dist, rms, rot, tilt = [], [], [], []
+    for p, t in zip(preds, xs, strict=True):
+        p, true = np.asarray(p, dtype=np.float64), t.numpy()
         with np.errstate(invalid="ignore", over="ignore"):
-            d = np.linalg.norm(pred[i, 1:n, P] - true[1:, P], axis=-1)
-            a = geodesic_angle(true[1:, Q], pred[i, 1:n, Q])
-        ok = np.isfinite(pred[i, 1:n]).all()
+            d = np.linalg.norm(p[1:, P] - true[1:, P], axis=-1)
+            a = geodesic_angle(true[1:, Q], p[1:, Q])
+        ok = np.isfinite(p[1:]).all()
         dist.append(d.mean() if ok else math.inf)
         rms.append(np.sqrt((d ** 2).mean()) if ok else math.inf)
         rot.append(a.mean() if ok else math.inf)
+        g = up_in_body(torch.as_tensor(p[-1:, Q] / np.linalg.norm(p[-1, Q]))) if ok else None
+        tilt.append(math.acos(min(1.0, float(g.abs().max()))) if ok else math.inf)
     return {"pos": float(np.mean(dist)), "rot": float(np.mean(rot)), "pos_rms": float(np.mean(rms)),
-            "diverged": int(np.sum(~np.isfinite(dist)))}
+            "diverged": int(np.sum(~np.isfinite(dist))), "end_tilt": float(np.mean(tilt))}

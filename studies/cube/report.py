@@ -305,7 +305,19 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         "height p_z + r_c · g of each of the 8 corners r_c is linear, and free flight held too "
         "(v' = v − g dt e_z and w' = w plus C λ: only the contacts change the velocities); its first 8 "
         "units start with D x + c at those heights, n_λ among "
-        f"{list(kinematic.CONTACT_N_LAMS)} (`studies.cube.kinematic.contact_lcs`).",
+        f"{list(kinematic.CONTACT_N_LAMS)} (`studies.cube.kinematic.contact_lcs`);",
+        "- *LCS, cube symmetry*: the contact-coordinates LCS stepped in the body frame whose +z face points "
+        "most upwards: of the cube's 24 rotational symmetries (signed permutations S of the body axes), one "
+        "per face, chosen at each state by the largest (S g)_z, the state mapped into it (q ⊗ s⁻¹, S w, "
+        "S g) before the step and back after; fitted on the tosses cut where that frame changes (each piece "
+        "in its frame, every transition kept once; a piece shorter than a window trains the one-step losses and "
+        "has no window in the rollout scores), n_λ among "
+        f"{list(kinematic.CONTACT_N_LAMS)}, the complementarity rows blind to the quaternion and the "
+        "horizontal position (held at 0; the contacts see the orientation through g only), started at free "
+        "flight (C = 0). In its frame "
+        "the lowest face is always −z, so the corners' torque arms r_c × g vary over one face's cap "
+        "instead of the whole sphere, and the frame changes where a tipping cube passes over an edge "
+        "(`studies.cube.symmetry`).",
     ]
     L += [
         "",
@@ -329,8 +341,10 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
           "between mode switches) predict the rotation with one linear map per mode, while the MLP can "
           "represent it; and the height of a corner of the cube, what contact depends on, is "
           "p_z + (R(q) r)_z, quadratic in q, so the LCS's gap D x + c can only approximate it with a "
-          "plane. The two kinematic LCSs take both off the learner: the first integrates the quaternion "
-          "exactly, the second also makes the corner heights linear in its state. "
+          "plane. The kinematic LCSs take both off the learner: the first integrates the quaternion "
+          "exactly, the second also makes the corner heights linear in its state, the third (cube symmetry) "
+          "also keeps the torque of a corner's force, r_c × g λ (bilinear in g and λ), within one face's "
+          "cap of orientations, where one constant C describes it far better than over the whole sphere. "
           "The *held-out verdict* lines below are `FitResult.verdict` of each chosen LCS: its "
           f"validation rollout error at H = {M.VALIDATION_HORIZON} against the affine map's.", ""]
     L += _verdicts(records)
