@@ -185,6 +185,9 @@ def test_the_symmetric_stepper_flies_a_cube_like_the_kinematics():
     from studies.cube import symmetry as Y
     model = Y.symmetric_lcs(8)
     assert bool((model.masks["D"][:, :6] == False).all()) and bool((model.D.detach()[:, :6] == 0).all())  # noqa: E712
+    assert bool((model.C.detach() == 0).all())  # it starts at free flight
+    with torch.no_grad():  # forces that would show: a unit active in flight would change the velocities
+        model.C.copy_(torch.randn(model.C.shape, dtype=model.dtype, generator=torch.Generator().manual_seed(0)))
     x = torch.cat(lcs_cvx.datasets.cube_tosses().xs[:20])
     x = x[Y.frame_of(x) != Y.frame_of(x)[0]][:50].clone()  # states in frames other than the first's
     x[:, 6] = 1.0  # high above the floor

@@ -36,6 +36,7 @@ import itertools
 import math
 
 import torch
+from scipy.spatial.transform import Rotation
 
 import lcs_cvx
 from lcs_cvx.kinematics import quaternion_product, up_in_body
@@ -60,18 +61,9 @@ def _rotations() -> list[torch.Tensor]:
 
 
 def _quaternion(S: torch.Tensor) -> torch.Tensor:
-    """The unit quaternion ``(w, x, y, z)`` of the rotation matrix ``S`` (its largest component
-    first, so no division by a small number)."""
-    t = torch.trace(S)
-    cand = torch.stack([1 + t, 1 + 2 * S[0, 0] - t, 1 + 2 * S[1, 1] - t, 1 + 2 * S[2, 2] - t])
-    i = int(torch.argmax(cand))
-    q = torch.zeros(4, dtype=torch.float64)
-    q[i] = torch.sqrt(cand[i]) / 2
-    off = {(0, 1): S[2, 1] - S[1, 2], (0, 2): S[0, 2] - S[2, 0], (0, 3): S[1, 0] - S[0, 1],
-           (1, 2): S[0, 1] + S[1, 0], (1, 3): S[0, 2] + S[2, 0], (2, 3): S[1, 2] + S[2, 1]}
-    for j in range(4):
-        if j != i:
-            q[j] = off[(min(i, j), max(i, j))] / (4 * q[i])
+    """The unit quaternion ``(w, x, y, z)`` of the rotation matrix ``S``, ``w >= 0``."""
+    x, y, z, w = Rotation.from_matrix(S.numpy()).as_quat()
+    q = torch.tensor([w, x, y, z], dtype=torch.float64)
     return q if q[0] >= 0 else -q
 
 
