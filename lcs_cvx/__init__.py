@@ -36,6 +36,7 @@ from .metrics import count_modes as count_modes
 from .metrics import relative_error as relative_error
 from .problems import convex_lcp_problem as convex_lcp_problem
 from .problems import violation_problem as violation_problem
+from .rigid_body import RigidBodyContact as RigidBodyContact
 from .scaling import Scaling as Scaling
 from .selection import Selection as Selection
 from .selection import select_n_lam as select_n_lam
@@ -69,6 +70,7 @@ __all__ = [
     "FitOptions",
     "FitResult",
     "Kinematics",
+    "RigidBodyContact",
     "LayerAccuracyWarning",
     "PlanGapWarning",
     "LCPSolution",

@@ -83,12 +83,18 @@ def save_model(model: LCS, path: str | os.PathLike, metadata: Mapping[str, Any] 
         LCSInputError: ``model`` is not an LCS, ``metadata`` is not a JSON-serialisable dict,
             or ``path`` is not a writable file in an existing directory.
     """
-    if not isinstance(model, LCS):
-        raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
+    from .rigid_body import RigidBodyContact
+
+    if not isinstance(model, (LCS, RigidBodyContact)):
+        raise LCSInputError(f"model: expected an lcs_cvx.LCS or lcs_cvx.RigidBodyContact, received "
+                            f"{type(model).__name__}")
     if metadata is not None and not isinstance(metadata, Mapping):
         raise LCSInputError(
             f"metadata: expected a dict (or None), received {type(metadata).__name__}"
         )
+    if isinstance(model, RigidBodyContact):
+        _save_rigid_body(model, path, metadata)
+        return
     dtype = str(model.dtype).removeprefix("torch.")
     meta = {
         "format": FORMAT,
@@ -172,6 +178,9 @@ def load_model(path: str | os.PathLike) -> LCS:
             mask that is not a bool array of its parameter's shape, or was written in a newer
             format version.
     """
+    rigid = _read_rigid_body(path)
+    if rigid is not None:
+        return rigid
     path_s, arrays, meta = _read(path)
     model = LCS(
         meta["n_x"],
@@ -349,3 +358,51 @@ def _parse_meta(path_s: str, raw: np.ndarray) -> dict[str, Any]:
             )
     return meta
 
+
+
+# -- a rigid body's contact model --------------------------------------------------------------
+#: ``meta["kind"]`` of a :class:`lcs_cvx.RigidBodyContact` file: its ``config()`` in ``meta["config"]``,
+#: its parameters and buffers (``state_dict``) as arrays ``param_<name>``, which parameters it
+#: learns in ``meta["learnable"]``.
+RIGID_BODY = "rigid_body"
+
+
+def _save_rigid_body(model: Any, path: str | os.PathLike, metadata: Mapping[str, Any] | None) -> None:
+    meta = {"format": FORMAT, "format_version": FORMAT_VERSION, "lcs_cvx_version": __version__,
+            "kind": RIGID_BODY, "config": model.config(),
+            "learnable": [k for k, p in model.named_parameters() if p.requires_grad],
+            "metadata": dict(metadata) if metadata is not None else {}}
+    try:
+        meta_json = json.dumps(meta, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise LCSInputError(f"metadata: expected a JSON-serialisable dict, received one that is not: {exc}") from None
+    arrays = {f"param_{k}": v.detach().cpu().numpy() for k, v in model.state_dict().items()}
+    arrays["meta"] = np.array(meta_json)
+    atomic_write(path, lambda f: np.savez(f, **arrays))
+
+
+def _read_rigid_body(path: str | os.PathLike) -> Any:
+    """The :class:`lcs_cvx.RigidBodyContact` of a rigid body's file, None for another file."""
+    path_s = os.fspath(path)
+    if not os.path.isfile(path_s):
+        return None  # _read names the problem
+    arrays = read_npz(path_s, "an .npz model file written by lcs_cvx.save_model")
+    if "meta" not in arrays:
+        return None
+    meta = _parse_meta(path_s, arrays["meta"]) if "kind" not in str(arrays["meta"]) else json.loads(str(arrays["meta"]))
+    if meta.get("kind") != RIGID_BODY:
+        return None
+    from .rigid_body import RigidBodyContact
+
+    try:
+        model = RigidBodyContact.from_config(meta["config"])
+        state = {k.removeprefix("param_"): torch.from_numpy(v) for k, v in arrays.items() if k.startswith("param_")}
+        for k, v in state.items():
+            if not np.isfinite(v.numpy()).all():
+                raise LCSInputError(f"array 'param_{k}' holds non-finite values")
+        model.load_state_dict(state)
+    except (LCSInputError, KeyError, TypeError, RuntimeError) as exc:
+        raise LCSInputError(f"path: expected a rigid body's model file, received {path_s!r} ({exc})") from None
+    for k, p in model.named_parameters():
+        p.requires_grad_(k in meta["learnable"])
+    return model

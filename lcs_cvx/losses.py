@@ -42,7 +42,7 @@ from ._kernels.violation import PIVOT_TOL as VIOLATION_TOL
 from .layers import lcp_layer, solve_layer, violation_layer
 from .lcp import lcp_residual, solve_lcp_fast
 from .problems import check_gamma, convex_lcp_problem, violation_problem
-from .system import PARAMETER_NAMES
+from .system import LCS, PARAMETER_NAMES
 from .violation import finish, violation_kkt_residual
 
 __all__ = [
@@ -275,7 +275,19 @@ def _check_solver(solver: str, warm_start: Any) -> str:
     return "scs" if solver == "cvxpylayers-scs" else "clarabel"
 
 
+def _per_sample(kind, model, x, u, x_next, gamma, eps, solver, warm_start) -> LossInfo:
+    """The loss of a model of per-sample matrices (``model.sample_lcs``; :mod:`lcs_cvx.per_sample`)."""
+    from .per_sample import model_loss_info
+
+    _check_solver(solver, warm_start)
+    x, u, x_next = as_transitions(model, x, u, x_next)
+    x, x_next = model.check_states("x", x), model.check_states("x_next", x_next)
+    return model_loss_info(kind, model, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
+
+
 def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual, threads) -> LossInfo:
+    if not isinstance(model, LCS) and callable(getattr(model, "sample_lcs", None)):
+        return _per_sample("violation", model, x, u, x_next, gamma, eps, solver, warm_start)
     cone_solver = _check_solver(solver, warm_start)
     calls.resolve_threads(threads)
     check_positive("eps", eps)
@@ -319,7 +331,9 @@ def violation_loss(
     $$
 
     Args:
-        model: an :class:`lcs_cvx.LCS`.
+        model: an :class:`lcs_cvx.LCS`, or a model whose matrices differ per sample
+            (:class:`lcs_cvx.RigidBodyContact`: (V) of each sample's LCS on its velocity rows,
+            :mod:`lcs_cvx.per_sample`).
         x: ``(N, n_x)``; u: ``(N, n_u)``; x_next: ``(N, n_x)`` observed next states.
         gamma: ``0 < gamma < sigma_min(F + F^T)`` (Lemma 2; checked).
         eps: ``eps > 0`` weight of the complementarity violation.
@@ -360,6 +374,8 @@ def violation_loss_info(
 
 
 def _prediction(model, x, u, x_next, solver, warm_start, residual, threads) -> LossInfo:
+    if not isinstance(model, LCS) and callable(getattr(model, "sample_lcs", None)):
+        return _per_sample("prediction", model, x, u, x_next, 1e-2, 1e-4, solver, warm_start)
     cone_solver = _check_solver(solver, warm_start)
     calls.resolve_threads(threads)
     if not (solver == "fast" and calls.ready(model, x, u, x_next)):
@@ -428,4 +444,7 @@ def regularizer(model: Any, reg: float = 1e-5) -> torch.Tensor:
     ``lam`` (paper Sec. 5)."""
     if isinstance(reg, bool) or not isinstance(reg, (int, float)) or reg < 0:
         raise LCSInputError(f"reg: expected a number >= 0, received {reg!r}")
-    return reg * (model.C**2).sum()
+    C = getattr(model, "C", None)
+    if not isinstance(C, torch.Tensor):  # a model of per-sample matrices: no free C to pin
+        return torch.zeros((), dtype=model.dtype, device=model.device)
+    return reg * (C**2).sum()

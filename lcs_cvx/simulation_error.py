@@ -88,7 +88,8 @@ class Windows:
 
 
 def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.Tensor,
-                     scaling: Scaling | None = None, kinematics: Any = None) -> torch.Tensor:
+                     scaling: Scaling | None = None, kinematics: Any = None,
+                     sigma: torch.Tensor | None = None) -> torch.Tensor:
     """The mean of ``((x_hat_h - x_h) / sigma)^2`` over the windows ``(x0 (B, n_x), us (B, H,
     n_u), xs (B, H, n_x))``, ``x_hat`` the rollout of ``model``; differentiable in its parameters.
 
@@ -96,7 +97,7 @@ def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.T
     change ``y``): each step encodes ``x_hat``, steps, and decodes ``x' = K x + m_y + S_y y``;
     ``sigma = S_y``, and ``kinematics`` (the user's model's :class:`lcs_cvx.Kinematics`) then
     integrates the configuration. Without, ``model`` is in the data's units (its own kinematics
-    in its step) and ``sigma = 1``.
+    in its step) and ``sigma`` is the given ``(n_x,)`` (default 1).
     """
     s = scaling._on(x0) if scaling is not None else None
     x, total = x0, x0.new_zeros(())
@@ -104,7 +105,7 @@ def simulation_error(model: Any, x0: torch.Tensor, us: torch.Tensor, xs: torch.T
         u = us[:, h]
         if s is None:
             x = model.step(x, u)
-            err = x - xs[:, h]
+            err = x - xs[:, h] if sigma is None else (x - xs[:, h]) / sigma
         else:
             x_next = s.k * x + s.my + s.sy * model.step((x - s.mx) / s.sx, (u - s.mu) / s.su)
             x = x_next if kinematics is None else kinematics.integrate(x, x_next)

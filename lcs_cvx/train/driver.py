@@ -36,11 +36,11 @@ from ..system import LCS
 from ..trajectories import Trajectories
 from .ensemble import train_together
 from .holdout import split_data
-from .inputs import check_data, fit_options, resolve_keep_best
+from .inputs import check_data, check_per_sample, fit_options, per_sample_options, resolve_keep_best
 from .options import FitOptions
 from .phases import run_phases
 from .result import FitResult, lowest
-from .starts import fresh_like, start
+from .starts import fresh_like, jittered, start
 from .state import TrainState
 
 __all__ = ["FitResult", "fit", "CHECKPOINT_FORMAT"]
@@ -209,11 +209,15 @@ def fit(
         >>> len(result.history), len(result.restart_scores), result.n_fallback
         (15, 3, 0)
     """
-    if not isinstance(model, LCS):
-        raise LCSInputError(f"model: expected an lcs_cvx.LCS, received {type(model).__name__}")
-    check_learnable(model)
+    lcs = isinstance(model, LCS)  # else a model of per-sample matrices (lcs_cvx.RigidBodyContact)
+    if not lcs and not callable(getattr(model, "sample_lcs", None)):
+        raise LCSInputError(f"model: expected an lcs_cvx.LCS or a model of per-sample matrices "
+                            f"(lcs_cvx.RigidBodyContact), received {type(model).__name__}")
+    check_learnable(model) if lcs else check_per_sample(model)
     resolve_threads(threads)
     opts = fit_options(options, recipe, overrides)
+    if not lcs:
+        opts = per_sample_options(opts, overrides)
     split = split_data(train, validation, opts.run, opts.rollout.horizon)
     opts = resolve_keep_best(opts, split.holds_out_runs)
     fit_user = check_data("train", split.fit, model)
@@ -228,7 +232,7 @@ def fit(
     r = opts.run
 
     # the coordinates of learning: normalised (folded back at the end) or the user's own
-    scaling = Scaling.fit(fit_user, model) if r.normalize else None
+    scaling = Scaling.fit(fit_user, model) if r.normalize and lcs else None
     # known kinematics: the one-step losses train the velocity rows (the held configuration rows'
     # targets are their own prediction); rollouts and scores integrate the configuration
     fit_rows = model.kinematics.one_step(fit_user) if model.kinematics is not None else fit_user
@@ -269,6 +273,8 @@ def fit(
 
     def learner_for(restart: int) -> LCS:
         """The start of a restart in the coordinates of learning (restart 0: from ``model``)."""
+        if not lcs:  # a physical model starts where it is; a restart from its quantities jittered
+            return model if restart == 0 else jittered(model, seed=r.seed * 7919 + restart)
         base = model if restart == 0 else fresh_like(model, seed=r.seed * 7919 + restart)
         return start(base, r.init_for(restart), scaling, fit_data, exact=restart == 0)
 
@@ -302,7 +308,8 @@ def fit(
             state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
                                windows=windows, scaling=scaling,
                                validate=holdout_score if holdout is not None else None, threads=threads,
-                               kinematics=model.kinematics)
+                               kinematics=model.kinematics,
+                               sigma=None if lcs or windows is None else split.scale)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
                 state.load_state_dict(ckpt["run"])
                 if bar is not None:
@@ -331,4 +338,4 @@ def fit(
     if not stopped:
         store.save(r.restarts, done, None, elapsed())
     result = FitResult(model, history, opts, scores, elapsed(), scaling, refinement_kept=refinement_kept)
-    return split.conclude(result, r.affine_if_better) if holdout is not None else result
+    return split.conclude(result, r.affine_if_better and lcs) if holdout is not None else result

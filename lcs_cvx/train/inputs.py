@@ -16,7 +16,7 @@ from ..system import LCS
 from .options import FitOptions, split_groups
 from .recipes import resolve_options
 
-__all__ = ["check_data", "fit_options", "resolve_keep_best"]
+__all__ = ["check_data", "check_per_sample", "fit_options", "per_sample_options", "resolve_keep_best"]
 
 
 def check_data(name: str, data: Any, model: LCS) -> Dataset:
@@ -38,6 +38,9 @@ def check_data(name: str, data: Any, model: LCS) -> Dataset:
                 f"{name}: expected finite real values in {field_name}, received "
                 f"{'dtype ' + str(t.dtype) if not t.is_floating_point() else 'NaN/inf entries'}"
             )
+    check = getattr(model, "check_states", None)
+    if check is not None:  # a model of a body's states: its quaternions normalised, or an error
+        data = Dataset(check(name, data.x), data.u, check(name, data.x_next), data.lam)
     if data.x.device == model.device and data.x.dtype == model.dtype:
         return data
     kw = {"device": model.device, "dtype": model.dtype}
@@ -70,3 +73,25 @@ def fit_options(options: FitOptions | None, recipe: str | None, overrides: dict[
             f"recipe: expected None when options are given (they already hold one), received {recipe!r}"
         )
     return options.replace(**overrides)
+
+
+def check_per_sample(model: Any) -> None:
+    """:class:`LCSInputError` when a model of per-sample matrices has nothing to learn."""
+    if not any(p.requires_grad for p in model.parameters()):
+        raise LCSInputError("model: expected at least one learnable quantity, received a model whose every "
+                            "parameter is fixed (requires_grad False)")
+
+
+def per_sample_options(opts: FitOptions, overrides: dict[str, Any]) -> FitOptions:
+    """``opts`` for a model of per-sample matrices (:class:`lcs_cvx.RigidBodyContact`): it learns
+    its physical quantities in their own units from where it is (``normalize`` and ``init`` do
+    not apply), has no units to add or re-draw (``extra_units="auto"`` and ``reinit_saturated``
+    off), and is trained by Adam (a second-order refinement is an error)."""
+    if opts.refine.method is not None:
+        raise LCSInputError(f"optimizer: expected 'adam' for a model of per-sample matrices (the second-order "
+                            f"steps are an LCS's), received refinement {opts.refine.method!r}")
+    if opts.adam.extra_units not in (0, "auto"):
+        raise LCSInputError(f"extra_units: expected 0 for a model of per-sample matrices (its units are its "
+                            f"contacts), received {opts.adam.extra_units!r}")
+    adam = dataclasses.replace(opts.adam, extra_units=0, reinit_saturated=False)
+    return dataclasses.replace(opts, adam=adam, run=dataclasses.replace(opts.run, normalize=False))

@@ -32,6 +32,7 @@ from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
 from ..simulation_error import simulation_error
 from ..system import LCS
+from ..per_sample import model_loss_info
 from .onecall import adam_step, adam_steps, adam_update_from_grads
 from .options import FitOptions
 from .state import Outcome, TrainState
@@ -46,14 +47,30 @@ def _adam_step(adam: torch.optim.Adam, model: LCS, value: torch.Tensor, iteratio
     gradient; masked entries get a zero one and are held at 0 (:mod:`lcs_cvx.parameter_constraints`)."""
     adam.zero_grad()
     value.backward()
-    mask_gradients_(model)
+    lcs = isinstance(model, LCS)
+    if lcs:
+        mask_gradients_(model)
     adam_update_from_grads(adam)
-    project_(model)
+    if lcs:
+        project_(model)
     loss = float(value.detach())
-    with torch.no_grad():
-        finite_F = bool(torch.isfinite(model.F).all())
+    with torch.no_grad():  # a model of per-sample matrices: its parameters finite
+        finite_F = bool(torch.isfinite(model.F).all()) if lcs else all(
+            bool(torch.isfinite(p).all()) for p in model.parameters())
     _check_divergence(iteration, loss, finite_F, lr)
     return loss
+
+
+def fast_loss(kind: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *, gamma: float,
+              eps: float, warm_start: torch.Tensor | None = None, threads: int | None = None) -> Any:
+    """The fast violation (``kind="violation"``) or prediction loss of ``model``: an
+    :class:`lcs_cvx.LCS`'s (:func:`lcs_cvx.losses.violation_fast`, ``prediction_fast``), or a
+    model of per-sample matrices' (``model.sample_lcs``: :mod:`lcs_cvx.per_sample`)."""
+    if not isinstance(model, LCS):
+        return model_loss_info(kind, model, x, u, x_next, gamma=gamma, eps=eps, warm_start=warm_start)
+    if kind == "violation":
+        return violation_fast(model, x, u, x_next, gamma=gamma, eps=eps, warm_start=warm_start, threads=threads)
+    return prediction_fast(model, x, u, x_next, warm_start=warm_start, threads=threads)
 
 
 def _check_divergence(iteration: int, loss: float, finite_F: bool, lr: float) -> None:
@@ -111,8 +128,10 @@ class AdamPhase(Phase):
         super().__init__(options)
         self.record_every = options.run.eval_every
         self.checkpoint_every = options.run.checkpoint_every
+        self.per_sample = False  # a model of per-sample matrices: no units to re-draw
 
     def length(self, state: TrainState) -> int:
+        self.per_sample = not isinstance(state.work, LCS)
         return self.options.adam.iterations
 
     def eps_at(self, it: int) -> float:
@@ -132,7 +151,7 @@ class AdamPhase(Phase):
 
     def _reinit_at(self, it: int) -> bool:
         a = self.options.adam
-        return a.reinit_saturated and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations
+        return a.reinit_saturated and not self.per_sample and it > 0 and it % a.reinit_every == 0 and it < a.eps_fraction * a.iterations
 
     def steps(self, state: TrainState, limit: int) -> list[Outcome]:
         """Up to ``limit`` steps in one compiled call (:func:`lcs_cvx.train.onecall.adam_steps`,
@@ -188,12 +207,8 @@ class AdamPhase(Phase):
                 _check_divergence(state.iteration + 1, loss, finite_F, lr)
                 return Outcome(loss, eps, lr)
         x, u, x_next = state.batch(idx)
-        warm = state.warm_start(idx)
-        if obj.loss == "violation":
-            info = violation_fast(state.work, x, u, x_next, gamma=obj.gamma, eps=eps, warm_start=warm,
-                                  threads=state.threads)
-        else:
-            info = prediction_fast(state.work, x, u, x_next, warm_start=warm, threads=state.threads)
+        info = fast_loss(obj.loss, state.work, x, u, x_next, gamma=obj.gamma, eps=eps,
+                         warm_start=state.warm_start(idx), threads=state.threads)
         state.remember(idx, info.active)
         value = info.loss + regularizer(state.work, obj.reg)
         loss = _adam_step(state.adam, state.work, value, state.iteration + 1, lr)
@@ -321,7 +336,8 @@ class PolishPhase(Phase):
                 loss, finite_F, _ = done
                 _check_divergence(state.iteration + 1, loss, finite_F, p.lr)
                 return Outcome(loss, obj.eps, p.lr)
-        info = prediction_fast(state.model, *state.batch(idx), threads=state.threads)
+        info = fast_loss("prediction", state.model, *state.batch(idx), gamma=obj.gamma, eps=obj.eps,
+                         threads=state.threads)
         value = info.loss + regularizer(state.model, obj.reg)
         loss = _adam_step(state.polish_adam, state.model, value, state.iteration + 1, p.lr)
         return Outcome(loss, obj.eps, p.lr, info.n_fallback, info.fallback_residual)
@@ -356,7 +372,7 @@ class RolloutPhase(Phase):
         idx = torch.randint(len(w), (min(ro.batch_size, len(w)),), generator=state.generator)
         kw = {"dtype": state.model.dtype, "device": state.model.device}
         x0, us, xs = (t.to(**kw) for t in w.batch(idx))
-        value = (simulation_error(state.model, x0, us, xs, state.scaling, state.kinematics)
+        value = (simulation_error(state.model, x0, us, xs, state.scaling, state.kinematics, sigma=state.rollout_sigma)
                  + regularizer(state.model, obj.reg))
         loss = _adam_step(state.rollout_adam, state.model, value, state.iteration + 1, ro.lr)
         if state.steps["rollout"] + 1 == ro.iterations and state.rollout_start is not None:

@@ -21,6 +21,9 @@ page ("Measurements behind the training defaults") has the runs that compared th
 
 from __future__ import annotations
 
+import copy
+from typing import Any
+
 import torch
 
 from ..data import Dataset
@@ -28,7 +31,7 @@ from ..parameter_constraints import copy_structure_, free_entries, row_lstsq
 from ..scaling import Scaling
 from ..system import LCS, PARAMETER_NAMES
 
-__all__ = ["start", "fresh_like", "affine_start_"]
+__all__ = ["start", "fresh_like", "affine_start_", "jittered"]
 
 
 def affine_start_(model: LCS, data: Dataset) -> None:
@@ -104,3 +107,16 @@ def start(base: LCS, init: str, scaling: Scaling | None, train: Dataset,
     if init == "affine":
         affine_start_(learner, train)
     return learner
+
+
+def jittered(model: Any, seed: int, scale: float = 0.1) -> Any:
+    """A copy of a model of per-sample matrices (:class:`lcs_cvx.RigidBodyContact`) with each
+    learnable parameter moved by ``scale * N(0, 1)`` (its parameters are in the body's own units:
+    log sizes, lengths relative to its size): a restart's start."""
+    new = copy.deepcopy(model)
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in new.parameters():
+            if p.requires_grad:
+                p.add_((scale * torch.randn(p.shape, generator=gen, dtype=torch.float64)).to(p))
+    return new

@@ -24,7 +24,7 @@ from ..parameter_constraints import allowed_extra_units
 from ..resizing import add_units
 from ..scaling import Scaling
 from ..simulation_error import Windows
-from ..system import LCS, PARAMETER_NAMES
+from ..system import LCS
 from .onecall import data_arrays
 from .options import FitOptions
 from .phase_options import extra_units
@@ -55,16 +55,20 @@ class TrainState:
                  restart: int, score: Callable[[LCS], float] | None = None,
                  windows: Windows | None = None, scaling: Scaling | None = None,
                  validate: Callable[[LCS], float] | None = None, threads: int | None = None,
-                 kinematics: Any = None) -> None:
+                 kinematics: Any = None, sigma: torch.Tensor | None = None) -> None:
         self.model, self.train, self.test, self.options, self.restart = (
             model, train, test, options, restart)
         # the compiled kernels' threads, and the training data as arrays for the one-call steps
         # (:mod:`lcs_cvx.train.onecall`; None where they are not float64 CPU tensors)
         self.threads = threads
-        self.arrays = data_arrays(train)
+        lcs = isinstance(model, LCS)  # else a model of per-sample matrices (its own losses, no units)
+        self.arrays = data_arrays(train) if lcs else None
         # the simulation-error phase: windows of the training trajectories (user's units), the
         # coordinates the model is learned in and the user's model's kinematics
         self.windows, self.scaling, self.kinematics = windows, scaling, kinematics
+        # the simulation error's scale of each coordinate in the data's units, for a model learned
+        # in them (a model of per-sample matrices): the spread of its one-step change
+        self.rollout_sigma = None if sigma is None else sigma.to(dtype=model.dtype, device=self.device)
         # the held-out score (None: no held-out part) that decides whether the simulation-error
         # phase's result is kept; the model and score before that phase; whether it was kept
         self.validate = validate
@@ -77,7 +81,7 @@ class TrainState:
         a = options.adam
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
-        self.n_extra = allowed_extra_units(model, a.extra_units, extra_units(a.extra_units, model.n_lam))
+        self.n_extra = allowed_extra_units(model, a.extra_units, extra_units(a.extra_units, model.n_lam)) if lcs else 0
         self.work = add_units(model, self.n_extra, self.generator) if self.n_extra else model
         self.adam = torch.optim.Adam(self.work.parameters(), lr=a.lr, betas=a.betas, eps=a.adam_eps)
         self.polish_adam = torch.optim.Adam(model.parameters(), lr=options.polish.lr,
@@ -200,7 +204,7 @@ class TrainState:
         NaN score, a diverged rollout, counts as infinite)."""
         score = math.inf if math.isnan(score) else score
         if self.best is None or score < self.best[0]:
-            self.best = (score, {k: getattr(self.model, k).detach().clone() for k in PARAMETER_NAMES})
+            self.best = (score, {k: p.detach().clone() for k, p in self.model.named_parameters()})
 
     def restore_best(self) -> None:
         """Load the best iterate (``keep_best``) into the model."""

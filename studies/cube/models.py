@@ -54,7 +54,7 @@ import lcs_cvx
 from lcs_cvx.datasets import CUBE_DT
 from lcs_cvx.metrics import AffineMap, affine_lstsq
 
-from . import kinematic, symmetry
+from . import kinematic, rigid, symmetry
 from .metrics import Stepper
 
 __all__ = ["Spec", "specs", "structured_lcs", "ResidualMLP", "validation_score",
@@ -89,11 +89,16 @@ class Budget:
     n_lams: tuple[int, ...] = N_LAMS
     mlp_grid: tuple[dict[str, Any], ...] = MLP_GRID
     val_stride: int = 2
+    rigid_iterations: int = 1000
+    rigid_rollout_iterations: int = 600
+    rigid_lr: float = 3e-3
+    rigid_eval_every: int = 100
 
 
 #: The smoke run's budgets (a check in about a minute).
 SMOKE_BUDGET = Budget(lcs_iterations=60, rollout_iterations=10, rollout_horizon=5, mlp_steps=100,
-                      mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(MLP_GRID[0],), val_stride=1)
+                      mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(MLP_GRID[0],), val_stride=1,
+                      rigid_iterations=10, rigid_rollout_iterations=4, rigid_eval_every=5)
 
 
 @dataclass(frozen=True)
@@ -400,6 +405,7 @@ def specs() -> list[Spec]:
         Spec("LCS, cube symmetry", "lcs_symmetry", "npz",
              _fit_lcs(symmetry.symmetric_lcs, True, prepare=symmetry.prepare, candidates=kinematic.CONTACT_N_LAMS,
                       stepper=symmetry.stepper), _load_symmetric),
+        Spec("rigid body", "rigid_body", "npz", rigid.fit, rigid.load),
     ]
 
 

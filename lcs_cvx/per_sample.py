@@ -1,0 +1,197 @@
+r"""The LCP, the violation loss and the prediction loss of a model whose matrices differ per
+sample (:class:`lcs_cvx.rigid_body.SampleLCS`: an LCS built at each state, e.g.
+:class:`lcs_cvx.RigidBodyContact`).
+
+Sample ``t`` has its own ``C_t`` ``(m, n)``, ``F_t`` ``(n, n)`` (``F_t + F_t^T`` positive
+definite), ``q_t`` and the contact-free prediction ``r0_t`` of the rows ``x'[rows]``; the rows
+are weighted by a fixed metric ``W = diag(weight)``. Per sample, with ``e = W^{1/2}(r0 + C lam -
+x'[rows])``:
+
+- the LCP, eq. (2): ``0 <= lam _|_ F lam + q >= 0``, exact by block pivoting, each sample its own
+  problem (the stacked kernels with one sample per model); :func:`solve_sample_lcp` is
+  differentiable in ``F, q`` by the implicit function on the free set (Lemma 1);
+- (V), eq. (9b): ``min_{lam, phi >= 0} 1/2 |e|^2 + (1/eps)(lam^T phi + |F lam + q - phi|^2 /
+  (2 gamma))`` with ``0 < gamma < sigma_min(F_t + F_t^T)`` at every sample (Lemma 2). Solved
+  without autograd (the stacked pivoting kernel of :mod:`lcs_cvx._kernels.violation`, unconverged
+  samples by the Clarabel reference, counted); the objective is then evaluated in torch at the
+  detached optimum, so autograd gives Lemma 3's envelope gradient through the matrices into the
+  model's parameters (:func:`violation_loss_info`);
+- the prediction loss, eq. (6): ``1/2 |e|^2`` at the exact LCP solution (:func:`prediction_loss_info`).
+
+``solver="cvxpylayers"`` solves the same declared problems (:func:`lcs_cvx.violation_problem`,
+:func:`lcs_cvx.convex_lcp_problem`) as ``cvxpylayers`` layers with per-sample (batched)
+parameters: the reference the fast path is checked against.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ._checks import LCSInputError, check_positive
+from ._kernels import lcp as kernel_lcp
+from ._kernels import violation as kernel_violation
+from ._kernels.arrays import TORCH
+from .layers import lcp_layer, solve_layer, violation_layer
+from .losses import MAX_ITER, LossInfo
+from .problems import convex_lcp_problem, violation_problem
+from .rigid_body import SampleLCS
+
+__all__ = ["solve_sample_lcp", "violation_loss_info", "prediction_loss_info", "model_loss_info", "sample_residual"]
+
+SOLVERS = ("fast", "cvxpylayers", "cvxpylayers-scs")
+
+
+def _fast_lcp(F: torch.Tensor, q: torch.Tensor, warm_start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """``(lam, free, n_fallback)`` of the per-sample LCPs ``(F_t (N, n, n), q_t (N, n))``
+    (detached): pivoting with one sample per model, unconverged samples by Clarabel on (P)."""
+    with torch.no_grad():
+        Fd, qd = F.detach(), q.detach()
+        sol = kernel_lcp.solve(Fd, qd, max_iter=MAX_ITER, warm_start=warm_start)
+        lam, free = sol.lam.clone(), sol.free.clone()
+        n_fb = 0
+        if sol.unconverged is not None:
+            n_fb = int(sol.unconverged.numel())
+            decl = convex_lcp_problem(q.shape[1])
+            for i in sol.unconverged.tolist():
+                lam[i] = decl.solve(Fd[i], qd[i:i + 1])[0].clamp(min=0.0)
+                free[i] = lam[i] > (Fd[i] @ lam[i] + qd[i])
+        return lam, free, n_fb
+
+
+def solve_sample_lcp(lcs: SampleLCS) -> torch.Tensor:
+    """``lam`` ``(N, n)`` of each sample's LCP ``(F_t, q_t)``, eq. (2); differentiable in ``F``
+    and ``q`` (Lemma 1: ``lam_I = -F_II^{-1} q_I`` on the solution's free set)."""
+    lam, free, _ = _fast_lcp(lcs.F, lcs.q)
+    if torch.is_grad_enabled() and (lcs.F.requires_grad or lcs.q.requires_grad):
+        from .lcp import active_set_solve
+
+        return active_set_solve(lcs.F, lcs.q, free)
+    return lam
+
+
+def sample_residual(lcs: SampleLCS, x_next: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(C_w (N, m, n), r_w (N, m))``: ``W^{1/2} C`` and ``W^{1/2} (r0 - x'[rows])``."""
+    w = lcs.weight.sqrt()
+    rows = torch.as_tensor(lcs.rows, device=x_next.device)
+    return w[:, None] * lcs.C, w * (lcs.r0 - x_next.index_select(1, rows))
+
+
+def _objective(lam: torch.Tensor, phi: torch.Tensor, C: torch.Tensor, F: torch.Tensor, q: torch.Tensor,
+               r: torch.Tensor, gamma: float, eps: float) -> torch.Tensor:
+    """Eq. (9b)'s value per sample ``(N,)`` at ``(lam, phi)`` with per-sample ``C, F``."""
+    e = (C @ lam[..., None])[..., 0] + r
+    w = (F @ lam[..., None])[..., 0] + q - phi
+    return 0.5 * (e * e).sum(-1) + ((lam * phi).sum(-1) + (w * w).sum(-1) / (2.0 * gamma)) / eps
+
+
+def _normal(C: torch.Tensor, F: torch.Tensor, q: torch.Tensor, r: torch.Tensor, gamma: float,
+            eps: float) -> dict[str, torch.Tensor]:
+    """(V)'s normal equations per sample (the kernel's one formula, samples as a stack of models)."""
+    N, n = q.shape
+    out = kernel_violation.normal_equations(TORCH, C, F, q[:, None], r[:, None], gamma, eps)
+    return {"LtL": out["LtL"], "Ltb": out["Ltb"].reshape(N, n), "K": out["K"], "h": out["h"].reshape(N, n)}
+
+
+def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
+    """``U`` ``(N, n, n)`` with ``U^T U = S`` per sample; a clear error where one is not positive definite."""
+    Lc, info = torch.linalg.cholesky_ex(S)
+    bad = torch.nonzero(info).flatten()
+    if bad.numel():
+        i = int(bad[0])
+        raise LCSInputError(f"{name}: expected a positive definite matrix at every sample, received one at sample "
+                            f"{i} with smallest eigenvalue {float(torch.linalg.eigvalsh(S[i]).min()):.3e}")
+    return Lc.mT
+
+
+def _factor(normal: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The declared (V)'s parameter values ``{"L", "b", "K", "h"}`` of every sample from its
+    normal equations (:meth:`lcs_cvx.problems.ViolationProblem.factor`, batched)."""
+    L = _upper_cholesky("eps C^T C + F + F^T - gamma I", normal["LtL"])
+    b = torch.linalg.solve_triangular(L, normal["Ltb"][:, None, :], upper=True, left=False)[:, 0]
+    return {"L": L, "b": b, "K": normal["K"], "h": normal["h"]}
+
+
+def _check(gamma: float, eps: float, lcs: SampleLCS, solver: str) -> None:
+    check_positive("gamma", gamma)
+    check_positive("eps", eps)
+    if solver not in SOLVERS:
+        raise LCSInputError(f"solver: expected one of {SOLVERS}, received {solver!r}")
+    if not gamma < lcs.sigma_min_bound:
+        raise LCSInputError(f"gamma: expected 0 < gamma < {lcs.sigma_min_bound:.6g}, the bound of sigma_min(F + F^T) "
+                            f"at every state (Lemma 2: twice the model's least compliance), received {gamma!r}; "
+                            "lower gamma or raise the compliance")
+
+
+def violation_loss_info(lcs: SampleLCS, x_next: torch.Tensor, gamma: float, eps: float, *,
+                        solver: str = "fast", warm_start: torch.Tensor | None = None) -> LossInfo:
+    """The violation loss ``L_eps`` (eq. (9)), the mean over the samples of (V) with their own
+    matrices, and its diagnostics; ``loss`` differentiable (Lemma 3's envelope gradient on the
+    fast path; diffcp through the declared (V) on the layer paths). ``warm_start``: ``(N, 2 n)``
+    bool ``[free, pos]`` of an earlier solve of the same samples."""
+    _check(gamma, eps, lcs, solver)
+    C, r = sample_residual(lcs, x_next)
+    F, q = lcs.F, lcs.q
+    n = q.shape[1]
+    decl = violation_problem(n)
+    if solver != "fast":
+        values = _factor(_normal(C, F, q, r, gamma, eps))
+        lam = solve_layer(violation_layer(n), [values[k] for k in decl.parameter_order],
+                          "scs" if solver == "cvxpylayers-scs" else "clarabel").clamp(min=0.0)
+        phi = kernel_violation.phi(TORCH, lam[:, None], F, q[:, None], gamma)[:, 0]
+        loss = _objective(lam, phi, C, F, q, r, gamma, eps).mean()
+        return LossInfo(loss, lam.detach(), phi=phi.detach())
+    with torch.no_grad():
+        normal = {k: v.detach() for k, v in _normal(C, F, q, r, gamma, eps).items()}
+        sol = kernel_violation.solve(normal, max_iter=MAX_ITER, warm_start=warm_start)
+        lam, active = sol.lam.clone(), sol.active.clone()
+        n_fb = 0
+        if sol.unconverged is not None:  # the Clarabel reference on those samples' declared (V)
+            n_fb = int(sol.unconverged.numel())
+            bad = sol.unconverged
+            values = _factor({k: v[bad] for k, v in normal.items()})
+            for j, i in enumerate(bad.tolist()):
+                lam[i] = decl.solve({"L": values["L"][j], "b": values["b"][j:j + 1], "K": values["K"][j],
+                                     "h": values["h"][j:j + 1]})[0]
+                active[i] = torch.cat([lam[i] > 0, (normal["K"][i] @ lam[i] - normal["h"][i]) > 0])
+        phi = kernel_violation.phi(TORCH, lam[:, None], F.detach(), q.detach()[:, None], gamma)[:, 0]
+    loss = _objective(lam, phi, C, F, q, r, gamma, eps).mean()
+    return LossInfo(loss, lam, phi=phi, iterations=sol.iterations, n_fallback=n_fb, active=active)
+
+
+def prediction_loss_info(lcs: SampleLCS, x_next: torch.Tensor, *, solver: str = "fast",
+                         warm_start: torch.Tensor | None = None) -> LossInfo:
+    """The prediction loss (eq. (6)), the mean over the samples of ``1/2 |W^{1/2}(r0 + C lam -
+    x'[rows])|^2`` at the exact LCP solution; differentiable (Lemma 1 on the fast path, diffcp
+    through the declared (P) on the layer paths). ``warm_start``: ``(N, n)`` free sets."""
+    if solver not in SOLVERS:
+        raise LCSInputError(f"solver: expected one of {SOLVERS}, received {solver!r}")
+    C, r = sample_residual(lcs, x_next)
+    F, q = lcs.F, lcs.q
+    n = q.shape[1]
+    if solver != "fast":
+        R = _upper_cholesky("F + F^T", F + F.mT)  # (P)'s R^T R = F + F^T, per sample
+        lam = solve_layer(lcp_layer(n), [R, F, q], "scs" if solver == "cvxpylayers-scs" else "clarabel")
+        lam, free, n_fb = lam.clamp(min=0.0), None, 0
+    else:
+        lam_d, free, n_fb = _fast_lcp(F, q, warm_start)
+        from .lcp import active_set_solve
+
+        lam = active_set_solve(F, q, free) if torch.is_grad_enabled() and (F.requires_grad or q.requires_grad) else lam_d
+    e = (C @ lam[..., None])[..., 0] + r
+    loss = 0.5 * (e * e).sum(-1).mean()
+    w = ((F @ lam[..., None])[..., 0] + q).detach()
+    return LossInfo(loss, lam.detach(), w=w, active=free, n_fallback=n_fb)
+
+
+def model_loss_info(kind: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor, *,
+                    gamma: float = 1e-2, eps: float = 1e-4, solver: str = "fast",
+                    warm_start: torch.Tensor | None = None) -> LossInfo:
+    """:func:`violation_loss_info` (``kind="violation"``) or :func:`prediction_loss_info` of
+    ``model.sample_lcs(x, u)``: the losses of :mod:`lcs_cvx.losses` for a model with per-sample
+    matrices."""
+    lcs = model.sample_lcs(x, u)
+    if kind == "violation":
+        return violation_loss_info(lcs, x_next, gamma, eps, solver=solver, warm_start=warm_start)
+    return prediction_loss_info(lcs, x_next, solver=solver, warm_start=warm_start)

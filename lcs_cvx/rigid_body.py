@@ -1,0 +1,483 @@
+r"""A free rigid body on a ground plane as an LCS of its state: the time-stepping LCS of its
+configuration, built at every state from learnable geometry, friction and inertia.
+
+State (:data:`lcs_cvx.datasets.CUBE_COLUMNS`): ``x = (q, p, omega, v)``, a unit quaternion
+``q = (w, x, y, z)`` (body to world), the position ``p`` of the body frame's origin (world),
+the angular velocity ``omega`` (body frame) and the linear velocity ``v`` of the origin (world);
+``nu = (omega, v)``. Optional input: a wrench ``u = (torque (body), force (world))``.
+
+Contact point ``k`` at ``r_k`` (body frame) has the gap ``phi_k = e_z^T (p + R(q) r_k) - h`` to
+the floor at height ``h`` and the velocity Jacobian ``J_k = [-R [r_k]_x, I]`` (``3 x 6``: the
+world velocity of the point is ``J_k nu``). The friction cone is a polyhedron of ``m``
+directions ``d_j`` in the floor's plane. One step of length ``dt`` of Anitescu's
+time-stepping (one ``lambda`` per cone edge, the impulse along ``n + mu d_j``):
+
+$$
+\begin{aligned}
+M(q)\,(\nu' - \nu) &= \Delta t\, f(x) + \Delta t\, u + \tilde J(q)^\top \lambda, \\
+0 \le \lambda_{kj} &\perp \phi_k / \Delta t + \tilde J_{kj}(q)\, \nu' + \kappa_k \lambda_{kj} \ge 0,
+\qquad \tilde J_{kj} = (n + \mu d_j)^\top J_k,
+\end{aligned}
+$$
+
+with ``M = diag(I_c, 0) + m J_c^T J_c`` (``J_c = [-R [c]_x, I]``, ``c`` the centre of mass in
+the body frame), ``f`` gravity at the centre of mass, the gyroscopic torque ``-omega x I_c
+omega`` and the centre of mass's centripetal term, all at ``x`` (explicit). Substituting
+``nu'`` gives, at each state, the velocity rows of eq. (1) with per-sample matrices:
+
+$$
+\nu' = \nu_\text{free}(x, u) + C(x)\,\lambda, \qquad
+w = F(x)\,\lambda + q(x, u), \qquad
+C = M^{-1}\tilde J^\top,\ F = \tilde J M^{-1} \tilde J^\top + \operatorname{diag}(\kappa),\
+q = \phi/\Delta t + \tilde J \nu_\text{free},
+$$
+
+``nu_free = nu + dt M^{-1} (f + u)``. ``F`` is symmetric positive definite (``kappa > 0``: the
+contact compliance, the role of the paper's stiffness ``s``), so Assumption 1 holds at every
+state and the LCP is a strongly convex QP, solved exactly by the package's pivoting. The
+configuration is integrated exactly from ``nu'`` (:class:`lcs_cvx.Kinematics`:
+``q' = q ⊗ exp(dt omega' / 2)``, ``p' = p + dt v'``). :meth:`RigidBodyContact.sample_lcs` gives
+the per-sample matrices the losses consume (:mod:`lcs_cvx.per_sample`);
+:meth:`RigidBodyContact.lcs_at` the plain :class:`lcs_cvx.LCS` of one state.
+
+Learnable, each with its constraint in its parameterisation: the contact points (free
+``vertices`` or a box's half sizes, positive by an exponential), ``mu >= 0`` (softplus), the
+inertia about the centre of mass (``L L^T`` with a positive diagonal: positive definite), the
+centre of mass, the floor's height and the compliance (``kappa_min + softplus``). The mass is
+known: only the ratios of impulse to mass are identifiable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from ._checks import LCSInputError, as_batch, check_positive
+from .kinematics import Kinematics
+
+__all__ = ["RigidBodyContact", "SampleLCS", "FORMULATIONS", "LEARNABLE", "box_vertices", "rotation_matrix"]
+
+#: The time-stepping formulations (C3's LCS factory has Anitescu's and Stewart--Trinkle's).
+FORMULATIONS = ("anitescu",)
+#: The physical quantities :class:`RigidBodyContact` can learn (its ``learn`` argument).
+LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance")
+#: Quaternion rows, position rows, angular velocity rows, linear velocity rows of the state.
+Q, P, W, V = slice(0, 4), slice(4, 7), slice(7, 10), slice(10, 13)
+N_X = 13
+#: How far from unit norm a data quaternion may be before it is an error, not round-off.
+UNIT_TOL = 1e-6
+
+
+def box_vertices(half_sizes: torch.Tensor) -> torch.Tensor:
+    """The 8 corners ``(8, 3)`` of the box ``|r_i| <= half_sizes_i`` centred at the origin."""
+    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                         dtype=half_sizes.dtype, device=half_sizes.device)
+    return signs * half_sizes
+
+
+def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
+    """``R(q)`` ``(..., 3, 3)`` of unit quaternions ``q`` ``(..., 4)`` (scalar first, body to world)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def _skew(r: torch.Tensor) -> torch.Tensor:
+    """``[r]_x`` ``(..., 3, 3)``: ``[r]_x a = r x a``."""
+    zero = torch.zeros_like(r[..., 0])
+    x, y, z = r.unbind(-1)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(r.shape[:-1] + (3, 3))
+
+
+def _inv_softplus(y: float) -> float:
+    return y + math.log(-math.expm1(-y))
+
+
+@dataclass(frozen=True)
+class SampleLCS:
+    r"""The velocity rows of eq. (1) at each sample, with per-sample matrices:
+
+    ``x'[rows] = r0 + C lam``, ``0 <= lam _|_ F lam + q >= 0``.
+
+    Attributes:
+        rows: the state indices these rows predict (the velocities; the other rows follow from
+            them exactly).
+        r0: ``(N, m)`` the prediction without contact (``nu_free``).
+        C: ``(N, m, n)``; F: ``(N, n, n)`` (``F + F^T`` positive definite); q: ``(N, n)``.
+        weight: ``(m,)`` the weight of each row in the losses (a fixed metric on the velocities).
+        sigma_min_bound: a lower bound of ``sigma_min(F + F^T)`` at every sample (Lemma 2's bound
+            on ``gamma``).
+    """
+
+    rows: tuple[int, ...]
+    r0: torch.Tensor
+    C: torch.Tensor
+    F: torch.Tensor
+    q: torch.Tensor
+    weight: torch.Tensor
+    sigma_min_bound: float
+
+
+class RigidBodyContact(nn.Module):
+    r"""A free rigid body on a ground plane as the time-stepping LCS of its state (module
+    docstring): eq. (1) with matrices built at each state from learnable geometry, friction and
+    inertia.
+
+    Args:
+        vertices: the contact points ``(K, 3)`` in the body frame (learned freely); or
+        half_sizes: a box's half sizes ``(3,)`` (its 8 corners; learned as three positive
+            numbers). Exactly one of the two.
+        mass: the known mass (kg) ``> 0``.
+        dt: the time step (s) ``> 0``; gravity: ``g`` (m/s², along ``-z``), ``>= 0``.
+        mu: the initial friction coefficient ``>= 0``.
+        inertia: the initial inertia about the centre of mass, a number (``I 1``), ``(3,)`` (a
+            diagonal) or ``(3, 3)`` symmetric positive definite (kg m²); default that of a solid
+            box of the half sizes (of the vertices' bounding box).
+        com: the initial centre of mass in the body frame ``(3,)`` (default the origin).
+        ground: the initial floor height (m).
+        compliance: the initial contact compliance ``kappa`` (1/kg) ``> 0``; it is learned as
+            ``kappa_min + softplus(.)`` with ``kappa_min = compliance / 2`` fixed, so
+            ``sigma_min(F + F^T) >= compliance`` at every state (Lemma 2 then holds for every
+            ``gamma < compliance``).
+        friction_directions: the polyhedral cone's edges ``m >= 3`` (default 4).
+        formulation: ``"anitescu"``.
+        n_u: 0 (no input) or 6 (a wrench: body torque, world force).
+        learn: the quantities learned (names of :data:`LEARNABLE`); the others are fixed.
+        dtype: torch.float64 (recommended) or torch.float32.
+
+    Example:
+        >>> import torch, lcs_cvx
+        >>> cube = lcs_cvx.RigidBodyContact(half_sizes=[0.05, 0.05, 0.05], mass=0.37, dt=0.01)
+        >>> x = torch.tensor([[1.0, 0, 0, 0, 0, 0, 0.2, 0, 0, 0, 0, 0, 0]], dtype=torch.float64)
+        >>> cube.step(x, torch.zeros(1, 0, dtype=torch.float64))[0, 12].item()  # falling freely
+        -0.0981
+    """
+
+    def __init__(self, vertices: Any = None, *, half_sizes: Any = None, mass: float, dt: float,
+                 gravity: float = 9.81, mu: float = 0.15, inertia: Any = None, com: Any = (0.0, 0.0, 0.0),
+                 ground: float = 0.0, compliance: float = 0.02, friction_directions: int = 4,
+                 formulation: str = "anitescu", n_u: int = 0, learn: Iterable[str] = LEARNABLE,
+                 dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        if dtype not in (torch.float32, torch.float64):
+            raise LCSInputError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
+        if (vertices is None) == (half_sizes is None):
+            raise LCSInputError("vertices, half_sizes: expected exactly one of them, received "
+                                f"{'both' if vertices is not None else 'neither'}")
+        if formulation not in FORMULATIONS:
+            raise LCSInputError(f"formulation: expected one of {FORMULATIONS}, received {formulation!r}")
+        learn = tuple(learn)
+        unknown = [k for k in learn if k not in LEARNABLE]
+        if unknown:
+            raise LCSInputError(f"learn: expected names among {LEARNABLE}, received {unknown[0]!r}")
+        self.mass = float(check_positive("mass", mass))
+        self.dt = float(check_positive("dt", dt))
+        if isinstance(gravity, bool) or not isinstance(gravity, (int, float)) or not gravity >= 0:
+            raise LCSInputError(f"gravity: expected a number >= 0, received {gravity!r}")
+        self.gravity = float(gravity)
+        if isinstance(friction_directions, bool) or not isinstance(friction_directions, int) or friction_directions < 3:
+            raise LCSInputError(f"friction_directions: expected an integer >= 3, received {friction_directions!r}")
+        self.friction_directions = friction_directions
+        self.formulation = formulation
+        if n_u not in (0, 6):
+            raise LCSInputError(f"n_u: expected 0 (no input) or 6 (a wrench), received {n_u!r}")
+        self.n_x, self.n_u = N_X, int(n_u)
+        if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not math.isfinite(mu) or mu < 0:
+            raise LCSInputError(f"mu: expected a finite number >= 0, received {mu!r}")
+        check_positive("compliance", compliance)
+        kw = {"dtype": torch.float64}
+        if half_sizes is not None:
+            hs = torch.as_tensor(np.asarray(half_sizes, dtype=np.float64))
+            if hs.shape != (3,) or not bool(torch.isfinite(hs).all()) or not bool((hs > 0).all()):
+                raise LCSInputError(f"half_sizes: expected 3 finite numbers > 0, received {np.asarray(half_sizes).tolist()!r}")
+            self.box = True
+            self.log_half_sizes = nn.Parameter(hs.log())
+            extent = hs
+        else:
+            vs = torch.as_tensor(np.asarray(vertices, dtype=np.float64))
+            if vs.dim() != 2 or vs.shape[1] != 3 or vs.shape[0] < 1 or not bool(torch.isfinite(vs).all()):
+                raise LCSInputError(f"vertices: expected a finite (K, 3) array of contact points (K >= 1), "
+                                    f"received shape {tuple(vs.shape)}")
+            self.box = False
+            extent = (vs.amax(0) - vs.amin(0)).clamp_min(1e-3) / 2
+            self.vertex_positions = nn.Parameter(vs / float(extent.mean()))
+        if inertia is None:
+            a2 = (2 * extent) ** 2
+            inertia = torch.stack([a2[1] + a2[2], a2[0] + a2[2], a2[0] + a2[1]]) * self.mass / 12
+        I = torch.as_tensor(np.asarray(inertia, dtype=np.float64))
+        I = I * torch.eye(3, **kw) if I.dim() == 0 else (torch.diag(I) if I.dim() == 1 else I)
+        if I.shape != (3, 3) or not bool(torch.isfinite(I).all()) or not bool(torch.allclose(I, I.mT)) \
+                or float(torch.linalg.eigvalsh(I).min()) <= 0:
+            raise LCSInputError(f"inertia: expected a number > 0, (3,) positive numbers or a (3, 3) symmetric "
+                                f"positive definite matrix, received {np.asarray(inertia).tolist()!r}")
+        # every parameter in the body's own units, so that one learning rate suits them all: lengths
+        # in l (the mean half extent), the inertia factor's off-diagonal in sqrt(mean I)
+        ell = float(extent.mean())
+        self.register_buffer("length_scale", torch.tensor(ell, **kw))
+        self.register_buffer("inertia_scale", torch.tensor(float(I.diagonal().mean()) ** 0.5, **kw))
+        Lc = torch.linalg.cholesky(I)
+        self.inertia_factor = nn.Parameter(torch.tril(Lc, -1) / self.inertia_scale + torch.diag(Lc.diagonal().log()))
+        c = torch.as_tensor(np.asarray(com, dtype=np.float64))
+        if c.shape != (3,) or not bool(torch.isfinite(c).all()):
+            raise LCSInputError(f"com: expected 3 finite numbers, received {np.asarray(com).tolist()!r}")
+        if isinstance(ground, bool) or not isinstance(ground, (int, float)) or not math.isfinite(ground):
+            raise LCSInputError(f"ground: expected a finite number, received {ground!r}")
+        self.com_scaled = nn.Parameter(c / ell)
+        self.ground_scaled = nn.Parameter(torch.tensor(float(ground) / ell, **kw))
+        self.register_buffer("compliance_min", torch.tensor(compliance / 2, **kw))
+        self.mu_raw = nn.Parameter(torch.tensor(_inv_softplus(max(float(mu), 1e-12)), **kw))
+        K = self.n_contacts
+        self.compliance_raw = nn.Parameter(torch.full((K,), _inv_softplus(compliance / 2), **kw))
+        theta = torch.arange(friction_directions, dtype=torch.float64) * (2 * math.pi / friction_directions)
+        self.register_buffer("directions", torch.stack([theta.cos(), theta.sin(), torch.zeros_like(theta)], -1))
+        # the fixed metric of the velocity residuals: m (l^2 |d omega|^2 + |d v|^2), l the start's
+        # mean half extent (the speed of a point at l from the origin)
+        self.register_buffer("residual_weight", torch.tensor([self.mass * ell**2] * 3 + [self.mass] * 3, **kw))
+        self.kinematics = Kinematics(self.dt, positions={4: 10, 5: 11, 6: 12}, quaternions=[(0, 7)], frame="body")
+        self._config = {"box": self.box, "n_contacts": self.n_contacts, "mass": self.mass, "dt": self.dt,
+                        "gravity": self.gravity, "compliance": float(compliance),
+                        "friction_directions": friction_directions, "formulation": formulation, "n_u": self.n_u,
+                        "learn": list(learn), "dtype": str(dtype).removeprefix("torch.")}
+        self.to(dtype)
+        names = {"vertices": "log_half_sizes" if self.box else "vertex_positions", "mu": "mu_raw",
+                 "inertia": "inertia_factor", "com": "com_scaled", "ground": "ground_scaled", "compliance": "compliance_raw"}
+        for quantity, pname in names.items():
+            getattr(self, pname).requires_grad_(quantity in learn)
+        self._quaternion_note = False
+
+    # -- the physical quantities ---------------------------------------------------------------
+    @property
+    def n_contacts(self) -> int:
+        return 8 if self.box else self.vertex_positions.shape[0]
+
+    @property
+    def n_lam(self) -> int:
+        """``K m``: one ``lambda`` per contact point and cone edge."""
+        return self.n_contacts * self.friction_directions
+
+    @property
+    def vertices(self) -> torch.Tensor:
+        """The contact points ``(K, 3)`` in the body frame (m)."""
+        return box_vertices(self.log_half_sizes.exp()) if self.box else self.vertex_positions * self.length_scale
+
+    @property
+    def com(self) -> torch.Tensor:
+        """The centre of mass ``(3,)`` in the body frame (m)."""
+        return self.com_scaled * self.length_scale
+
+    @property
+    def ground(self) -> torch.Tensor:
+        """The floor's height (m)."""
+        return self.ground_scaled * self.length_scale
+
+    @property
+    def half_sizes(self) -> torch.Tensor:
+        """Half the extent of the contact points along each body axis ``(3,)`` (m): a box's half sizes."""
+        v = self.vertices
+        return (v.amax(0) - v.amin(0)) / 2
+
+    @property
+    def mu(self) -> torch.Tensor:
+        """The friction coefficient ``mu >= 0``."""
+        return nn.functional.softplus(self.mu_raw)
+
+    @property
+    def inertia(self) -> torch.Tensor:
+        """The inertia about the centre of mass ``(3, 3)`` (kg m²), ``L L^T`` (positive definite)."""
+        L = torch.tril(self.inertia_factor, -1) * self.inertia_scale + torch.diag(self.inertia_factor.diagonal().exp())
+        return L @ L.mT
+
+    @property
+    def compliance(self) -> torch.Tensor:
+        """The contact compliance ``kappa`` ``(K,)`` (1/kg), ``kappa_min + softplus(.)``."""
+        return self.compliance_min + nn.functional.softplus(self.compliance_raw)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.com_scaled.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.com_scaled.device
+
+    def physical(self) -> dict[str, Any]:
+        """The learned quantities in units, as plain numbers (half sizes in m, ``mu``, inertia
+        in kg m², centre of mass in m, floor height in m, compliance in 1/kg)."""
+        with torch.no_grad():
+            return {"half_sizes": self.half_sizes.tolist(), "side": float(2 * self.half_sizes.mean()),
+                    "vertices": self.vertices.tolist(), "mu": float(self.mu),
+                    "inertia": self.inertia.tolist(), "com": self.com.tolist(), "ground": float(self.ground),
+                    "compliance": self.compliance.tolist(), "mass": self.mass}
+
+    def extra_repr(self) -> str:
+        p = self.physical()
+        hs = ", ".join(f"{1e3 * h:.1f}" for h in p["half_sizes"])
+        I = np.diag(np.asarray(p["inertia"]))
+        return (f"contacts={self.n_contacts}, half sizes=({hs}) mm, mu={p['mu']:.3g}, "
+                f"inertia diag=({', '.join(f'{i:.3g}' for i in I)}) kg m², mass={self.mass:g} kg, "
+                f"dt={self.dt:g} s, friction_directions={self.friction_directions}, formulation={self.formulation}")
+
+    # -- files -------------------------------------------------------------------------------
+    def config(self) -> dict[str, Any]:
+        """The constructor's settings as a JSON-serialisable dict (:func:`lcs_cvx.save_model`);
+        :meth:`from_config` and the stored parameters rebuild the model."""
+        return dict(self._config)
+
+    @classmethod
+    def from_config(cls, config: dict[str, Any]) -> RigidBodyContact:
+        """A model of :meth:`config`'s settings (its parameters at a placeholder start, to be
+        loaded with ``load_state_dict``)."""
+        c = dict(config)
+        shape = {"half_sizes": [1.0, 1.0, 1.0]} if c.pop("box") else {"vertices": np.ones((c["n_contacts"], 3))}
+        c.pop("n_contacts")
+        dtype = {"float32": torch.float32, "float64": torch.float64}[c.pop("dtype")]
+        return cls(**shape, **c, dtype=dtype)
+
+    # -- inputs ------------------------------------------------------------------------------
+    def _xu(self, x: Any, u: Any) -> tuple[torch.Tensor, torch.Tensor]:
+        kw = {"dtype": self.dtype, "device": self.device}
+        x = self.check_states("x", as_batch("x", x, N_X, **kw))
+        u = as_batch("u", u, self.n_u, batch=x.shape[0], **kw)
+        return x, u
+
+    def check_states(self, name: str, x: torch.Tensor) -> torch.Tensor:
+        """``x`` ``(N, 13)`` with its quaternions (columns 0-3) normalised: within
+        :data:`UNIT_TOL` of unit norm silently, within 1e-2 with a warning (once per model);
+        farther is an :class:`lcs_cvx.LCSInputError` naming ``name``."""
+        norm = x[:, Q].norm(dim=-1)
+        off = float((norm.detach() - 1).abs().max()) if len(norm) else 0.0
+        if off > 1e-2 or not math.isfinite(off):
+            raise LCSInputError(f"{name}: expected unit quaternions in columns 0-3 (w, x, y, z), received "
+                                f"norms off by up to {off:.3g}")
+        if off > UNIT_TOL and not self._quaternion_note:
+            import warnings
+
+            warnings.warn(f"{name}: quaternions up to {off:.2e} from unit norm were normalised", stacklevel=3)
+            self._quaternion_note = True
+        return torch.cat([x[:, Q] / norm[:, None], x[:, 4:]], dim=1)
+
+    # -- the LCS of each state -----------------------------------------------------------------
+    def _dynamics(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(M (N, 6, 6), f (N, 6), J~ (N, K m, 6), phi (N, K))`` at the states ``x`` (module
+        docstring): the mass matrix, the forces (no input), the cone edges' Jacobians (contact-major)
+        and the gaps."""
+        N = x.shape[0]
+        kw = {"dtype": x.dtype, "device": x.device}
+        R = rotation_matrix(x[:, Q])                                    # (N, 3, 3)
+        p, omega = x[:, P], x[:, W]
+        m, Ic, c = self.mass, self.inertia, self.com
+        ez = torch.tensor([0.0, 0.0, 1.0], **kw)
+        # M = diag(I_c, 0) + m J_c^T J_c, J_c = [-R [c]_x, I] (the centre of mass's velocity)
+        Jc = torch.cat([-R @ _skew(c), torch.eye(3, **kw).expand(N, 3, 3)], dim=2)
+        M = m * Jc.mT @ Jc + torch.block_diag(Ic, torch.zeros(3, 3, **kw))
+        # gravity at the centre of mass, less its centripetal acceleration R (omega x (omega x c)),
+        # through J_c^T; the gyroscopic torque -omega x I_c omega
+        cc = c.expand(N, 3)
+        centripetal = (R @ torch.linalg.cross(omega, torch.linalg.cross(omega, cc))[..., None])[..., 0]
+        f = (Jc.mT @ (-m * self.gravity * ez - m * centripetal)[..., None])[..., 0]
+        f = f - torch.cat([torch.linalg.cross(omega, omega @ Ic.mT), torch.zeros_like(omega)], dim=1)
+        # the cone edges' Jacobians J~_kj = (n + mu d_j)^T [-R [r_k]_x, I] = [(r_k x R^T e_j)^T, e_j^T]
+        r = self.vertices                                               # (K, 3)
+        edges = ez + self.mu * self.directions                          # (m, 3), world
+        K, n_dir = r.shape[0], edges.shape[0]
+        body = edges @ R                                                # (N, m, 3): R^T e_j
+        ang = torch.linalg.cross(r[None, :, None, :].expand(N, K, n_dir, 3), body[:, None].expand(N, K, n_dir, 3))
+        J = torch.cat([ang, edges.expand(N, K, n_dir, 3)], dim=-1).reshape(N, K * n_dir, 6)
+        phi = p[:, 2:3] + R[:, 2, :] @ r.mT - self.ground               # (N, K): e_z^T (p + R r_k) - h
+        return M, f, J, phi
+
+    def sample_lcs(self, x: torch.Tensor, u: torch.Tensor) -> SampleLCS:
+        """The velocity rows of eq. (1) at every state ``x`` ``(N, 13)`` under ``u`` ``(N, n_u)``
+        (module docstring): ``nu' = nu_free + C lam``, ``0 <= lam _|_ F lam + q >= 0``;
+        differentiable in the parameters."""
+        M, f, J, phi = self._dynamics(x)
+        if self.n_u:
+            f = f + u
+        Minv = torch.linalg.inv(M)
+        nu_free = x[:, 7:] + self.dt * (Minv @ f[..., None])[..., 0]
+        C = Minv @ J.mT                                                 # (N, 6, n)
+        kappa = self.compliance.repeat_interleave(self.friction_directions)
+        F = J @ C + torch.diag_embed(kappa.expand(x.shape[0], -1))
+        q = phi.repeat_interleave(self.friction_directions, dim=1) / self.dt + (J @ nu_free[..., None])[..., 0]
+        return SampleLCS(rows=tuple(range(7, 13)), r0=nu_free, C=C, F=F, q=q, weight=self.residual_weight,
+                         sigma_min_bound=2.0 * float(self.compliance_min))
+
+    def solve_lcp(self, x: Any, u: Any) -> torch.Tensor:
+        """The impulses ``lam`` ``(N, K m)`` of every state (the exact LCP of its LCS);
+        differentiable in the parameters (Lemma 1 on the solution's free set)."""
+        from .per_sample import solve_sample_lcp
+
+        x, u = self._xu(x, u)
+        return solve_sample_lcp(self.sample_lcs(x, u))
+
+    def step(self, x: Any, u: Any) -> torch.Tensor:
+        """``x'`` ``(N, 13)``: the velocities of eq. (1) at each state with ``lam`` from its exact
+        LCP, the configuration integrated from them (:class:`lcs_cvx.Kinematics`)."""
+        from .per_sample import solve_sample_lcp
+
+        x, u = self._xu(x, u)
+        lcs = self.sample_lcs(x, u)
+        lam = solve_sample_lcp(lcs)
+        nu = lcs.r0 + (lcs.C @ lam[..., None])[..., 0]
+        return self.kinematics.integrate(x, torch.cat([x[:, :7], nu], dim=1))
+
+    def forward(self, x: Any, u: Any) -> torch.Tensor:
+        """Same as :meth:`step`."""
+        return self.step(x, u)
+
+    def rollout(self, x0: Any, us: Any) -> torch.Tensor:
+        """Simulate from ``x0`` ``(N, 13)`` under ``us`` ``(N, T, n_u)`` (a single run: ``(13,)``
+        and ``(T, n_u)``); returns ``(N, T + 1, 13)`` (``(T + 1, 13)``)."""
+        single = np.ndim(x0) == 1
+        x = as_batch("x0", x0, N_X, dtype=self.dtype, device=self.device)
+        us_t = torch.as_tensor(us, dtype=self.dtype, device=self.device)
+        us_t = us_t.unsqueeze(0) if us_t.dim() == 2 else us_t
+        if us_t.dim() != 3 or us_t.shape[0] != x.shape[0] or us_t.shape[2] != self.n_u:
+            raise LCSInputError(f"us: expected shape ({x.shape[0]}, T, {self.n_u}) or (T, {self.n_u}), "
+                                f"received shape {tuple(us_t.shape)}")
+        xs = [x]
+        for t in range(us_t.shape[1]):
+            xs.append(self.step(xs[-1], us_t[:, t]))
+        out = torch.stack(xs, dim=1)
+        return out[0] if single else out
+
+    def lcs_at(self, x: Any, u: Any = None) -> Any:
+        """The plain :class:`lcs_cvx.LCS` (13 states, ``n_u`` inputs, ``K m`` units) of the state
+        ``x`` ``(13,)``: its velocity and complementarity rows the time-stepping LCS of ``x``'s
+        configuration (``f`` held at its value at ``x``), its configuration rows ``p' = p + dt v'``
+        exact and ``q'`` linearised about ``x`` and the model's own step there under ``u``
+        (default 0; :meth:`lcs_cvx.Kinematics.to_lcs`). Detached: a model to simulate or control
+        (``to_c3()``, :class:`lcs_cvx.control.C3`)."""
+        from .system import LCS
+
+        xa, ua = self._xu(x, torch.zeros(self.n_u, dtype=self.dtype) if u is None else u)
+        if xa.shape[0] != 1:
+            raise LCSInputError(f"x: expected one state (13,), received {xa.shape[0]} states")
+        with torch.no_grad():
+            M, f, J, phi = (t[0].double() for t in self._dynamics(xa))
+            Minv = torch.linalg.inv(M)
+            eye6 = torch.eye(6, dtype=torch.float64)
+            A = torch.zeros(N_X, N_X, dtype=torch.float64)
+            A[7:, 7:] = eye6
+            B = torch.zeros(N_X, self.n_u, dtype=torch.float64)
+            B[7:] = (self.dt * Minv)[:, : self.n_u] if self.n_u else B[7:]
+            d = torch.zeros(N_X, dtype=torch.float64)
+            d[7:] = self.dt * Minv @ f
+            C = torch.zeros(N_X, self.n_lam, dtype=torch.float64)
+            C[7:] = Minv @ J.mT
+            D = torch.zeros(self.n_lam, N_X, dtype=torch.float64)
+            D[:, 7:] = J
+            kappa = self.compliance.double().repeat_interleave(self.friction_directions)
+            F = J @ C[7:] + torch.diag(kappa)
+            c = phi.repeat_interleave(self.friction_directions) / self.dt + J @ d[7:]
+            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=D, E=J @ B[7:], F=F, c=c, dtype=self.dtype)
+            model.with_kinematics(self.kinematics)
+            return self.kinematics.to_lcs(model, about=xa[0], u=ua[0])

@@ -1,0 +1,91 @@
+r"""The cube as a rigid body on the floor (:class:`lcs_cvx.RigidBodyContact`): the time-stepping
+LCS of each state, its geometry, friction, inertia, centre of mass, floor height and compliance
+learned by :func:`lcs_cvx.fit` from the training tosses.
+
+The start is a user's first guess from the cube's data sheet (dair_pll's URDF): a box of side
+:data:`lcs_cvx.datasets.CUBE_SIDE` and mass :data:`~lcs_cvx.datasets.CUBE_MASS`, the inertia of a
+solid box of that side, ``mu = 0.15`` and the floor at the training tosses' resting height
+(:func:`studies.cube.physics.floor_height`). ``fit`` then runs its phases with the study's budget:
+Adam on the violation loss (eq. (9), each sample its own LCS) and the simulation-error phase
+(rollouts of :data:`ROLLOUT_HORIZON` steps through each step's LCP), the iterate kept by the
+held-out rollout score at :data:`studies.cube.models.VALIDATION_HORIZON` steps on the first
+:data:`VALIDATION_TOSSES` validation tosses (the whole validation quarter scores the chosen
+model, ``val_rollout``).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import torch
+
+import lcs_cvx
+from lcs_cvx.datasets import CUBE_DT, CUBE_MASS, CUBE_SIDE
+
+from .metrics import Stepper
+from .physics import floor_height
+
+__all__ = ["start", "fit", "load", "stepper", "ROLLOUT_HORIZON", "VALIDATION_TOSSES", "GAMMA", "EPS"]
+
+#: The simulation-error phase's window (steps).
+ROLLOUT_HORIZON = 10
+#: Validation tosses the kept iterate is chosen on (a held-out score at 30 steps over every
+#: window of all 138 takes ~35 s a time here).
+VALIDATION_TOSSES = 40
+#: The violation loss's constants for the rigid body's units (residuals weighted by the kinetic
+#: metric, J; ``F`` in 1/kg with the compliance 0.02 by default, Lemma 2 needs ``gamma < 0.02``).
+GAMMA, EPS = 0.01, 0.01
+
+
+def start(train: lcs_cvx.Trajectories, seed: int = 0) -> lcs_cvx.RigidBodyContact:
+    """The data sheet's cube (module docstring); ``seed`` > 0: its quantities jittered (a restart's
+    start, :func:`lcs_cvx.train.starts.jittered`)."""
+    model = lcs_cvx.RigidBodyContact(half_sizes=[CUBE_SIDE / 2] * 3, mass=CUBE_MASS, dt=CUBE_DT, mu=0.15,
+                                     ground=floor_height(train.xs))
+    if seed:
+        from lcs_cvx.train.starts import jittered
+
+        model = jittered(model, seed)
+    return model
+
+
+def stepper(model: lcs_cvx.RigidBodyContact) -> Stepper:
+    """The model's step on the study's states (no input)."""
+    empty = torch.zeros(0, 0, dtype=torch.float64)
+
+    def step(x: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return model.step(x, empty.expand(x.shape[0], 0))
+    return step
+
+
+def fit(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Any, path: str, seed: int = 0,
+        **_: Any) -> tuple[Stepper, dict[str, Any]]:
+    """Fit the rigid body (module docstring) with ``budget``'s ``rigid_iterations`` Adam steps and
+    ``rigid_rollout_iterations`` simulation-error steps; write it to ``path``."""
+    from .models import VALIDATION_HORIZON, validation_score
+
+    t0 = time.perf_counter()
+    model = start(train, seed)
+    held = lcs_cvx.Trajectories(val.xs[:VALIDATION_TOSSES], val.us[:VALIDATION_TOSSES])
+    res = lcs_cvx.fit(model, train, validation=held, loss="violation", gamma=GAMMA, eps=EPS,
+                      iterations=budget.rigid_iterations, lr=budget.rigid_lr, rollout_horizon=ROLLOUT_HORIZON,
+                      rollout_iterations=budget.rigid_rollout_iterations, rollout_lr=budget.rigid_lr,
+                      rollout_batch=32, holdout_horizon=VALIDATION_HORIZON, eval_every=budget.rigid_eval_every,
+                      seed=seed, progress=False)
+    lcs_cvx.save_model(model, path, metadata={"seed": seed})
+    scored = [(h["iteration"], h["phase"], h["e_test"]) for h in res.history if h.get("e_test") is not None]
+    best = min(scored, key=lambda t: t[2]) if scored else None
+    info = {"wall": time.perf_counter() - t0, "physical": model.physical(),
+            "heldout_error": res.heldout_error, "affine_heldout_error": res.affine_heldout_error,
+            "refinement_kept": res.refinement_kept, "verdict": res.verdict,
+            "best_iteration": None if best is None else best[0], "best_phase": None if best is None else best[1],
+            "val_rollout": validation_score(stepper(model), val, budget.val_stride),
+            "history": [{k: h[k] for k in ("iteration", "phase", "loss", "e_test", "wall_time")} for h in res.history]}
+    return stepper(model), info
+
+
+def load(path: str) -> Stepper:
+    """The stepper of a fitted rigid body's file."""
+    return stepper(lcs_cvx.load_model(path))
