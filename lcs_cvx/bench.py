@@ -29,7 +29,7 @@ from .losses import prediction_loss, prediction_loss_info, violation_loss, viola
 from .system import LCS
 
 __all__ = ["BenchRow", "DEFAULT_SIZES", "THROUGHPUT_BATCHES", "run_bench", "format_table", "run_lcp_bench",
-           "run_throughput", "median_time", "perturbed"]
+           "run_throughput", "run_rigid_body_bench", "median_time", "perturbed"]
 
 #: (n_x, n_u, n_lam) of the comparison with the authors' code (the paper's sizes).
 DEFAULT_SIZES: tuple[tuple[int, int, int], ...] = (
@@ -294,4 +294,47 @@ def run_throughput(
                             progress(lines[-1])
     finally:
         torch.set_num_threads(torch_threads)
+    return "\n".join(lines)
+
+
+def run_rigid_body_bench(batch: int = 200, repeats: int = 5, gamma: float = 1e-2, eps: float = 1e-2,
+                         friction_directions: int = 4, seed: int = 0, contact_only: bool = True,
+                         progress: Callable[[str], None] | None = None) -> str:
+    """Loss + gradient of a rigid body's per-sample LCSs (:class:`lcs_cvx.RigidBodyContact`, the
+    ContactNets cube: 8 corners, ``friction_directions`` cone edges, ``n_lam = 32`` at 4) on
+    ``batch`` transitions of the recorded cube tosses (:func:`lcs_cvx.datasets.cube_tosses`),
+    drawn at random among those with a corner within 1 cm of the floor (``contact_only``; else
+    among all), on the fast path and on the cvxpylayers reference, side by side; a call is
+    ``loss(...).backward()`` as in a training step. Returns a markdown table."""
+    from .datasets import CUBE_DT, CUBE_MASS, CUBE_SIDE, cube_tosses
+    from .rigid_body import RigidBodyContact, rotation_matrix
+
+    data = cube_tosses().to_transitions()
+    model = RigidBodyContact(half_sizes=[CUBE_SIDE / 2] * 3, mass=CUBE_MASS, dt=CUBE_DT, mu=0.15,
+                             ground=-0.0012, friction_directions=friction_directions)
+    x = data.x
+    with torch.no_grad():
+        lowest = (x[:, 6:7] + (model.vertices @ rotation_matrix(x[:, :4]).mT)[..., 2]).amin(1)
+    pool = torch.nonzero(lowest < 0.01 if contact_only else torch.ones_like(lowest, dtype=torch.bool)).flatten()
+    idx = pool[torch.randperm(len(pool), generator=torch.Generator().manual_seed(seed))[:batch]]
+    xb, ub, xnb = data.x[idx], data.u[idx], data.x_next[idx]
+    lines = ["| loss | path | batch | n_λ | samples/s | × reference | rel. Δloss |", "|---|---|---:|---:|---:|---:|---:|"]
+    for loss in LOSSES:
+        fn = _loss_fn(loss, gamma, eps)
+        ref = fn(model, xb, ub, xnb, "fast", True).loss.detach()
+        rates: dict[str, tuple[float, float]] = {}
+        for path in ("cvxpylayers", "fast"):
+            def call(path: str = path, fn: Callable = fn) -> None:
+                model.zero_grad()
+                fn(model, xb, ub, xnb, path).backward()
+
+            med = median_time(call, repeats)
+            value = fn(model, xb, ub, xnb, path, True).loss.detach()
+            rates[path] = (len(idx) / med, float((value - ref).abs() / (1.0 + ref.abs())))
+            if progress is not None:
+                progress(f"rigid body {loss:<10s} {path:<12s} {rates[path][0]:>10.0f} samples/s")
+        for path in ("fast", "cvxpylayers"):
+            rate, err = rates[path]
+            lines.append(f"| {loss} | {path} | {len(idx)} | {model.n_lam} | {rate:,.0f} | "
+                         f"{rate / rates['cvxpylayers'][0]:.1f} | {err:.1e} |")
     return "\n".join(lines)

@@ -276,17 +276,13 @@ def _check_solver(solver: str, warm_start: Any) -> str:
 
 
 def _per_sample(kind, model, x, u, x_next, gamma, eps, solver, warm_start) -> LossInfo:
-    """The loss of a model of per-sample matrices (``model.sample_lcs``; :mod:`lcs_cvx.per_sample`)."""
-    from .per_sample import model_loss_info
-
+    """The loss of a model of per-sample matrices: its own ``loss_info`` (:mod:`lcs_cvx.per_sample`)."""
     _check_solver(solver, warm_start)
-    x, u, x_next = as_transitions(model, x, u, x_next)
-    x, x_next = model.check_states("x", x), model.check_states("x_next", x_next)
-    return model_loss_info(kind, model, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
+    return model.loss_info(kind, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
 
 
 def _violation(model, x, u, x_next, gamma, eps, solver, warm_start, residual, threads) -> LossInfo:
-    if not isinstance(model, LCS) and callable(getattr(model, "sample_lcs", None)):
+    if not isinstance(model, LCS) and callable(getattr(model, "loss_info", None)):
         return _per_sample("violation", model, x, u, x_next, gamma, eps, solver, warm_start)
     cone_solver = _check_solver(solver, warm_start)
     calls.resolve_threads(threads)
@@ -374,7 +370,7 @@ def violation_loss_info(
 
 
 def _prediction(model, x, u, x_next, solver, warm_start, residual, threads) -> LossInfo:
-    if not isinstance(model, LCS) and callable(getattr(model, "sample_lcs", None)):
+    if not isinstance(model, LCS) and callable(getattr(model, "loss_info", None)):
         return _per_sample("prediction", model, x, u, x_next, 1e-2, 1e-4, solver, warm_start)
     cone_solver = _check_solver(solver, warm_start)
     calls.resolve_threads(threads)

@@ -1,6 +1,5 @@
-r"""The LCP, the violation loss and the prediction loss of a model whose matrices differ per
-sample (:class:`lcs_cvx.rigid_body.SampleLCS`: an LCS built at each state, e.g.
-:class:`lcs_cvx.RigidBodyContact`).
+r"""The LCS of each sample (:class:`SampleLCS`: one built at each state, e.g. by
+:class:`lcs_cvx.RigidBodyContact`), and its LCP, violation loss and prediction loss.
 
 Sample ``t`` has its own ``C_t`` ``(m, n)``, ``F_t`` ``(n, n)`` (``F_t + F_t^T`` positive
 definite), ``q_t`` and the contact-free prediction ``r0_t`` of the rows ``x'[rows]``; the rows
@@ -25,6 +24,7 @@ parameters: the reference the fast path is checked against.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -36,11 +36,36 @@ from ._kernels.arrays import TORCH
 from .layers import lcp_layer, solve_layer, violation_layer
 from .losses import MAX_ITER, LossInfo
 from .problems import convex_lcp_problem, violation_problem
-from .rigid_body import SampleLCS
 
-__all__ = ["solve_sample_lcp", "violation_loss_info", "prediction_loss_info", "model_loss_info", "sample_residual"]
+__all__ = ["SampleLCS", "solve_sample_lcp", "violation_loss_info", "prediction_loss_info", "model_loss_info",
+           "sample_residual"]
 
 SOLVERS = ("fast", "cvxpylayers", "cvxpylayers-scs")
+
+
+@dataclass(frozen=True)
+class SampleLCS:
+    r"""The velocity rows of eq. (1) at each sample, with per-sample matrices:
+
+    ``x'[rows] = r0 + C lam``, ``0 <= lam _|_ F lam + q >= 0``.
+
+    Attributes:
+        rows: the state indices these rows predict (the velocities; the other rows follow from
+            them exactly).
+        r0: ``(N, m)`` the prediction without contact (``nu_free``).
+        C: ``(N, m, n)``; F: ``(N, n, n)`` (``F + F^T`` positive definite); q: ``(N, n)``.
+        weight: ``(m,)`` the weight of each row in the losses (a fixed metric on the velocities).
+        sigma_min_bound: a lower bound of ``sigma_min(F + F^T)`` at every sample (Lemma 2's bound
+            on ``gamma``).
+    """
+
+    rows: tuple[int, ...]
+    r0: torch.Tensor
+    C: torch.Tensor
+    F: torch.Tensor
+    q: torch.Tensor
+    weight: torch.Tensor
+    sigma_min_bound: float
 
 
 def _fast_lcp(F: torch.Tensor, q: torch.Tensor, warm_start: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
@@ -189,8 +214,8 @@ def model_loss_info(kind: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_n
                     gamma: float = 1e-2, eps: float = 1e-4, solver: str = "fast",
                     warm_start: torch.Tensor | None = None) -> LossInfo:
     """:func:`violation_loss_info` (``kind="violation"``) or :func:`prediction_loss_info` of
-    ``model.sample_lcs(x, u)``: the losses of :mod:`lcs_cvx.losses` for a model with per-sample
-    matrices."""
+    ``model.sample_lcs(x, u)`` on validated tensors: the losses of :mod:`lcs_cvx.losses` for a
+    model with per-sample matrices (its ``loss_info``, and the trainer's steps)."""
     lcs = model.sample_lcs(x, u)
     if kind == "violation":
         return violation_loss_info(lcs, x_next, gamma, eps, solver=solver, warm_start=warm_start)

@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -60,8 +59,10 @@ from torch import nn
 
 from ._checks import LCSInputError, as_batch, check_positive
 from .kinematics import Kinematics
+from .losses import LossInfo
+from .per_sample import SampleLCS, model_loss_info, solve_sample_lcp
 
-__all__ = ["RigidBodyContact", "SampleLCS", "FORMULATIONS", "LEARNABLE", "box_vertices", "rotation_matrix"]
+__all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices", "rotation_matrix"]
 
 #: The time-stepping formulations (C3's LCS factory has Anitescu's and Stewart--Trinkle's).
 FORMULATIONS = ("anitescu",)
@@ -99,31 +100,6 @@ def _skew(r: torch.Tensor) -> torch.Tensor:
 
 def _inv_softplus(y: float) -> float:
     return y + math.log(-math.expm1(-y))
-
-
-@dataclass(frozen=True)
-class SampleLCS:
-    r"""The velocity rows of eq. (1) at each sample, with per-sample matrices:
-
-    ``x'[rows] = r0 + C lam``, ``0 <= lam _|_ F lam + q >= 0``.
-
-    Attributes:
-        rows: the state indices these rows predict (the velocities; the other rows follow from
-            them exactly).
-        r0: ``(N, m)`` the prediction without contact (``nu_free``).
-        C: ``(N, m, n)``; F: ``(N, n, n)`` (``F + F^T`` positive definite); q: ``(N, n)``.
-        weight: ``(m,)`` the weight of each row in the losses (a fixed metric on the velocities).
-        sigma_min_bound: a lower bound of ``sigma_min(F + F^T)`` at every sample (Lemma 2's bound
-            on ``gamma``).
-    """
-
-    rows: tuple[int, ...]
-    r0: torch.Tensor
-    C: torch.Tensor
-    F: torch.Tensor
-    q: torch.Tensor
-    weight: torch.Tensor
-    sigma_min_bound: float
 
 
 class RigidBodyContact(nn.Module):
@@ -410,19 +386,26 @@ class RigidBodyContact(nn.Module):
         return SampleLCS(rows=tuple(range(7, 13)), r0=nu_free, C=C, F=F, q=q, weight=self.residual_weight,
                          sigma_min_bound=2.0 * float(self.compliance_min))
 
+    def loss_info(self, kind: str, x: Any, u: Any, x_next: Any, *, gamma: float = 1e-2, eps: float = 1e-4,
+                  solver: str = "fast", warm_start: torch.Tensor | None = None) -> LossInfo:
+        """The violation loss (``kind="violation"``, eq. (9)) or the prediction loss (eq. (6))
+        of the transitions ``(x, u, x_next)`` with each state's own LCS (:mod:`lcs_cvx.per_sample`);
+        the data checked first (widths, quaternions). :func:`lcs_cvx.violation_loss` and
+        :func:`lcs_cvx.prediction_loss` call this for a rigid body."""
+        x, u = self._xu(x, u)
+        x_next = self.check_states("x_next", as_batch("x_next", x_next, N_X, batch=x.shape[0], dtype=self.dtype,
+                                                      device=self.device))
+        return model_loss_info(kind, self, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
+
     def solve_lcp(self, x: Any, u: Any) -> torch.Tensor:
         """The impulses ``lam`` ``(N, K m)`` of every state (the exact LCP of its LCS);
         differentiable in the parameters (Lemma 1 on the solution's free set)."""
-        from .per_sample import solve_sample_lcp
-
         x, u = self._xu(x, u)
         return solve_sample_lcp(self.sample_lcs(x, u))
 
     def step(self, x: Any, u: Any) -> torch.Tensor:
         """``x'`` ``(N, 13)``: the velocities of eq. (1) at each state with ``lam`` from its exact
         LCP, the configuration integrated from them (:class:`lcs_cvx.Kinematics`)."""
-        from .per_sample import solve_sample_lcp
-
         x, u = self._xu(x, u)
         lcs = self.sample_lcs(x, u)
         lam = solve_sample_lcp(lcs)

@@ -90,6 +90,8 @@ class _Selection:
         s = self.stack
         if self.idx is None:
             return (a.reshape(s.K, s.B, a.shape[-1]) @ M).reshape(s.K * s.B, M.shape[-1])
+        if s.B == 1:  # a model per sample (lcs_cvx.per_sample): one batched product
+            return (a[:, None, :] @ M[self.idx])[:, 0, :]
         out = s.xp.empty((a.shape[0], M.shape[-1]), a)
         for k, i, j in self._parts():
             out[i:j] = a[i:j] @ M[k]
@@ -100,6 +102,8 @@ class _Selection:
         s, xp = self.stack, self.stack.xp
         if self.idx is None or not xp.np:
             return xp.solve(M, rhs, spd, batch=s.B)
+        if s.B == 1:  # a model per sample: each system its own model's, the library of one system
+            return xp.solve(M, rhs, spd, batch=1)
         n = rhs.shape[1]
         parts = self._parts()
         small = [(j - i) * n * n <= NUMPY_SOLVE_WORK for _, i, j in parts]

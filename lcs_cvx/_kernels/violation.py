@@ -115,8 +115,11 @@ def pivot_violation(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float
     n = Ltb.shape[1]
     mats = matrices(xp, K, Ltb.shape[0])
     everyone = mats.select(None)
-    # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep.
-    K_outer = (K[..., :, None] * K[..., None, :]).reshape(K.shape[:-2] + (n, n * n))
+    # K^T diag(s) K = sum_k s_k K_k^T K_k: one (B, n) x (n, n*n) product per sweep; with a model
+    # per sample (lcs_cvx.per_sample) the (B, n, n*n) table would cost B n^3 to build and hold
+    # (400 MB at B = 200, n = 64), so each sample's K^T diag(s) K is one batched product instead
+    per_sample = K.ndim == 3 and K.shape[0] == Ltb.shape[0] and Ltb.shape[0] > 1
+    K_outer = None if per_sample else (K[..., :, None] * K[..., None, :]).reshape(K.shape[:-2] + (n, n * n))
     scale_g = tol * (1.0 + xp.amax_abs(Ltb) + xp.amax_abs(everyone.rmul(h, K)))
     scale_t = tol * (1.0 + xp.amax_abs(h))
     neg_l: list[Any] = []  # -(lam's scale), from the first candidate
@@ -135,7 +138,12 @@ def pivot_violation(xp: ArrayOps, LtL: Any, Ltb: Any, K: Any, h: Any, tol: float
         bb, nbb, hh, nhh, ng, st, nt = (d[:, part] for part in parts)
         sf = xp.to_float(pos, Ltb)
         # (L^T L + K^T diag(s) K) on the free rows and columns, the identity elsewhere
-        M = xp.free_block(on.rows(LtL_flat) + on.rmul(sf, K_outer), free)
+        if per_sample:
+            Ks = K if idx is None else K[idx]
+            KtSK = ((Ks.swapaxes(-1, -2) * sf[:, None, :]) @ Ks).reshape(-1, n * n)
+        else:
+            KtSK = on.rmul(sf, K_outer)
+        M = xp.free_block(on.rows(LtL_flat) + KtSK, free)
         rhs = xp.where(free, nbb + on.rmul(sf * hh, K), 0.0)
         lam, failed = on.solve(M, rhs, True)
         prod = on.rmul(lam, KT_LtL)

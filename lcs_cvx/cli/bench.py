@@ -26,6 +26,9 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=positive_ints, default=[1],
                    help="CPU threads: torch's, and the compiled kernels' on large batches (default: 1); "
                         "with --throughput, several comma-separated counts are timed side by side")
+    p.add_argument("--rigid-body", action="store_true",
+                   help="instead: loss + gradient of the cube's per-sample LCSs (lcs_cvx.RigidBodyContact, 8 corners, "
+                        "4 friction directions) on --batch recorded transitions near contact, fast vs cvxpylayers")
     p.add_argument("--throughput", action="store_true",
                    help="instead: one-call loss + gradient throughput against the batch size "
                         "(--batches, --device, --dtype, --threads; sizes default (10, 4, 4))")
@@ -59,6 +62,11 @@ def run_bench(args: argparse.Namespace) -> int:
                                repeats=args.repeats, progress=lambda line: print(line, flush=True))
     elif args.lcp:
         table = run_lcp_bench(repeats=args.repeats)
+    elif args.rigid_body:
+        from ..bench import run_rigid_body_bench
+
+        table = run_rigid_body_bench(batch=args.batch, repeats=args.repeats,
+                                     progress=lambda line: print(line, flush=True))
     else:
         rows = bench_rows(args.sizes or DEFAULT_SIZES, args.paths, args.losses, batch=args.batch,
                           repeats=args.repeats, progress=lambda line: print(line, flush=True))

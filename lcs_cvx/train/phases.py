@@ -28,11 +28,11 @@ from .._checks import SolverError
 from .._kernels.calls import MIN_CHUNK
 from ..losses import prediction_fast, regularizer, violation_fast
 from ..parameter_constraints import free_entries, mask_gradients_, project_
+from ..per_sample import model_loss_info
 from ..resizing import prune_units
 from ..second_order import gauss_newton_step, newton_step
 from ..simulation_error import simulation_error
 from ..system import LCS
-from ..per_sample import model_loss_info
 from .onecall import adam_step, adam_steps, adam_update_from_grads
 from .options import FitOptions
 from .state import Outcome, TrainState

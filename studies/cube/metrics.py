@@ -36,9 +36,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from lcs_cvx.kinematics import up_in_body
+from lcs_cvx.kinematics import quaternion_product, up_in_body
 
-__all__ = ["GROUPS", "DIVERGED_GROWTH", "CUTOFF_GROWTH", "geodesic_angle", "one_step", "rollout",
+__all__ = ["GROUPS", "DIVERGED_GROWTH", "CUTOFF_GROWTH", "geodesic_angle", "atan2_angle", "one_step", "rollout",
            "rollouts", "dair_pll_errors", "whole_toss_errors", "Stepper"]
 
 #: A model: next states of a batch of states (float64 tensors ``(N, 13)``).
@@ -72,6 +72,20 @@ def geodesic_angle(q: Any, q_hat: Any) -> np.ndarray:
         q = q / np.linalg.norm(q, axis=-1, keepdims=True)
         dot = np.abs(np.sum(q * q_hat, axis=-1))
     return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0)) + np.where(np.isfinite(dot), 0.0, np.nan)
+
+
+def atan2_angle(q: Any, q_hat: Any) -> np.ndarray:
+    """dair_pll's rotation angle (rad) between unit quaternions ``q`` and ``q_hat`` (``(..., 4)``,
+    ``w, x, y, z``): ``2 atan2(||v||, w)`` of ``(w, v) = q^-1 q_hat`` (``q_hat`` normalised), with no
+    choice between ``q_hat`` and ``-q_hat``: in ``[0, 2 pi)``, above pi where ``w < 0``
+    (:func:`geodesic_angle` is the shorter of the two)."""
+    q = np.asarray(q, dtype=np.float64)
+    q_hat = np.asarray(q_hat, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q_hat = q_hat / np.linalg.norm(q_hat, axis=-1, keepdims=True)
+        inv = q * np.array([1.0, -1.0, -1.0, -1.0]) / np.sum(q * q, axis=-1, keepdims=True)
+    rel = quaternion_product(torch.from_numpy(inv), torch.from_numpy(q_hat)).numpy()
+    return 2.0 * np.arctan2(np.linalg.norm(rel[..., 1:], axis=-1), rel[..., 0])
 
 
 def one_step(step: Stepper, xs: Sequence[torch.Tensor]) -> dict[str, float]:
@@ -213,18 +227,22 @@ def whole_toss_errors(preds: Sequence[Any], xs: Sequence[torch.Tensor]) -> dict[
     ours beside them (``pos_rms``: the RMS position error, averaged), the count of rollouts
     that diverged (their errors are then inf), and ``end_tilt``: the mean over tosses of the last
     predicted state's tilt from resting on a face, ``acos max_k |g_k|`` with ``g = R(q)^T e_z``
-    (rad; the recorded tosses end at rest on a face, within about 1°)."""
-    dist, rms, rot, tilt = [], [], [], []
+    (rad; the recorded tosses end at rest on a face, within about 1°). ``rot`` is the shorter
+    angle (:func:`geodesic_angle`), ``rot_atan2`` dair_pll's own (:func:`atan2_angle`)."""
+    dist, rms, rot, rot2, tilt = [], [], [], [], []
     for p, t in zip(preds, xs, strict=True):
         p, true = np.asarray(p, dtype=np.float64), t.numpy()
         with np.errstate(invalid="ignore", over="ignore"):
             d = np.linalg.norm(p[1:, P] - true[1:, P], axis=-1)
             a = geodesic_angle(true[1:, Q], p[1:, Q])
+            a2 = atan2_angle(true[1:, Q], p[1:, Q])
         ok = np.isfinite(p[1:]).all()
         dist.append(d.mean() if ok else math.inf)
         rms.append(np.sqrt((d ** 2).mean()) if ok else math.inf)
         rot.append(a.mean() if ok else math.inf)
+        rot2.append(a2.mean() if ok else math.inf)
         g = up_in_body(torch.as_tensor(p[-1:, Q] / np.linalg.norm(p[-1, Q]))) if ok else None
         tilt.append(math.acos(min(1.0, float(g.abs().max()))) if ok else math.inf)
-    return {"pos": float(np.mean(dist)), "rot": float(np.mean(rot)), "pos_rms": float(np.mean(rms)),
+    return {"pos": float(np.mean(dist)), "rot": float(np.mean(rot)), "rot_atan2": float(np.mean(rot2)),
+            "pos_rms": float(np.mean(rms)),
             "diverged": int(np.sum(~np.isfinite(dist))), "end_tilt": float(np.mean(tilt))}

@@ -89,8 +89,8 @@ class Budget:
     n_lams: tuple[int, ...] = N_LAMS
     mlp_grid: tuple[dict[str, Any], ...] = MLP_GRID
     val_stride: int = 2
-    rigid_iterations: int = 1000
-    rigid_rollout_iterations: int = 600
+    rigid_iterations: int = 300
+    rigid_rollout_iterations: int = 400
     rigid_lr: float = 3e-3
     rigid_eval_every: int = 100
 

@@ -30,7 +30,7 @@ from .tosses import MACHINE, study_parts, subset
 __all__ = ["MODELS", "run", "main"]
 
 #: The study's models whose seed spread is measured (spec keys).
-MODELS = ("lcs_contact", "lcs_symmetry")
+MODELS = ("lcs_contact", "lcs_symmetry", "rigid_body")
 #: When the committed spread was measured.
 DATE = "2026-11-28"
 
@@ -62,18 +62,18 @@ def run(out: str, size: int, seeds: list[int]) -> list[dict]:
                   f"--models {key}); skipped")
             continue
         cell = study[(size, key)]
-        n_lam = cell["fit"]["n_lam"]
+        n_lam = cell["fit"].get("n_lam")  # None for the rigid body (its units are its contacts)
         for seed in seeds:
             if (key, seed) in done:
                 continue
             t0 = time.perf_counter()
             if seed == 0:
-                step, heldout = spec.load(os.path.join(out, cell["model_file"])), cell["fit"]["candidates"]
+                step, info = spec.load(os.path.join(out, cell["model_file"])), cell["fit"]
             else:
                 mpath = os.path.join(out, "models", "seeds", f"n{size:03d}_{key}_seed{seed}.npz")
                 step, info = spec.fit(train, val, M.Budget(), mpath, n_lams=(n_lam,), seed=seed)
-                heldout = info["candidates"]
-            score = next(c["heldout_error"] for c in heldout if c["n_lam"] == n_lam)
+            score = info["heldout_error"] if n_lam is None else next(
+                c["heldout_error"] for c in info["candidates"] if c["n_lam"] == n_lam)
             r = rollouts(step, test.xs, (10, 30))
             rec = {"key": key, "model": spec.name, "seed": seed, "size": size, "n_lam": n_lam,
                    "heldout_error": score, "rollout": {h: {k: r[h][k] for k in ("pos", "rot", "diverged")}
@@ -93,10 +93,11 @@ def write(out: str, records: list[dict], cmd: str) -> str:
     """``OUT/seeds.md``: one row per fit, then the mean and range per model."""
     cols = [("pos H=10 (m)", "H10", "pos"), ("rot H=10 (rad)", "H10", "rot"), ("pos H=30 (m)", "H30", "pos"),
             ("rot H=30 (rad)", "H30", "rot"), ("pos to end (m)", "end", "pos"), ("rot to end (rad)", "end", "rot")]
-    L = ["# The cube study's kinematic LCSs over seeds", "",
+    L = ["# The cube study's kinematic LCSs and rigid body over seeds", "",
          f"Written by `{cmd}` on {DATE} ({MACHINE}).", "",
          "Each row: the study's fit of that model (`studies/cube/models.py`) at the training size and the n_λ "
-         "of the study's seed-0 cell, with another seed (initialisation and batches); seed 0 is the study's "
+         "of the study's seed-0 cell (the rigid body: its start's quantities jittered by the seed, "
+         "`lcs_cvx.train.starts.jittered`), with another seed (initialisation and batches); seed 0 is the study's "
          "cell itself. Test rollouts as in `report.md` (position RMS, mean rotation angle); dair_pll's "
          "whole-toss metric as in `contactnets.md`; the held-out score is the validation rollout error at "
          "H = 30 the fit was chosen by.", "",
@@ -104,7 +105,7 @@ def write(out: str, records: list[dict], cmd: str) -> str:
          + " | dair_pll position | dair_pll rotation | diverged (end) |",
          "|---|---:|---:|---:|" + "---:|" * len(cols) + "---:|---:|---:|"]
     for r in records:
-        L.append(f"| {r['model']} | {r['seed']} | {r['n_lam']} | {r['heldout_error']:.4g} | "
+        L.append(f"| {r['model']} | {r['seed']} | {r['n_lam'] or '—'} | {r['heldout_error']:.4g} | "
                  + " | ".join(f"{r['rollout'][h][k]:.4g}" for _, h, k in cols)
                  + f" | {1000 * r['dair_pll']['pos']:.1f} mm | {math.degrees(r['dair_pll']['rot']):.1f}° | "
                  f"{r['rollout']['end']['diverged']} |")
@@ -118,6 +119,12 @@ def write(out: str, records: list[dict], cmd: str) -> str:
                      + " | ".join(_spread([float(r["rollout"][h][k]) for r in rs]) for _, h, k in cols)
                      + f" | {_spread([1000 * r['dair_pll']['pos'] for r in rs])} | "
                      f"{_spread([math.degrees(r['dair_pll']['rot']) for r in rs])} |")
+    L += ["", "dair_pll's own angle (`2 atan2(|v|, w)` of `q^-1 q_hat`, no choice between `q_hat` and `-q_hat`), "
+          "mean (range) over the seeds:", ""]
+    for key in MODELS:
+        rs = [r for r in records if r["key"] == key and "rot_atan2" in r["dair_pll"]]
+        if rs:
+            L.append(f"- {rs[0]['model']}: {_spread([math.degrees(r['dair_pll']['rot_atan2']) for r in rs])}°")
     text = "\n".join(L) + "\n"
     with open(os.path.join(out, "seeds.md"), "w") as f:
         f.write(text)
