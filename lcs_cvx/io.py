@@ -1,4 +1,5 @@
-r"""Model files: an :class:`lcs_cvx.LCS` saved to, and rebuilt from, one ``.npz`` (no pickle).
+r"""Model files: an :class:`lcs_cvx.LCS` (or a :class:`lcs_cvx.RigidBodyContact`, see the end) saved
+to, and rebuilt from, one ``.npz`` (no pickle).
 
 The file holds the learnable parameters exactly as they are stored in the model, so a round
 trip is bit-exact (same values, same dtype) and training continues from the same
@@ -32,6 +33,11 @@ before). Files of version 1 (no structure) load as models with every parameter l
 
 All numeric arrays have the model's dtype (float32 or float64). The path is used exactly as
 given: unlike ``np.savez``, no ``.npz`` is appended when it is missing.
+
+A :class:`lcs_cvx.RigidBodyContact`'s file holds its parameters and buffers (``state_dict``) as
+arrays ``param_<name>`` and ``meta`` with ``"kind": "rigid_body"``, its constructor's settings
+(``"config"``) and the names of its learnable parameters (``"learnable"``); a round trip is
+bit-exact too.
 """
 
 from __future__ import annotations
@@ -227,8 +233,11 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
     user's dict given to :func:`save_model`; ``{}`` if none), ``"fixed"`` and ``"masks"``
     (the names of the fixed and of the masked parameters; ``[]`` in version-1 files) and
     ``"kinematics"`` (:meth:`lcs_cvx.Kinematics.to_dict`'s dict, or None; None before version 4).
+    A :class:`lcs_cvx.RigidBodyContact`'s file has ``"kind": "rigid_body"``, its ``"config"``
+    (:meth:`~lcs_cvx.RigidBodyContact.config`), ``"learnable"`` and ``"metadata"`` instead.
     """
-    return _read(path)[2]
+    rigid = _rigid_body_meta(path)
+    return rigid[1] if rigid is not None else _read(path)[2]
 
 
 def read_npz(path: str, expected: str) -> dict[str, np.ndarray]:
@@ -381,17 +390,36 @@ def _save_rigid_body(model: Any, path: str | os.PathLike, metadata: Mapping[str,
     atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
-def _read_rigid_body(path: str | os.PathLike) -> Any:
-    """The :class:`lcs_cvx.RigidBodyContact` of a rigid body's file, None for another file."""
+def _rigid_body_meta(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, Any]] | None:
+    """``(arrays, meta)`` of a rigid body's model file; None for any other file (:func:`_read`
+    then reads it, or names what is wrong with it)."""
     path_s = os.fspath(path)
     if not os.path.isfile(path_s):
-        return None  # _read names the problem
+        return None
     arrays = read_npz(path_s, "an .npz model file written by lcs_cvx.save_model")
-    if "meta" not in arrays:
+    raw = arrays.get("meta")
+    if raw is None or raw.dtype.kind != "U" or raw.shape != ():
         return None
-    meta = _parse_meta(path_s, arrays["meta"]) if "kind" not in str(arrays["meta"]) else json.loads(str(arrays["meta"]))
-    if meta.get("kind") != RIGID_BODY:
+    try:
+        meta = json.loads(str(raw))
+    except ValueError:
         return None
+    if not isinstance(meta, dict) or meta.get("kind") != RIGID_BODY or meta.get("format") != FORMAT:
+        return None
+    version = meta.get("format_version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= FORMAT_VERSION:
+        raise LCSInputError(f"path: expected a model file of format version <= {FORMAT_VERSION}, received "
+                            f"version {version!r} in {path_s!r}; upgrade lcs_cvx to read it")
+    return arrays, meta
+
+
+def _read_rigid_body(path: str | os.PathLike) -> Any:
+    """The :class:`lcs_cvx.RigidBodyContact` of a rigid body's file, None for another file."""
+    found = _rigid_body_meta(path)
+    if found is None:
+        return None
+    arrays, meta = found
+    path_s = os.fspath(path)
     from .rigid_body import RigidBodyContact
 
     try:

@@ -67,7 +67,7 @@ __all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices", "rot
 #: The time-stepping formulations (C3's LCS factory has Anitescu's and Stewart--Trinkle's).
 FORMULATIONS = ("anitescu",)
 #: The physical quantities :class:`RigidBodyContact` can learn (its ``learn`` argument).
-LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance")
+LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance", "residual")
 #: Quaternion rows, position rows, angular velocity rows, linear velocity rows of the state.
 Q, P, W, V = slice(0, 4), slice(4, 7), slice(7, 10), slice(10, 13)
 N_X = 13
@@ -126,6 +126,9 @@ class RigidBodyContact(nn.Module):
         friction_directions: the polyhedral cone's edges ``m >= 3`` (default 4).
         formulation: ``"anitescu"``.
         n_u: 0 (no input) or 6 (a wrench: body torque, world force).
+        residual: add a learned affine map of ``(x, u)`` to ``nu_free`` (dair_pll's "+ residual":
+            what the rigid-body model leaves out, as an impulse per step that contact then
+            answers), started at 0; ``residual_map`` ``(6, 14 + n_u)`` acts on ``[x; u; 1]``.
         learn: the quantities learned (names of :data:`LEARNABLE`); the others are fixed.
         dtype: torch.float64 (recommended) or torch.float32.
 
@@ -140,8 +143,8 @@ class RigidBodyContact(nn.Module):
     def __init__(self, vertices: Any = None, *, half_sizes: Any = None, mass: float, dt: float,
                  gravity: float = 9.81, mu: float = 0.15, inertia: Any = None, com: Any = (0.0, 0.0, 0.0),
                  ground: float = 0.0, compliance: float = 0.02, friction_directions: int = 4,
-                 formulation: str = "anitescu", n_u: int = 0, learn: Iterable[str] = LEARNABLE,
-                 dtype: torch.dtype = torch.float64) -> None:
+                 formulation: str = "anitescu", n_u: int = 0, residual: bool = False,
+                 learn: Iterable[str] = LEARNABLE, dtype: torch.dtype = torch.float64) -> None:
         super().__init__()
         if dtype not in (torch.float32, torch.float64):
             raise LCSInputError(f"dtype: expected torch.float32 or torch.float64, received {dtype}")
@@ -218,13 +221,18 @@ class RigidBodyContact(nn.Module):
         # mean half extent (the speed of a point at l from the origin)
         self.register_buffer("residual_weight", torch.tensor([self.mass * ell**2] * 3 + [self.mass] * 3, **kw))
         self.kinematics = Kinematics(self.dt, positions={4: 10, 5: 11, 6: 12}, quaternions=[(0, 7)], frame="body")
+        if not isinstance(residual, bool):
+            raise LCSInputError(f"residual: expected True or False, received {residual!r}")
+        self.residual_map = nn.Parameter(torch.zeros(6, N_X + self.n_u + 1, **kw)) if residual else None
         self._config = {"box": self.box, "n_contacts": self.n_contacts, "mass": self.mass, "dt": self.dt,
                         "gravity": self.gravity, "compliance": float(compliance),
                         "friction_directions": friction_directions, "formulation": formulation, "n_u": self.n_u,
-                        "learn": list(learn), "dtype": str(dtype).removeprefix("torch.")}
+                        "residual": residual, "learn": list(learn), "dtype": str(dtype).removeprefix("torch.")}
         self.to(dtype)
         names = {"vertices": "log_half_sizes" if self.box else "vertex_positions", "mu": "mu_raw",
                  "inertia": "inertia_factor", "com": "com_scaled", "ground": "ground_scaled", "compliance": "compliance_raw"}
+        if residual:
+            names["residual"] = "residual_map"
         for quantity, pname in names.items():
             getattr(self, pname).requires_grad_(quantity in learn)
         self._quaternion_note = False
@@ -291,7 +299,8 @@ class RigidBodyContact(nn.Module):
             return {"half_sizes": self.half_sizes.tolist(), "side": float(2 * self.half_sizes.mean()),
                     "vertices": self.vertices.tolist(), "mu": float(self.mu),
                     "inertia": self.inertia.tolist(), "com": self.com.tolist(), "ground": float(self.ground),
-                    "compliance": self.compliance.tolist(), "mass": self.mass}
+                    "compliance": self.compliance.tolist(), "mass": self.mass,
+                    "residual": None if self.residual_map is None else self.residual_map.tolist()}
 
     def extra_repr(self) -> str:
         p = self.physical()
@@ -370,6 +379,11 @@ class RigidBodyContact(nn.Module):
         phi = p[:, 2:3] + R[:, 2, :] @ r.mT - self.ground               # (N, K): e_z^T (p + R r_k) - h
         return M, f, J, phi
 
+    @staticmethod
+    def _features(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``[x; u; 1]`` ``(N, 14 + n_u)``: what the residual map acts on."""
+        return torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=x.dtype, device=x.device)], dim=1)
+
     def sample_lcs(self, x: torch.Tensor, u: torch.Tensor) -> SampleLCS:
         """The velocity rows of eq. (1) at every state ``x`` ``(N, 13)`` under ``u`` ``(N, n_u)``
         (module docstring): ``nu' = nu_free + C lam``, ``0 <= lam _|_ F lam + q >= 0``;
@@ -379,6 +393,8 @@ class RigidBodyContact(nn.Module):
             f = f + u
         Minv = torch.linalg.inv(M)
         nu_free = x[:, 7:] + self.dt * (Minv @ f[..., None])[..., 0]
+        if self.residual_map is not None:
+            nu_free = nu_free + self._features(x, u) @ self.residual_map.mT
         C = Minv @ J.mT                                                 # (N, 6, n)
         kappa = self.compliance.repeat_interleave(self.friction_directions)
         F = J @ C + torch.diag_embed(kappa.expand(x.shape[0], -1))
@@ -447,20 +463,24 @@ class RigidBodyContact(nn.Module):
         with torch.no_grad():
             M, f, J, phi = (t[0].double() for t in self._dynamics(xa))
             Minv = torch.linalg.inv(M)
-            eye6 = torch.eye(6, dtype=torch.float64)
+            # nu_free = A_v x + B_v u + d_v at this configuration (f held at x), the residual's map included
             A = torch.zeros(N_X, N_X, dtype=torch.float64)
-            A[7:, 7:] = eye6
+            A[7:, 7:] = torch.eye(6, dtype=torch.float64)
             B = torch.zeros(N_X, self.n_u, dtype=torch.float64)
             B[7:] = (self.dt * Minv)[:, : self.n_u] if self.n_u else B[7:]
             d = torch.zeros(N_X, dtype=torch.float64)
             d[7:] = self.dt * Minv @ f
+            if self.residual_map is not None:
+                W = self.residual_map.double()
+                A[7:] += W[:, :N_X]
+                B[7:] += W[:, N_X:N_X + self.n_u]
+                d[7:] += W[:, -1]
             C = torch.zeros(N_X, self.n_lam, dtype=torch.float64)
             C[7:] = Minv @ J.mT
-            D = torch.zeros(self.n_lam, N_X, dtype=torch.float64)
-            D[:, 7:] = J
             kappa = self.compliance.double().repeat_interleave(self.friction_directions)
             F = J @ C[7:] + torch.diag(kappa)
+            # w = phi / dt + J nu' + kappa lam = (J A_v) x + (J B_v) u + F lam + phi / dt + J d_v
             c = phi.repeat_interleave(self.friction_directions) / self.dt + J @ d[7:]
-            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=D, E=J @ B[7:], F=F, c=c, dtype=self.dtype)
+            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=J @ A[7:], E=J @ B[7:], F=F, c=c, dtype=self.dtype)
             model.with_kinematics(self.kinematics)
             return self.kinematics.to_lcs(model, about=xa[0], u=ua[0])

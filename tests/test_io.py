@@ -214,7 +214,7 @@ def test_save_into_a_missing_directory(tmp_path):
 
 
 def test_save_requires_an_lcs(tmp_path):
-    with pytest.raises(LCSInputError, match=r"^model: expected an lcs_cvx.LCS, received dict"):
+    with pytest.raises(LCSInputError, match=r"^model: expected an lcs_cvx.LCS or lcs_cvx.RigidBodyContact, received dict"):
         save_model(_trained_like().to_matrices(), tmp_path / "m.npz")
 
 

@@ -89,7 +89,9 @@ def test_the_lcp_of_each_sample_is_the_declared_problems():
 
 @pytest.mark.parametrize("kind", ["violation", "prediction"])
 def test_loss_and_gradient_three_ways(kind):
-    m = body()
+    m = body(residual=True)  # every learnable quantity, the residual map too (nonzero)
+    with torch.no_grad():
+        m.residual_map.copy_(0.01 * torch.randn(6, 14, generator=torch.Generator().manual_seed(5), dtype=F64))
     x, u, x_next = contact_samples()
 
     def loss(solver: str) -> torch.Tensor:

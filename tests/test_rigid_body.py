@@ -197,3 +197,16 @@ def test_angles_of_a_tumbling_rollout_stay_unit_quaternions():
     lowest = float((xs[-1, 4:7] + m.vertices.detach() @ R.mT)[:, 2].min())
     assert -2e-3 < lowest < 2e-3
     assert math.isfinite(lowest)
+
+
+def test_a_residual_starts_at_the_rigid_body_and_its_lcs_at_a_state_includes_it(tmp_path):
+    plain, with_res = cube(mu=0.3), cube(mu=0.3, residual=True)
+    x = state(q=(0.95, 0.2, -0.1, 0.05), p=(0.0, 0.0, HALF + 0.001), w=(2.0, -1.0, 0.5), v=(0.3, -0.2, -0.4))
+    assert torch.equal(with_res.step(x, NO_U), plain.step(x, NO_U))
+    assert with_res.residual_map.requires_grad and with_res.residual_map.shape == (6, 14)
+    with torch.no_grad():
+        with_res.residual_map.copy_(0.01 * torch.randn(6, 14, generator=torch.Generator().manual_seed(0), dtype=F64))
+    assert not torch.allclose(with_res.step(x, NO_U), plain.step(x, NO_U))
+    assert torch.allclose(with_res.lcs_at(x[0]).step(x, NO_U), with_res.step(x, NO_U), atol=1e-12)
+    lcs_cvx.save_model(with_res, tmp_path / "res.npz")
+    assert torch.equal(lcs_cvx.load_model(tmp_path / "res.npz").step(x, NO_U), with_res.step(x, NO_U))
