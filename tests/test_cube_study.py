@@ -224,3 +224,28 @@ def test_the_seed_table_reports_every_fit_and_the_range(tmp_path):
     assert text.count("| LCS, cube symmetry | 0 |") == 1 and text.count("| LCS, cube symmetry | 1 |") == 1
     assert "| LCS, cube symmetry | 2 | 0.015 (0.01–0.02) | 0.6 (0.5–0.7) |" in text
     assert f"{math.degrees(0.6):.4g} ({math.degrees(0.5):.4g}–{math.degrees(0.7):.4g})" in text
+
+
+def test_the_simulated_box_tosses_end_at_rest_on_a_face():
+    pytest.importorskip("mujoco")
+    from studies.cube import simulated_box as B
+
+    runs = B.tosses(4, seed=0)
+    assert len(runs) == 4 and all(x.shape == (B.STEPS + 1, 13) for x in runs.xs)
+    for x in runs.xs:
+        assert float((x[:, :4].norm(dim=1) - 1).abs().max()) < 1e-9
+        # at rest on one of its faces: the centre at one of the half sizes above the floor
+        assert min(abs(float(x[-1, 6]) - h) for h in B.TRUTH["half_sizes"]) < 3e-3
+        assert float(x[-1, 10:13].abs().max()) < 0.05
+
+
+def test_dair_pll_angle_is_the_shorter_one_within_a_hemisphere_and_its_complement_across():
+    from studies.cube.metrics import atan2_angle
+
+    q = np.array([0.9, 0.1, 0.3, -0.2])
+    q /= np.linalg.norm(q)
+    p = np.array([0.8, 0.2, 0.3, -0.1])
+    p /= np.linalg.norm(p)
+    short = float(geodesic_angle(q, p))
+    assert float(atan2_angle(q, p)) == pytest.approx(short, abs=1e-12)
+    assert float(atan2_angle(q, -p)) == pytest.approx(2 * math.pi - short, abs=1e-12)

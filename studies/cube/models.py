@@ -93,12 +93,15 @@ class Budget:
     rigid_rollout_iterations: int = 400
     rigid_lr: float = 3e-3
     rigid_eval_every: int = 100
+    rigid_val_tosses: int = 20
+    rigid_friction_directions: int = 8
 
 
 #: The smoke run's budgets (a check in about a minute).
 SMOKE_BUDGET = Budget(lcs_iterations=60, rollout_iterations=10, rollout_horizon=5, mlp_steps=100,
                       mlp_eval_every=50, n_lams=(2, 4), mlp_grid=(MLP_GRID[0],), val_stride=1,
-                      rigid_iterations=10, rigid_rollout_iterations=4, rigid_eval_every=5)
+                      rigid_iterations=10, rigid_rollout_iterations=4, rigid_eval_every=5, rigid_val_tosses=4,
+                      rigid_friction_directions=4)
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,8 @@ __all__ = ["start", "fit", "load", "stepper", "ROLLOUT_HORIZON", "VALIDATION_TOS
 #: The simulation-error phase's window (steps).
 ROLLOUT_HORIZON = 10
 #: Validation tosses the kept iterate is chosen on (a held-out score at 30 steps over every
-#: window of all 138 takes ~35 s a time here with 4 cone edges, twice that with 8).
+#: window of all 138 takes ~35 s a time here with 4 cone edges, twice that with 8); the study's
+#: budget names it (``rigid_val_tosses``, this by default).
 VALIDATION_TOSSES = 20
 #: The friction cone's edges. With 4 (the class's default) the cone is a square whose friction is
 #: larger along its diagonals; on the validation tosses, rollouts of the simulation-error phase
@@ -45,11 +46,12 @@ FRICTION_DIRECTIONS = 8
 GAMMA, EPS = 0.01, 0.01
 
 
-def start(train: lcs_cvx.Trajectories, seed: int = 0) -> lcs_cvx.RigidBodyContact:
+def start(train: lcs_cvx.Trajectories, seed: int = 0,
+          friction_directions: int = FRICTION_DIRECTIONS) -> lcs_cvx.RigidBodyContact:
     """The data sheet's cube (module docstring); ``seed`` > 0: its quantities jittered (a restart's
     start, :func:`lcs_cvx.train.starts.jittered`)."""
     model = lcs_cvx.RigidBodyContact(half_sizes=[CUBE_SIDE / 2] * 3, mass=CUBE_MASS, dt=CUBE_DT, mu=0.15,
-                                     ground=floor_height(train.xs), friction_directions=FRICTION_DIRECTIONS)
+                                     ground=floor_height(train.xs), friction_directions=friction_directions)
     if seed:
         from lcs_cvx.train.starts import jittered
 
@@ -73,8 +75,12 @@ def fit(train: lcs_cvx.Trajectories, val: lcs_cvx.Trajectories, budget: Any, pat
     from .models import VALIDATION_HORIZON, validation_score
 
     t0 = time.perf_counter()
-    model = (start_model or start)(train, seed)
-    held = lcs_cvx.Trajectories(val.xs[:VALIDATION_TOSSES], val.us[:VALIDATION_TOSSES])
+    if start_model is None:
+        model = start(train, seed, getattr(budget, "rigid_friction_directions", FRICTION_DIRECTIONS))
+    else:
+        model = start_model(train, seed)
+    n_val = getattr(budget, "rigid_val_tosses", VALIDATION_TOSSES)
+    held = lcs_cvx.Trajectories(val.xs[:n_val], val.us[:n_val])
     res = lcs_cvx.fit(model, train, validation=held, loss="violation", gamma=GAMMA, eps=EPS,
                       iterations=budget.rigid_iterations, lr=budget.rigid_lr, rollout_horizon=ROLLOUT_HORIZON,
                       rollout_iterations=budget.rigid_rollout_iterations, rollout_lr=budget.rigid_lr,
