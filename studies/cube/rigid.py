@@ -36,10 +36,9 @@ ROLLOUT_HORIZON = 10
 #: window of all 138 takes ~35 s a time here with 4 cone edges, twice that with 8); the study's
 #: budget names it (``rigid_val_tosses``, this by default).
 VALIDATION_TOSSES = 20
-#: The friction cone's edges. With 4 (the class's default) the cone is a square whose friction is
-#: larger along its diagonals; on the validation tosses, rollouts of the simulation-error phase
-#: from the data sheet's cube reached 28 mm / 19.5 deg (dair_pll's metric) with 4 edges and
-#: 17.5 mm / 18.9 deg with 8, at 100 steps of 32 windows of 10 steps each.
+#: The friction cone's edges. With 4 (the class's default) the cone is a square whose friction
+#: differs by sqrt 2 between its edges and its diagonals; 8 is closer to Coulomb's round cone
+#: (the changelog has the measurement that chose it).
 FRICTION_DIRECTIONS = 8
 #: The violation loss's constants for the rigid body's units (residuals weighted by the kinetic
 #: metric, J; ``F`` in 1/kg with the compliance 0.02 by default, Lemma 2 needs ``gamma < 0.02``).
