@@ -17,7 +17,7 @@ __all__ = ["SPLIT_SEED", "MACHINE", "DATE", "split", "subset", "study_parts"]
 SPLIT_SEED = 0
 #: The machine and date of the committed results (the reports' "measured on" note).
 MACHINE = "2-core x86-64 VM, 1 torch thread"
-DATE = "2026-11-26 (the kinematic LCSs, the LCS in the cube's symmetry frames and the comparison with dair_pll: 2026-11-28)"
+DATE = "2026-11-26 (the kinematic LCSs, the LCS in the cube's symmetry frames, the rigid body and the comparison with dair_pll: 2026-11-28)"
 
 
 def split(n_tosses: int, seed: int = SPLIT_SEED) -> dict[str, list[int]]:
