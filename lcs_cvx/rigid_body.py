@@ -64,7 +64,10 @@ from .per_sample import SampleLCS, model_loss_info, solve_sample_lcp
 
 __all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices", "rotation_matrix"]
 
-#: The time-stepping formulations (C3's LCS factory has Anitescu's and Stewart--Trinkle's).
+#: The time-stepping formulations. C3's LCS factory also builds Stewart--Trinkle's (an impulse per
+#: contact's normal, one per cone edge and a slack): its ``F`` is not a P-matrix (C3 solves its LCPs
+#: with Lemke's method) and ``F + F^T`` is indefinite, so no ``gamma > 0`` meets Lemma 2 for the
+#: violation loss; it is not offered.
 FORMULATIONS = ("anitescu",)
 #: The physical quantities :class:`RigidBodyContact` can learn (its ``learn`` argument).
 LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance", "residual")
