@@ -307,7 +307,8 @@ def run_rigid_body_bench(batch: int = 200, repeats: int = 5, gamma: float = 1e-2
     among all), on the fast path and on the cvxpylayers reference, side by side; a call is
     ``loss(...).backward()`` as in a training step. Returns a markdown table."""
     from .datasets import CUBE_DT, CUBE_MASS, CUBE_SIDE, cube_tosses
-    from .rigid_body import RigidBodyContact, rotation_matrix
+    from .kinematics import rotation_matrix
+    from .rigid_body import RigidBodyContact
 
     data = cube_tosses().to_transitions()
     model = RigidBodyContact(half_sizes=[CUBE_SIDE / 2] * 3, mass=CUBE_MASS, dt=CUBE_DT, mu=0.15,

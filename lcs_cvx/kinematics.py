@@ -40,7 +40,7 @@ import torch
 
 from ._checks import LCSInputError
 
-__all__ = ["Kinematics", "quaternion_product", "quaternion_exp", "up_in_body"]
+__all__ = ["Kinematics", "quaternion_product", "quaternion_exp", "up_in_body", "rotation_matrix", "cross_matrix"]
 
 FRAMES = ("body", "world")
 
@@ -311,3 +311,19 @@ def quaternion_exp(phi: torch.Tensor) -> torch.Tensor:
     w = torch.where(small, 1.0 - t2 / 8.0, torch.cos(0.5 * t))
     s = torch.where(small, 0.5 - t2 / 48.0, torch.sin(0.5 * t) / t)
     return torch.cat([w, s * phi], dim=-1)
+
+
+def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
+    """``R(q)`` ``(..., 3, 3)`` of unit quaternions ``q`` ``(..., 4)`` (scalar first, body to world)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
+    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def cross_matrix(r: torch.Tensor) -> torch.Tensor:
+    """``[r]_x`` ``(..., 3, 3)`` of ``r`` ``(..., 3)``: ``[r]_x a = r x a``."""
+    zero = torch.zeros_like(r[..., 0])
+    x, y, z = r.unbind(-1)
+    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(r.shape[:-1] + (3, 3))

@@ -103,39 +103,12 @@ def sample_residual(lcs: SampleLCS, x_next: torch.Tensor) -> tuple[torch.Tensor,
     return w[:, None] * lcs.C, w * (lcs.r0 - x_next.index_select(1, rows))
 
 
-def _objective(lam: torch.Tensor, phi: torch.Tensor, C: torch.Tensor, F: torch.Tensor, q: torch.Tensor,
-               r: torch.Tensor, gamma: float, eps: float) -> torch.Tensor:
-    """Eq. (9b)'s value per sample ``(N,)`` at ``(lam, phi)`` with per-sample ``C, F``."""
-    e = (C @ lam[..., None])[..., 0] + r
-    w = (F @ lam[..., None])[..., 0] + q - phi
-    return 0.5 * (e * e).sum(-1) + ((lam * phi).sum(-1) + (w * w).sum(-1) / (2.0 * gamma)) / eps
-
-
 def _normal(C: torch.Tensor, F: torch.Tensor, q: torch.Tensor, r: torch.Tensor, gamma: float,
             eps: float) -> dict[str, torch.Tensor]:
     """(V)'s normal equations per sample (the kernel's one formula, samples as a stack of models)."""
     N, n = q.shape
     out = kernel_violation.normal_equations(TORCH, C, F, q[:, None], r[:, None], gamma, eps)
     return {"LtL": out["LtL"], "Ltb": out["Ltb"].reshape(N, n), "K": out["K"], "h": out["h"].reshape(N, n)}
-
-
-def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
-    """``U`` ``(N, n, n)`` with ``U^T U = S`` per sample; a clear error where one is not positive definite."""
-    Lc, info = torch.linalg.cholesky_ex(S)
-    bad = torch.nonzero(info).flatten()
-    if bad.numel():
-        i = int(bad[0])
-        raise LCSInputError(f"{name}: expected a positive definite matrix at every sample, received one at sample "
-                            f"{i} with smallest eigenvalue {float(torch.linalg.eigvalsh(S[i]).min()):.3e}")
-    return Lc.mT
-
-
-def _factor(normal: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The declared (V)'s parameter values ``{"L", "b", "K", "h"}`` of every sample from its
-    normal equations (:meth:`lcs_cvx.problems.ViolationProblem.factor`, batched)."""
-    L = _upper_cholesky("eps C^T C + F + F^T - gamma I", normal["LtL"])
-    b = torch.linalg.solve_triangular(L, normal["Ltb"][:, None, :], upper=True, left=False)[:, 0]
-    return {"L": L, "b": b, "K": normal["K"], "h": normal["h"]}
 
 
 def _check(gamma: float, eps: float, lcs: SampleLCS, solver: str) -> None:
@@ -161,11 +134,11 @@ def violation_loss_info(lcs: SampleLCS, x_next: torch.Tensor, gamma: float, eps:
     n = q.shape[1]
     decl = violation_problem(n)
     if solver != "fast":
-        values = _factor(_normal(C, F, q, r, gamma, eps))
+        values = decl.factor(_normal(C, F, q, r, gamma, eps))
         lam = solve_layer(violation_layer(n), [values[k] for k in decl.parameter_order],
                           "scs" if solver == "cvxpylayers-scs" else "clarabel").clamp(min=0.0)
         phi = kernel_violation.phi(TORCH, lam[:, None], F, q[:, None], gamma)[:, 0]
-        loss = _objective(lam, phi, C, F, q, r, gamma, eps).mean()
+        loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
         return LossInfo(loss, lam.detach(), phi=phi.detach())
     with torch.no_grad():
         normal = {k: v.detach() for k, v in _normal(C, F, q, r, gamma, eps).items()}
@@ -175,13 +148,13 @@ def violation_loss_info(lcs: SampleLCS, x_next: torch.Tensor, gamma: float, eps:
         if sol.unconverged is not None:  # the Clarabel reference on those samples' declared (V)
             n_fb = int(sol.unconverged.numel())
             bad = sol.unconverged
-            values = _factor({k: v[bad] for k, v in normal.items()})
+            values = decl.factor({k: v[bad] for k, v in normal.items()})
             for j, i in enumerate(bad.tolist()):
                 lam[i] = decl.solve({"L": values["L"][j], "b": values["b"][j:j + 1], "K": values["K"][j],
                                      "h": values["h"][j:j + 1]})[0]
                 active[i] = torch.cat([lam[i] > 0, (normal["K"][i] @ lam[i] - normal["h"][i]) > 0])
         phi = kernel_violation.phi(TORCH, lam[:, None], F.detach(), q.detach()[:, None], gamma)[:, 0]
-    loss = _objective(lam, phi, C, F, q, r, gamma, eps).mean()
+    loss = decl.objective(lam, phi, C, F, q, r, gamma, eps).mean()
     return LossInfo(loss, lam, phi=phi, iterations=sol.iterations, n_fallback=n_fb, active=active)
 
 
@@ -196,8 +169,10 @@ def prediction_loss_info(lcs: SampleLCS, x_next: torch.Tensor, *, solver: str = 
     F, q = lcs.F, lcs.q
     n = q.shape[1]
     if solver != "fast":
-        R = _upper_cholesky("F + F^T", F + F.mT)  # (P)'s R^T R = F + F^T, per sample
-        lam = solve_layer(lcp_layer(n), [R, F, q], "scs" if solver == "cvxpylayers-scs" else "clarabel")
+        decl = convex_lcp_problem(n)
+        values = decl.parameter_values(F, q)  # R^T R = F + F^T per sample
+        lam = solve_layer(lcp_layer(n), [values[k] for k in decl.parameter_order],
+                          "scs" if solver == "cvxpylayers-scs" else "clarabel")
         lam, free, n_fb = lam.clamp(min=0.0), None, 0
     else:
         lam_d, free, n_fb = _fast_lcp(F, q, warm_start)

@@ -86,9 +86,10 @@ def _rows_solve_transposed(U: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 
 
 def _upper_cholesky(name: str, S: torch.Tensor) -> torch.Tensor:
-    """``U`` with ``U^T U = S`` for a symmetric positive definite ``S``; a clear error otherwise."""
+    """``U`` with ``U^T U = S`` for a symmetric positive definite ``S`` ``(n, n)`` or a stack
+    ``(N, n, n)`` (one per sample); a clear error otherwise."""
     Lc, info = torch.linalg.cholesky_ex(S)
-    if int(info) != 0:
+    if bool((info != 0).any()):
         raise LCSInputError(
             f"{name}: expected a positive definite matrix, received one with smallest "
             f"eigenvalue {float(torch.linalg.eigvalsh(S).min()):.3e}"
@@ -179,7 +180,11 @@ class ViolationProblem:
         the upper Cholesky factor of ``L^T L`` (a clear error if it is not positive definite),
         ``b`` the rows of ``L^{-T} (L^T b)``."""
         L = _upper_cholesky("eps C^T C + F + F^T - gamma I", normal["LtL"])
-        return {"L": L, "b": _rows_solve_transposed(L, normal["Ltb"]), "K": normal["K"], "h": normal["h"]}
+        if L.dim() == 3:  # a stack of one problem per sample (lcs_cvx.per_sample): b_t = L_t^-T (L^T b)_t
+            b = torch.linalg.solve_triangular(L, normal["Ltb"].unsqueeze(-2), upper=True, left=False).squeeze(-2)
+        else:
+            b = _rows_solve_transposed(L, normal["Ltb"])
+        return {"L": L, "b": b, "K": normal["K"], "h": normal["h"]}
 
     def parameter_values(
         self,
@@ -224,13 +229,18 @@ class ViolationProblem:
         gamma: float,
         eps: float,
     ) -> torch.Tensor:
-        """Per-sample value of eq. (9b) at ``(lam, phi)``, shape ``(B,)``.
+        """Per-sample value of eq. (9b) at ``(lam, phi)``, shape ``(B,)``; ``C``, ``F`` one model's
+        or one per sample (``(B, n_x, n)``, ``(B, n, n)``).
 
         ``1/2 ||C lam + r||^2 + (1/eps) (lam^T phi + ||F lam + q - phi||^2 / (2 gamma))``.
         At the detached optimum, autograd of this expression gives Lemma 3's envelope gradients.
         """
-        e_dyn = lam @ C.mT + r
-        w_res = lam @ F.mT + q - phi
+        if C.dim() == 3:  # per-sample matrices (lcs_cvx.per_sample): C (B, n_x, n), F (B, n, n)
+            e_dyn = (C @ lam.unsqueeze(-1)).squeeze(-1) + r
+            w_res = (F @ lam.unsqueeze(-1)).squeeze(-1) + q - phi
+        else:
+            e_dyn = lam @ C.mT + r
+            w_res = lam @ F.mT + q - phi
         return 0.5 * (e_dyn * e_dyn).sum(-1) + (
             (lam * phi).sum(-1) + (w_res * w_res).sum(-1) / (2.0 * gamma)
         ) / eps

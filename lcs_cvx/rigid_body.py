@@ -39,17 +39,14 @@ configuration is integrated exactly from ``nu'`` (:class:`lcs_cvx.Kinematics`:
 ``q' = q ⊗ exp(dt omega' / 2)``, ``p' = p + dt v'``). :meth:`RigidBodyContact.sample_lcs` gives
 the per-sample matrices the losses consume (:mod:`lcs_cvx.per_sample`);
 :meth:`RigidBodyContact.lcs_at` the plain :class:`lcs_cvx.LCS` of one state.
-
-Learnable, each with its constraint in its parameterisation: the contact points (free
-``vertices`` or a box's half sizes, positive by an exponential), ``mu >= 0`` (softplus), the
-inertia about the centre of mass (``L L^T`` with a positive diagonal: positive definite), the
-centre of mass, the floor's height and the compliance (``kappa_min + softplus``). The mass is
-known: only the ratios of impulse to mass are identifiable.
+Learnable (:data:`LEARNABLE`), each constrained by its parameterisation (positive sizes, ``mu``,
+compliance; a positive definite inertia); the mass is known: only impulse over mass is identifiable.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterable
 from typing import Any
 
@@ -58,16 +55,15 @@ import torch
 from torch import nn
 
 from ._checks import LCSInputError, as_batch, check_positive
-from .kinematics import Kinematics
+from .kinematics import Kinematics, cross_matrix, rotation_matrix
 from .losses import LossInfo
 from .per_sample import SampleLCS, model_loss_info, solve_sample_lcp
+from .system import LCS, rollout
 
-__all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices", "rotation_matrix"]
+__all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices"]
 
-#: The time-stepping formulations. C3's LCS factory also builds Stewart--Trinkle's (an impulse per
-#: contact's normal, one per cone edge and a slack): its ``F`` is not a P-matrix (C3 solves its LCPs
-#: with Lemke's method) and ``F + F^T`` is indefinite, so no ``gamma > 0`` meets Lemma 2 for the
-#: violation loss; it is not offered.
+#: The time-stepping formulations. Stewart--Trinkle's (C3's other) is not offered: its ``F`` is not
+#: a P-matrix (C3 uses Lemke) and ``F + F^T`` is indefinite, so no ``gamma`` meets Lemma 2.
 FORMULATIONS = ("anitescu",)
 #: The physical quantities :class:`RigidBodyContact` can learn (its ``learn`` argument).
 LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance", "residual")
@@ -83,22 +79,6 @@ def box_vertices(half_sizes: torch.Tensor) -> torch.Tensor:
     signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                          dtype=half_sizes.dtype, device=half_sizes.device)
     return signs * half_sizes
-
-
-def rotation_matrix(q: torch.Tensor) -> torch.Tensor:
-    """``R(q)`` ``(..., 3, 3)`` of unit quaternions ``q`` ``(..., 4)`` (scalar first, body to world)."""
-    w, x, y, z = q.unbind(-1)
-    rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
-    return torch.stack(rows, dim=-1).reshape(q.shape[:-1] + (3, 3))
-
-
-def _skew(r: torch.Tensor) -> torch.Tensor:
-    """``[r]_x`` ``(..., 3, 3)``: ``[r]_x a = r x a``."""
-    zero = torch.zeros_like(r[..., 0])
-    x, y, z = r.unbind(-1)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(r.shape[:-1] + (3, 3))
 
 
 def _inv_softplus(y: float) -> float:
@@ -346,8 +326,6 @@ class RigidBodyContact(nn.Module):
             raise LCSInputError(f"{name}: expected unit quaternions in columns 0-3 (w, x, y, z), received "
                                 f"norms off by up to {off:.3g}")
         if off > UNIT_TOL and not self._quaternion_note:
-            import warnings
-
             warnings.warn(f"{name}: quaternions up to {off:.2e} from unit norm were normalised", stacklevel=3)
             self._quaternion_note = True
         return torch.cat([x[:, Q] / norm[:, None], x[:, 4:]], dim=1)
@@ -364,7 +342,7 @@ class RigidBodyContact(nn.Module):
         m, Ic, c = self.mass, self.inertia, self.com
         ez = torch.tensor([0.0, 0.0, 1.0], **kw)
         # M = diag(I_c, 0) + m J_c^T J_c, J_c = [-R [c]_x, I] (the centre of mass's velocity)
-        Jc = torch.cat([-R @ _skew(c), torch.eye(3, **kw).expand(N, 3, 3)], dim=2)
+        Jc = torch.cat([-R @ cross_matrix(c), torch.eye(3, **kw).expand(N, 3, 3)], dim=2)
         M = m * Jc.mT @ Jc + torch.block_diag(Ic, torch.zeros(3, 3, **kw))
         # gravity at the centre of mass, less its centripetal acceleration R (omega x (omega x c)),
         # through J_c^T; the gyroscopic torque -omega x I_c omega
@@ -382,11 +360,6 @@ class RigidBodyContact(nn.Module):
         phi = p[:, 2:3] + R[:, 2, :] @ r.mT - self.ground               # (N, K): e_z^T (p + R r_k) - h
         return M, f, J, phi
 
-    @staticmethod
-    def _features(x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """``[x; u; 1]`` ``(N, 14 + n_u)``: what the residual map acts on."""
-        return torch.cat([x, u, torch.ones(x.shape[0], 1, dtype=x.dtype, device=x.device)], dim=1)
-
     def sample_lcs(self, x: torch.Tensor, u: torch.Tensor) -> SampleLCS:
         """The velocity rows of eq. (1) at every state ``x`` ``(N, 13)`` under ``u`` ``(N, n_u)``
         (module docstring): ``nu' = nu_free + C lam``, ``0 <= lam _|_ F lam + q >= 0``;
@@ -397,7 +370,8 @@ class RigidBodyContact(nn.Module):
         Minv = torch.linalg.inv(M)
         nu_free = x[:, 7:] + self.dt * (Minv @ f[..., None])[..., 0]
         if self.residual_map is not None:
-            nu_free = nu_free + self._features(x, u) @ self.residual_map.mT
+            W = self.residual_map  # on [x; u; 1]
+            nu_free = nu_free + x @ W[:, :N_X].mT + u @ W[:, N_X:-1].mT + W[:, -1]
         C = Minv @ J.mT                                                 # (N, 6, n)
         kappa = self.compliance.repeat_interleave(self.friction_directions)
         F = J @ C + torch.diag_embed(kappa.expand(x.shape[0], -1))
@@ -437,19 +411,8 @@ class RigidBodyContact(nn.Module):
 
     def rollout(self, x0: Any, us: Any) -> torch.Tensor:
         """Simulate from ``x0`` ``(N, 13)`` under ``us`` ``(N, T, n_u)`` (a single run: ``(13,)``
-        and ``(T, n_u)``); returns ``(N, T + 1, 13)`` (``(T + 1, 13)``)."""
-        single = np.ndim(x0) == 1
-        x = as_batch("x0", x0, N_X, dtype=self.dtype, device=self.device)
-        us_t = torch.as_tensor(us, dtype=self.dtype, device=self.device)
-        us_t = us_t.unsqueeze(0) if us_t.dim() == 2 else us_t
-        if us_t.dim() != 3 or us_t.shape[0] != x.shape[0] or us_t.shape[2] != self.n_u:
-            raise LCSInputError(f"us: expected shape ({x.shape[0]}, T, {self.n_u}) or (T, {self.n_u}), "
-                                f"received shape {tuple(us_t.shape)}")
-        xs = [x]
-        for t in range(us_t.shape[1]):
-            xs.append(self.step(xs[-1], us_t[:, t]))
-        out = torch.stack(xs, dim=1)
-        return out[0] if single else out
+        and ``(T, n_u)``); returns ``(N, T + 1, 13)`` (:func:`lcs_cvx.system.rollout`)."""
+        return rollout(self, x0, us)
 
     def lcs_at(self, x: Any, u: Any = None) -> Any:
         """The plain :class:`lcs_cvx.LCS` (13 states, ``n_u`` inputs, ``K m`` units) of the state
@@ -458,8 +421,6 @@ class RigidBodyContact(nn.Module):
         exact and ``q'`` linearised about ``x`` and the model's own step there under ``u``
         (default 0; :meth:`lcs_cvx.Kinematics.to_lcs`). Detached: a model to simulate or control
         (``to_c3()``, :class:`lcs_cvx.control.C3`)."""
-        from .system import LCS
-
         xa, ua = self._xu(x, torch.zeros(self.n_u, dtype=self.dtype) if u is None else u)
         if xa.shape[0] != 1:
             raise LCSInputError(f"x: expected one state (13,), received {xa.shape[0]} states")

@@ -3,16 +3,14 @@ LCS of one state, files and bad input."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 import torch
 
 import lcs_cvx
-from lcs_cvx.kinematics import quaternion_product
+from lcs_cvx.kinematics import quaternion_product, rotation_matrix
 from lcs_cvx.per_sample import solve_sample_lcp
-from lcs_cvx.rigid_body import box_vertices, rotation_matrix
+from lcs_cvx.rigid_body import box_vertices
 
 F64 = torch.float64
 DT, MASS, HALF = 0.01, 0.4, 0.05
@@ -196,7 +194,6 @@ def test_angles_of_a_tumbling_rollout_stay_unit_quaternions():
     R = rotation_matrix(xs[-1:, :4])[0]
     lowest = float((xs[-1, 4:7] + m.vertices.detach() @ R.mT)[:, 2].min())
     assert -2e-3 < lowest < 2e-3
-    assert math.isfinite(lowest)
 
 
 def test_a_residual_starts_at_the_rigid_body_and_its_lcs_at_a_state_includes_it(tmp_path):
