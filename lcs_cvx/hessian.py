@@ -100,13 +100,14 @@ def objective_hessian_zz(
         [[C^T C + F^T F / (eps gamma),  (I - F^T / gamma) / eps],
          [(I - F / gamma) / eps,        I / (eps gamma)        ]]
 
-    Args: C ``(n_x, n)``, F ``(n, n)``. Positive definite iff ``C^T C + (F + F^T - gamma I)/eps``
+    Args: C ``(n_x, n)``, F ``(n, n)``; or one per sample, ``(B, n_x, n)``, ``(B, n, n)`` (then
+    ``(B, 2 n, 2 n)``, :func:`lcs_cvx.per_sample.violation_hessian`). Positive definite iff ``C^T C + (F + F^T - gamma I)/eps``
     is (its Schur complement), which ``0 < gamma < sigma_min(F + F^T)`` guarantees.
     """
-    eye = torch.eye(F.shape[0], dtype=F.dtype, device=F.device)
-    top = torch.cat([C.mT @ C + F.mT @ F / (eps * gamma), (eye - F.mT / gamma) / eps], dim=1)
-    bottom = torch.cat([(eye - F / gamma) / eps, eye / (eps * gamma)], dim=1)
-    return torch.cat([top, bottom], dim=0)
+    eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).expand_as(F)
+    top = torch.cat([C.mT @ C + F.mT @ F / (eps * gamma), (eye - F.mT / gamma) / eps], dim=-1)
+    bottom = torch.cat([(eye - F / gamma) / eps, eye / (eps * gamma)], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
 
 
 class Setup(NamedTuple):
@@ -316,7 +317,9 @@ def violation_hessian(
     (:data:`lcs_cvx.system.PARAMETER_NAMES`, row-major; :func:`parameter_slices`).
 
     Args:
-        model: an :class:`lcs_cvx.LCS`.
+        model: an :class:`lcs_cvx.LCS`; or a model with per-sample matrices
+            (:class:`lcs_cvx.RigidBodyContact`: :func:`lcs_cvx.per_sample.violation_hessian`,
+            ``theta`` its learnable parameters).
         x: ``(N, n_x)``; u: ``(N, n_u)``; x_next: ``(N, n_x)``.
         gamma: ``0 < gamma < sigma_min(F + F^T)`` (Lemma 2; checked). eps: ``> 0``.
 
@@ -331,6 +334,10 @@ def violation_hessian(
         >>> violation_hessian(sys, data.x, data.u, data.x_next, eps=0.1).shape
         torch.Size([44, 44])
     """
+    if not isinstance(model, LCS) and hasattr(model, "sample_lcs"):
+        from .per_sample import violation_hessian as per_sample_hessian
+
+        return per_sample_hessian(model, x, u, x_next, gamma, eps)
     x, u, x_next, z, m, chol = setup(model, x, u, x_next, gamma, eps)
     rho_theta, Jzt = objective_jacobians(model, x, u, x_next, z, gamma, eps)  # (B, r | 2n, P)
     B = z.shape[0]

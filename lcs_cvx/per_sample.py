@@ -15,7 +15,8 @@ x'[rows])``:
   samples by the Clarabel reference, counted); the objective is then evaluated in torch at the
   detached optimum, so autograd gives Lemma 3's envelope gradient through the matrices into the
   model's parameters (:func:`violation_loss_info`);
-- the prediction loss, eq. (6): ``1/2 |e|^2`` at the exact LCP solution (:func:`prediction_loss_info`).
+- the prediction loss, eq. (6): ``1/2 |e|^2`` at the exact LCP solution (:func:`prediction_loss_info`);
+- Lemma 4's Hessian of ``L_eps`` in the model's learnable parameters (:func:`violation_hessian`).
 
 ``solver="cvxpylayers"`` solves the same declared problems (:func:`lcs_cvx.violation_problem`,
 :func:`lcs_cvx.convex_lcp_problem`) as ``cvxpylayers`` layers with per-sample (batched)
@@ -28,17 +29,19 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from torch import nn
 
-from ._checks import LCSInputError, check_positive
+from ._checks import LCSInputError, SolverError, check_positive
 from ._kernels import lcp as kernel_lcp
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH
+from .hessian import objective_hessian_zz
 from .layers import lcp_layer, solve_layer, violation_layer
 from .losses import MAX_ITER, LossInfo
 from .problems import convex_lcp_problem, violation_problem
 
 __all__ = ["SampleLCS", "solve_sample_lcp", "violation_loss_info", "prediction_loss_info", "model_loss_info",
-           "sample_residual"]
+           "sample_residual", "violation_hessian"]
 
 SOLVERS = ("fast", "cvxpylayers", "cvxpylayers-scs")
 
@@ -195,3 +198,75 @@ def model_loss_info(kind: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_n
     if kind == "violation":
         return violation_loss_info(lcs, x_next, gamma, eps, solver=solver, warm_start=warm_start)
     return prediction_loss_info(lcs, x_next, solver=solver, warm_start=warm_start)
+
+
+class _Matrices(nn.Module):
+    """``model.sample_lcs`` as a module call (for :func:`torch.func.functional_call`)."""
+
+    def __init__(self, model: nn.Module) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        lcs = self.model.sample_lcs(x, u)
+        C, r = sample_residual(lcs, x_next)
+        return C, lcs.F, lcs.q, r
+
+
+def violation_hessian(model: Any, x: Any, u: Any, x_next: Any, gamma: float = 1e-2, eps: float = 1e-4
+                      ) -> torch.Tensor:
+    r"""Lemma 4's Hessian of ``L_eps`` (the batch mean of (V), :func:`violation_loss_info`) in the
+    learnable parameters ``theta`` of a model with per-sample matrices (a
+    :class:`lcs_cvx.RigidBodyContact`):
+
+    ``hess L = mean_t [J_thth - (J_thz)_F (J_zz)_FF^{-1} (J_zth)_F]``
+
+    at the solution ``z_t = (lam_t, phi_t)`` of each sample's (V), ``F_t`` its free set (the
+    reduction of :mod:`lcs_cvx.hessian`), with ``J_zz`` per sample
+    (:func:`lcs_cvx.hessian.objective_hessian_zz` of ``(C_t, F_t)``). The matrices are
+    nonlinear in ``theta`` here, so ``J_thth`` (``z`` fixed) and ``J_zth`` are taken by autograd
+    through ``model.sample_lcs`` (reverse over reverse, one pass per parameter entry) rather
+    than written out.
+
+    ``theta``: the model's parameters with ``requires_grad``, in ``named_parameters()`` order,
+    each flattened row-major. Returns ``(P, P)`` (no autograd graph), defined where strict
+    complementarity holds on every sample (Lemma 3(b)). :func:`lcs_cvx.violation_hessian`
+    calls this for such a model.
+    """
+    x, u, x_next = model.transitions(x, u, x_next)
+    with torch.no_grad():
+        lcs = model.sample_lcs(x, u)
+        info = violation_loss_info(lcs, x_next, gamma, eps)  # checks gamma and eps
+        z = torch.cat([info.lam, info.phi], dim=1)
+        m = (z > 0).to(z.dtype)
+        C, r = sample_residual(lcs, x_next)
+        Jzz = objective_hessian_zz(C, lcs.F, gamma, eps)
+        eye = torch.eye(z.shape[1], dtype=z.dtype, device=z.device)
+        chol, bad = torch.linalg.cholesky_ex(Jzz * (m[:, :, None] * m[:, None, :]) + eye * (1.0 - m)[:, None, :])
+    if bool((bad != 0).any()):  # not expected: (J_zz)_FF is positive definite (Lemma 3(a))
+        raise SolverError(f"(J_zz)_FF not positive definite on {int((bad != 0).sum())} samples")
+    named = [(k, p) for k, p in model.named_parameters() if p.requires_grad]
+    theta = torch.cat([p.detach().reshape(-1) for _, p in named])
+    call, n = _Matrices(model), info.lam.shape[1]
+    decl = violation_problem(n)
+
+    def objective(th: torch.Tensor, zz: torch.Tensor) -> torch.Tensor:
+        values, i = {}, 0
+        for k, p in named:
+            values[f"model.{k}"] = th[i:i + p.numel()].reshape(p.shape)
+            i += p.numel()
+        Ct, Ft, qt, rt = torch.func.functional_call(call, values, (x, u, x_next))
+        return decl.objective(zz[:, :n], zz[:, n:], Ct, Ft, qt, rt, gamma, eps).sum() / z.shape[0]
+
+    with torch.enable_grad():
+        th, zz = theta.clone().requires_grad_(True), z.clone().requires_grad_(True)
+        g_th, g_z = torch.autograd.grad(objective(th, zz), (th, zz), create_graph=True)
+        # directional derivatives along each e_p by reverse over reverse: J_thth's rows from
+        # g_th; J_zth's columns as the vjp in w of (d g_z / d theta)^T w, which is linear in w
+        w = torch.zeros_like(g_z, requires_grad=True)
+        g_w = torch.autograd.grad(g_z, th, w, create_graph=True)[0]
+        basis = torch.eye(theta.numel(), dtype=theta.dtype, device=theta.device)
+        H = torch.stack([torch.autograd.grad(g_th, th, e, retain_graph=True)[0] for e in basis])
+        Jzt = torch.stack([torch.autograd.grad(g_w, w, e, retain_graph=True)[0] for e in basis], dim=-1)
+    Y = torch.linalg.solve_triangular(chol, m[:, :, None] * Jzt * z.shape[0], upper=False)  # (N, 2n, P)
+    return (H - torch.einsum("tip,tiq->pq", Y, Y) / z.shape[0]).detach()

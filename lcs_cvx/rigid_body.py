@@ -6,9 +6,11 @@ State (:data:`lcs_cvx.datasets.CUBE_COLUMNS`): ``x = (q, p, omega, v)``, a unit 
 the angular velocity ``omega`` (body frame) and the linear velocity ``v`` of the origin (world);
 ``nu = (omega, v)``. Optional input: a wrench ``u = (torque (body), force (world))``.
 
-Contact point ``k`` at ``r_k`` (body frame) has the gap ``phi_k = e_z^T (p + R(q) r_k) - h`` to
-the floor at height ``h`` and the velocity Jacobian ``J_k = [-R [r_k]_x, I]`` (``3 x 6``: the
-world velocity of the point is ``J_k nu``). The friction cone is a polyhedron of ``m``
+Contact point ``k`` is a sphere of radius ``rho >= 0`` (a rounded corner; ``rho = 0``: a point)
+centred at ``r_k`` (body frame): its gap to the floor at height ``h`` is
+``phi_k = e_z^T (p + R(q) r_k) - rho - h`` and the world velocity of its lowest point is
+``J_k nu``, ``J_k = [-R [r_k - rho g]_x, I]`` (``3 x 6``; ``g = R^T e_z``, the up direction in the
+body frame). The friction cone is a polyhedron of ``m``
 directions ``d_j`` in the floor's plane. One step of length ``dt`` of Anitescu's
 time-stepping (one ``lambda`` per cone edge, the impulse along ``n + mu d_j``):
 
@@ -66,7 +68,7 @@ __all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices"]
 #: a P-matrix (C3 uses Lemke) and ``F + F^T`` is indefinite, so no ``gamma`` meets Lemma 2.
 FORMULATIONS = ("anitescu",)
 #: The physical quantities :class:`RigidBodyContact` can learn (its ``learn`` argument).
-LEARNABLE = ("vertices", "mu", "inertia", "com", "ground", "compliance", "residual")
+LEARNABLE = ("vertices", "radius", "mu", "inertia", "com", "ground", "compliance", "residual")
 #: Quaternion rows, position rows, angular velocity rows, linear velocity rows of the state.
 Q, P, W, V = slice(0, 4), slice(4, 7), slice(7, 10), slice(10, 13)
 N_X = 13
@@ -91,9 +93,13 @@ class RigidBodyContact(nn.Module):
     inertia.
 
     Args:
-        vertices: the contact points ``(K, 3)`` in the body frame (learned freely); or
+        vertices: the contact points ``(K, 3)`` in the body frame (learned freely; the centres of
+            the rounded corners); or
         half_sizes: a box's half sizes ``(3,)`` (its 8 corners; learned as three positive
-            numbers). Exactly one of the two.
+            numbers; the corners' centres at ``half_sizes - corner_radius``). Exactly one of the two.
+        corner_radius: the initial radius ``rho`` of the rounded corners (m) ``>= 0``; 0 (the
+            default): point contacts, the radius neither used nor learned; ``> 0``: learned
+            (``log rho``) where ``learn`` names ``"radius"``.
         mass: the known mass (kg) ``> 0``.
         dt: the time step (s) ``> 0``; gravity: ``g`` (m/s², along ``-z``), ``>= 0``.
         mu: the initial friction coefficient ``>= 0``.
@@ -123,7 +129,8 @@ class RigidBodyContact(nn.Module):
         -0.0981
     """
 
-    def __init__(self, vertices: Any = None, *, half_sizes: Any = None, mass: float, dt: float,
+    def __init__(self, vertices: Any = None, *, half_sizes: Any = None, corner_radius: float = 0.0,
+                 mass: float, dt: float,
                  gravity: float = 9.81, mu: float = 0.15, inertia: Any = None, com: Any = (0.0, 0.0, 0.0),
                  ground: float = 0.0, compliance: float = 0.02, friction_directions: int = 4,
                  formulation: str = "anitescu", n_u: int = 0, residual: bool = False,
@@ -155,11 +162,15 @@ class RigidBodyContact(nn.Module):
         if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not math.isfinite(mu) or mu < 0:
             raise LCSInputError(f"mu: expected a finite number >= 0, received {mu!r}")
         check_positive("compliance", compliance)
+        if isinstance(corner_radius, bool) or not isinstance(corner_radius, (int, float)) \
+                or not math.isfinite(corner_radius) or corner_radius < 0:
+            raise LCSInputError(f"corner_radius: expected a finite number >= 0, received {corner_radius!r}")
         kw = {"dtype": torch.float64}
         if half_sizes is not None:
             hs = torch.as_tensor(np.asarray(half_sizes, dtype=np.float64))
-            if hs.shape != (3,) or not bool(torch.isfinite(hs).all()) or not bool((hs > 0).all()):
-                raise LCSInputError(f"half_sizes: expected 3 finite numbers > 0, received {np.asarray(half_sizes).tolist()!r}")
+            if hs.shape != (3,) or not bool(torch.isfinite(hs).all()) or not bool((hs > corner_radius).all()):
+                raise LCSInputError(f"half_sizes: expected 3 finite numbers > {corner_radius:g} (the corner radius), "
+                                    f"received {np.asarray(half_sizes).tolist()!r}")
             self.box = True
             self.log_half_sizes = nn.Parameter(hs.log())
             extent = hs
@@ -195,6 +206,7 @@ class RigidBodyContact(nn.Module):
         self.com_scaled = nn.Parameter(c / ell)
         self.ground_scaled = nn.Parameter(torch.tensor(float(ground) / ell, **kw))
         self.register_buffer("compliance_min", torch.tensor(compliance / 2, **kw))
+        self.log_radius = nn.Parameter(torch.tensor(math.log(corner_radius), **kw)) if corner_radius > 0 else None
         self.mu_raw = nn.Parameter(torch.tensor(_inv_softplus(max(float(mu), 1e-12)), **kw))
         K = self.n_contacts
         self.compliance_raw = nn.Parameter(torch.full((K,), _inv_softplus(compliance / 2), **kw))
@@ -210,12 +222,15 @@ class RigidBodyContact(nn.Module):
         self._config = {"box": self.box, "n_contacts": self.n_contacts, "mass": self.mass, "dt": self.dt,
                         "gravity": self.gravity, "compliance": float(compliance),
                         "friction_directions": friction_directions, "formulation": formulation, "n_u": self.n_u,
-                        "residual": residual, "learn": list(learn), "dtype": str(dtype).removeprefix("torch.")}
+                        "residual": residual, "learn": list(learn), "dtype": str(dtype).removeprefix("torch."),
+                        "corner_radius": float(corner_radius)}
         self.to(dtype)
         names = {"vertices": "log_half_sizes" if self.box else "vertex_positions", "mu": "mu_raw",
                  "inertia": "inertia_factor", "com": "com_scaled", "ground": "ground_scaled", "compliance": "compliance_raw"}
         if residual:
             names["residual"] = "residual_map"
+        if corner_radius > 0:
+            names["radius"] = "log_radius"
         for quantity, pname in names.items():
             getattr(self, pname).requires_grad_(quantity in learn)
         self._quaternion_note = False
@@ -231,9 +246,18 @@ class RigidBodyContact(nn.Module):
         return self.n_contacts * self.friction_directions
 
     @property
+    def corner_radius(self) -> torch.Tensor:
+        """The radius ``rho`` of the rounded corners (m; 0: point contacts)."""
+        if self.log_radius is None:
+            return torch.zeros((), dtype=self.dtype, device=self.device)
+        return self.log_radius.exp()
+
+    @property
     def vertices(self) -> torch.Tensor:
-        """The contact points ``(K, 3)`` in the body frame (m)."""
-        return box_vertices(self.log_half_sizes.exp()) if self.box else self.vertex_positions * self.length_scale
+        """The contact points ``(K, 3)`` in the body frame (m): the rounded corners' centres."""
+        if self.box:
+            return box_vertices(self.log_half_sizes.exp() - self.corner_radius)
+        return self.vertex_positions * self.length_scale
 
     @property
     def com(self) -> torch.Tensor:
@@ -247,9 +271,10 @@ class RigidBodyContact(nn.Module):
 
     @property
     def half_sizes(self) -> torch.Tensor:
-        """Half the extent of the contact points along each body axis ``(3,)`` (m): a box's half sizes."""
+        """Half the extent of the body along each body axis ``(3,)`` (m): a box's half sizes (the
+        contact points' half extent plus the corners' radius)."""
         v = self.vertices
-        return (v.amax(0) - v.amin(0)) / 2
+        return (v.amax(0) - v.amin(0)) / 2 + self.corner_radius
 
     @property
     def mu(self) -> torch.Tensor:
@@ -280,7 +305,8 @@ class RigidBodyContact(nn.Module):
         in kg m², centre of mass in m, floor height in m, compliance in 1/kg)."""
         with torch.no_grad():
             return {"half_sizes": self.half_sizes.tolist(), "side": float(2 * self.half_sizes.mean()),
-                    "vertices": self.vertices.tolist(), "mu": float(self.mu),
+                    "vertices": self.vertices.tolist(), "corner_radius": float(self.corner_radius),
+                    "mu": float(self.mu),
                     "inertia": self.inertia.tolist(), "com": self.com.tolist(), "ground": float(self.ground),
                     "compliance": self.compliance.tolist(), "mass": self.mass,
                     "residual": None if self.residual_map is None else self.residual_map.tolist()}
@@ -304,7 +330,8 @@ class RigidBodyContact(nn.Module):
         """A model of :meth:`config`'s settings (its parameters at a placeholder start, to be
         loaded with ``load_state_dict``)."""
         c = dict(config)
-        shape = {"half_sizes": [1.0, 1.0, 1.0]} if c.pop("box") else {"vertices": np.ones((c["n_contacts"], 3))}
+        big = max(1.0, 2 * c.get("corner_radius", 0.0))
+        shape = {"half_sizes": [big] * 3} if c.pop("box") else {"vertices": np.ones((c["n_contacts"], 3))}
         c.pop("n_contacts")
         dtype = {"float32": torch.float32, "float64": torch.float64}[c.pop("dtype")]
         return cls(**shape, **c, dtype=dtype)
@@ -350,14 +377,16 @@ class RigidBodyContact(nn.Module):
         centripetal = (R @ torch.linalg.cross(omega, torch.linalg.cross(omega, cc))[..., None])[..., 0]
         f = (Jc.mT @ (-m * self.gravity * ez - m * centripetal)[..., None])[..., 0]
         f = f - torch.cat([torch.linalg.cross(omega, omega @ Ic.mT), torch.zeros_like(omega)], dim=1)
-        # the cone edges' Jacobians J~_kj = (n + mu d_j)^T [-R [r_k]_x, I] = [(r_k x R^T e_j)^T, e_j^T]
-        r = self.vertices                                               # (K, 3)
+        # the cone edges' Jacobians J~_kj = (n + mu d_j)^T [-R [a_k]_x, I] = [(a_k x R^T e_j)^T, e_j^T],
+        # a_k = r_k - rho g the lowest point of corner k (g = R^T e_z, row 2 of R)
+        r, rho, g = self.vertices, self.corner_radius, R[:, 2, :]       # (K, 3), (), (N, 3)
         edges = ez + self.mu * self.directions                          # (m, 3), world
         K, n_dir = r.shape[0], edges.shape[0]
         body = edges @ R                                                # (N, m, 3): R^T e_j
-        ang = torch.linalg.cross(r[None, :, None, :].expand(N, K, n_dir, 3), body[:, None].expand(N, K, n_dir, 3))
+        lever = r[None] - rho * g[:, None, :]                           # (N, K, 3)
+        ang = torch.linalg.cross(lever[:, :, None, :].expand(N, K, n_dir, 3), body[:, None].expand(N, K, n_dir, 3))
         J = torch.cat([ang, edges.expand(N, K, n_dir, 3)], dim=-1).reshape(N, K * n_dir, 6)
-        phi = p[:, 2:3] + R[:, 2, :] @ r.mT - self.ground               # (N, K): e_z^T (p + R r_k) - h
+        phi = p[:, 2:3] + g @ r.mT - rho - self.ground                  # (N, K): e_z^T (p + R r_k) - rho - h
         return M, f, J, phi
 
     def sample_lcs(self, x: torch.Tensor, u: torch.Tensor) -> SampleLCS:
@@ -385,10 +414,15 @@ class RigidBodyContact(nn.Module):
         of the transitions ``(x, u, x_next)`` with each state's own LCS (:mod:`lcs_cvx.per_sample`);
         the data checked first (widths, quaternions). :func:`lcs_cvx.violation_loss` and
         :func:`lcs_cvx.prediction_loss` call this for a rigid body."""
+        x, u, x_next = self.transitions(x, u, x_next)
+        return model_loss_info(kind, self, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
+
+    def transitions(self, x: Any, u: Any, x_next: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(x, u, x_next)`` checked (widths, quaternions) as tensors of the model's dtype."""
         x, u = self._xu(x, u)
         x_next = self.check_states("x_next", as_batch("x_next", x_next, N_X, batch=x.shape[0], dtype=self.dtype,
                                                       device=self.device))
-        return model_loss_info(kind, self, x, u, x_next, gamma=gamma, eps=eps, solver=solver, warm_start=warm_start)
+        return x, u, x_next
 
     def solve_lcp(self, x: Any, u: Any) -> torch.Tensor:
         """The impulses ``lam`` ``(N, K m)`` of every state (the exact LCP of its LCS);

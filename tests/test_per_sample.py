@@ -89,7 +89,7 @@ def test_the_lcp_of_each_sample_is_the_declared_problems():
 
 @pytest.mark.parametrize("kind", ["violation", "prediction"])
 def test_loss_and_gradient_three_ways(kind):
-    m = body(residual=True)  # every learnable quantity, the residual map too (nonzero)
+    m = body(residual=True, corner_radius=0.004)  # every learnable quantity: the residual map (nonzero), the radius
     with torch.no_grad():
         m.residual_map.copy_(0.01 * torch.randn(6, 14, generator=torch.Generator().manual_seed(5), dtype=F64))
     x, u, x_next = contact_samples()
@@ -115,6 +115,40 @@ def test_loss_and_gradient_three_ways(kind):
         assert float((g_fast[name] - g_layer[name]).abs().max()) <= 1e-2 * scale + 1e-4 * largest, name
         assert float((g_fast[name] - g_fd[name]).abs().max()) <= 1e-6 * scale + 1e-9 * largest, name
     assert any(float(g.abs().max()) > 0 for g in g_fast.values())
+
+
+def test_the_lemma_4_hessian_three_ways():
+    m = body(corner_radius=0.004)
+    x, u, x_next = contact_samples()
+    H = lcs_cvx.violation_hessian(m, x, u, x_next, gamma=GAMMA, eps=EPS)
+    params = [p for p in m.parameters() if p.requires_grad]
+    assert H.shape == (sum(p.numel() for p in params),) * 2
+    assert torch.allclose(H, H.mT, atol=1e-9 * float(H.abs().max()))
+
+    def gradient(solver: str) -> torch.Tensor:
+        loss = m.loss_info("violation", x, u, x_next, gamma=GAMMA, eps=EPS, solver=solver).loss
+        return torch.cat([g.reshape(-1) for g in torch.autograd.grad(loss, params)])
+
+    def differences(solver: str, h: float) -> torch.Tensor:
+        cols = []
+        for p in params:
+            flat = p.data.view(-1)
+            for i in range(flat.numel()):
+                old = float(flat[i])
+                flat[i] = old + h
+                up = gradient(solver)
+                flat[i] = old - h
+                down = gradient(solver)
+                flat[i] = old
+                cols.append((up - down) / (2 * h))
+        return torch.stack(cols, dim=1)
+
+    scale = float(H.abs().max())
+    # the envelope gradient of the fast kernel, differenced: Lemma 4 to the differences' accuracy
+    assert float((differences("fast", 1e-5) - H).abs().max()) <= 1e-6 * scale
+    # the cvxpylayers layer's gradient, differenced with a step long enough for the interior
+    # point's tolerances (its gradient's noise / h); the step's own truncation is ~0.9 % here
+    assert float((differences("cvxpylayers", 2e-2) - H).abs().max()) <= 2e-2 * scale
 
 
 def test_the_public_losses_take_a_rigid_body():

@@ -3,6 +3,8 @@ LCS of one state, files and bad input."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -85,6 +87,37 @@ def test_a_sliding_body_slows_down_and_gains_no_energy():
     assert bool((energy[1:] <= energy[:-1] + 1e-6).all())  # 1e-6 J: the compliance settling at rest
 
 
+def test_a_ball_that_slides_starts_rolling_at_five_sevenths_of_its_speed():
+    # one rounded corner at the centre is a ball: friction at its lowest point (lever -rho e_z)
+    # spins it up until it rolls, v = omega r, at 5/7 of the start's speed (I = 2/5 m r^2)
+    r = 0.05
+    ball = lcs_cvx.RigidBodyContact(vertices=[[0.0, 0.0, 0.0]], corner_radius=r, mass=MASS, dt=0.005, mu=0.3,
+                                    inertia=0.4 * MASS * r**2, compliance=1e-3)
+    assert np.allclose(ball.physical()["half_sizes"], [r] * 3, atol=1e-15) and abs(ball.physical()["corner_radius"] - r) < 1e-16
+    xs = ball.rollout(state(p=(0, 0, r), v=(2.0, 0, 0))[0], torch.zeros(400, 0, dtype=F64))
+    assert abs(float(xs[-1, 10]) - 2.0 * 5 / 7) < 1e-9 and abs(float(xs[-1, 8]) - 2.0 * 5 / 7 / r) < 1e-7
+    # the same point without its radius (rho = 0, the centre on the floor) has no lever: it slides
+    # to a stop without spinning
+    point = lcs_cvx.RigidBodyContact(vertices=[[0.0, 0.0, 0.0]], mass=MASS, dt=0.005, mu=0.3, inertia=0.4 * MASS * r**2,
+                                     compliance=1e-3)
+    xs = point.rollout(state(p=(0, 0, 0), v=(2.0, 0, 0))[0], torch.zeros(400, 0, dtype=F64))
+    assert abs(float(xs[-1, 10])) < 1e-9 and float(xs[:, 7:10].abs().max()) < 1e-12
+
+
+def test_a_rounded_box_rests_on_a_face_at_its_half_size_and_on_an_edge_lower_than_a_sharp_one():
+    rho = 0.01
+    m = cube(corner_radius=rho, ground=0.02)
+    assert torch.allclose(m.vertices.abs(), torch.full((8, 3), HALF - rho, dtype=F64), atol=1e-15)
+    flat = m._dynamics(state(p=(0, 0, 0.02 + HALF)))[3][0]
+    assert torch.allclose(flat.sort().values[:4], torch.zeros(4, dtype=F64), atol=1e-15)
+    # on an edge, 45 degrees about x: the rounded edge's centre is (h - rho) sqrt 2 + rho above the floor
+    s = math.sin(math.pi / 8)
+    height = 0.02 + (HALF - rho) * math.sqrt(2) + rho
+    edge = m._dynamics(state(q=(math.cos(math.pi / 8), s, 0, 0), p=(0, 0, height)))[3][0]
+    assert torch.allclose(edge.sort().values[:2], torch.zeros(2, dtype=F64), atol=1e-15)
+    assert height < 0.02 + HALF * math.sqrt(2)
+
+
 def test_the_lcs_of_a_state_steps_as_the_model_there():
     m = cube(mu=0.3, com=(0.002, -0.001, 0.003), inertia=[0.001, 0.0012, 0.0009])
     x = state(q=(0.95, 0.2, -0.1, 0.05), p=(0.0, 0.0, HALF + 0.001), w=(2.0, -1.0, 0.5), v=(0.3, -0.2, -0.4))
@@ -152,6 +185,8 @@ def test_save_and_load_are_bit_exact(tmp_path):
     ({"n_u": 3}, "n_u: expected 0 .no input. or 6"),
     ({"learn": ("mass",)}, "learn: expected names among"),
     ({"compliance": 0.0}, "compliance"),
+    ({"corner_radius": -0.01}, "corner_radius: expected a finite number >= 0"),
+    ({"corner_radius": HALF}, "half_sizes: expected 3 finite numbers > 0.05 .the corner radius."),
 ])
 def test_bad_construction_is_named(kwargs, match):
     args = {"half_sizes": [HALF] * 3, "mass": MASS, "dt": DT}

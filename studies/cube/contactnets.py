@@ -6,9 +6,9 @@ dair_pll's numbers are the means over its recorded runs at 512 training tosses
 whole-toss rollouts on its test tosses: ``pos_int_traj`` (the mean over the rollout's steps of
 the Euclidean position error) and ``angle_int_traj`` (the mean rotation angle). Ours: the models
 the study fitted on its 275 training tosses (:mod:`studies.cube.study`), rolled out over the
-study's 137 test tosses from each toss's first state; beside them the physics reference of
-:mod:`studies.cube.physics` (MuJoCo's cube with dair_pll's nominal parameters, and with friction,
-contact stiffness and inertia chosen on the validation tosses) on the same test tosses.
+study's 137 test tosses from each toss's first state; beside them the physics references of
+:mod:`studies.cube.physics` (MuJoCo's and Drake's cube with dair_pll's nominal parameters, and with
+friction, contact stiffness and inertia chosen on the validation tosses) on the same test tosses.
 
     python -m studies.cube.contactnets --out studies/results/cube [--size 275]
 
@@ -113,21 +113,22 @@ def compare(out: str, size: int) -> list[dict]:
 
 
 def physics_rows(data: lcs_cvx.Trajectories, size: int) -> list[dict]:
-    """The physics reference (:mod:`studies.cube.physics`) on the test tosses: nominal, and tuned
-    on the validation tosses; the floor from the first ``size`` training tosses."""
+    """The physics references (:mod:`studies.cube.physics`, MuJoCo and Drake) on the test tosses:
+    nominal, and tuned on the validation tosses; the floor from the first ``size`` training tosses."""
     parts = study_parts(len(data))
     train, val, test = (subset(data, parts[k]) for k in ("train", "validation", "test"))
     floor = physics.floor_height(train.xs[:size])
     rows = []
-    t0 = time.perf_counter()
-    tuned, grid = physics.tune(val.xs, floor)
-    tune_wall = time.perf_counter() - t0
-    for name, p in (("MuJoCo, nominal parameters", replace(physics.NOMINAL, floor=floor)),
-                    ("MuJoCo, tuned on the validation tosses", tuned)):
+    for engine, label, nominal in (("mujoco", "MuJoCo", physics.NOMINAL), ("drake", "Drake", physics.NOMINAL_DRAKE)):
         t0 = time.perf_counter()
-        rows.append({"model": name, "physics": asdict(p), **physics.errors(p, test.xs),
-                     "wall": time.perf_counter() - t0 + (tune_wall if p is tuned else 0.0)})
-    rows[-1]["grid"] = grid
+        tuned, grid = physics.tune(val.xs, floor, engine)
+        tune_wall = time.perf_counter() - t0
+        for name, p in ((f"{label}, nominal parameters", replace(nominal, floor=floor)),
+                        (f"{label}, tuned on the validation tosses", tuned)):
+            t0 = time.perf_counter()
+            rows.append({"model": name, "physics": asdict(p), **physics.errors(p, test.xs),
+                         "wall": time.perf_counter() - t0 + (tune_wall if p is tuned else 0.0)})
+        rows[-1]["grid"] = grid
     return rows
 
 
@@ -202,15 +203,26 @@ def main(argv: list[str] | None = None) -> int:
                       f"{100 * a['in_flight']:.0f} % of those above 20 mm, in flight ({a['states_in_flight']}); one "
                       f"of the 8 units started at the corners in {100 * a['corner_units_in_flight']:.0f} % of "
                       "those in flight."]
-    nominal, tuned = (r["physics"] for r in rows if "physics" in r)
-    lines += ["", "*Physics reference* (`studies/cube/physics.py`): MuJoCo's box of the tosses' size and mass on a "
-              f"plane at the training tosses' resting height ({1000 * nominal['floor']:.1f} mm), {nominal['friction']:g} "
-              f"Coulomb friction and {nominal['inertia']:.3g} kg m² inertia (dair_pll's URDF), contact time constant "
-              f"{nominal['time_constant']:g} s, 10 steps per recorded period; tuned: friction {tuned['friction']:g}, "
-              f"time constant {tuned['time_constant']:g} s, inertia {tuned['inertia']:.3g} kg m², the point of a "
-              f"{len(next(r for r in rows if 'grid' in r)['grid'])}-point grid with the lowest whole-toss rotation error "
-              "on the validation tosses. Nothing is learned from the training tosses but the floor's height: the "
-              "geometry and the rigid-body equations are exact, a reference for what the tosses allow."]
+    phys = {r["model"]: r for r in rows if "physics" in r}
+    mj_nominal, mj_tuned = (phys[f"MuJoCo, {k}"]["physics"] for k in ("nominal parameters", "tuned on the validation tosses"))
+    dr_nominal, dr_tuned = (phys[f"Drake, {k}"]["physics"] for k in ("nominal parameters", "tuned on the validation tosses"))
+
+    def grid_size(label: str) -> int:
+        return len(phys[f"{label}, tuned on the validation tosses"]["grid"])
+    lines += ["", "*Physics references* (`studies/cube/physics.py`): the box of the tosses' size and mass on a plane "
+              f"at the training tosses' resting height ({1000 * mj_nominal['floor']:.1f} mm) with dair_pll's URDF's "
+              f"{mj_nominal['friction']:g} Coulomb friction and {mj_nominal['inertia']:.3g} kg m² inertia. *MuJoCo*: "
+              f"contact time constant {mj_nominal['time_constant']:g} s, 10 steps per recorded period; tuned: "
+              f"friction {mj_tuned['friction']:g}, time constant {mj_tuned['time_constant']:g} s, inertia "
+              f"{mj_tuned['inertia']:.3g} kg m² ({grid_size('MuJoCo')}-point grid). *Drake* (dair_pll's own "
+              "simulator): a discrete MultibodyPlant at the recorded period, point contact, TAMSI; nominal as dair_pll "
+              f"runs it (the ground's friction {dr_nominal['ground_friction']:g}, combined by Drake with the cube's to "
+              f"{2 * dr_nominal['friction'] * dr_nominal['ground_friction'] / (dr_nominal['friction'] + dr_nominal['ground_friction']):.2f}; "
+              f"Drake's default stiffness and dissipation); tuned: friction {dr_tuned['friction']:g} on both surfaces, "
+              f"point stiffness {dr_tuned['stiffness']:g} N/m, Hunt–Crossley dissipation {dr_tuned['dissipation']:g} s/m, "
+              f"inertia {dr_tuned['inertia']:.3g} kg m² ({grid_size('Drake')}-point grid). Each tuned point has the lowest "
+              "whole-toss rotation error on the validation tosses. Nothing is learned from the training tosses but the "
+              "floor's height: the geometry and the rigid-body equations are exact, a reference for what the tosses allow."]
     curve = rigid_body_curve(args.out)
     if curve:
         lines += ["", "## The rigid body along the learning curve", "",
