@@ -13,6 +13,11 @@ TORCH  := torch==2.13.0
 # stack cannot meet; it runs on numpy 2, so it is installed without its declared dependencies
 # (torch and numpy, both already here).
 QPTH   := qpth==0.0.18
+# Drake (the cube study's second physics reference, dair_pll's simulator) declares Mosek, a
+# commercial solver's Python package: installed, CVXPY lists MOSEK first among its solvers and
+# prefers it, unlicensed. Drake's simulation needs only numpy and PyYAML (both already here), so it
+# is installed without its declared dependencies.
+DRAKE  := drake==1.51.1
 
 .PHONY: demo test test-portable docs lint bench lock clean
 
@@ -22,6 +27,7 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet -c constraints.txt $(TORCH)
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[$(EXTRAS)]'
 	$(PY) -m pip install --quiet -c constraints.txt --no-deps $(QPTH)
+	$(PY) -m pip install --quiet -c constraints.txt --no-deps $(DRAKE)
 	touch $(STAMP)
 
 # constraints.txt anew: a throw-away environment with the newest versions pyproject.toml allows,
@@ -33,6 +39,7 @@ lock:
 	.lock-venv/bin/python -m pip install --quiet $(TORCH)
 	.lock-venv/bin/python -m pip install --quiet -e '.[$(EXTRAS)]'
 	.lock-venv/bin/python -m pip install --quiet --no-deps $(QPTH)
+	.lock-venv/bin/python -m pip install --quiet --no-deps $(DRAKE)
 	{ echo "# The versions the test suite passes with; written by 'make lock' (pip freeze)."; \
 	  .lock-venv/bin/python -m pip freeze --exclude-editable; } > constraints.txt
 	rm -rf .lock-venv

@@ -212,6 +212,30 @@ def test_the_physics_reference_lets_a_flat_cube_fall_to_rest():
     assert err["pos"] == pytest.approx(0.0, abs=1e-12) and err["rot"] == pytest.approx(0.0, abs=1e-6)
 
 
+def test_drake_flies_as_mujoco_and_lets_a_dropped_cube_come_to_rest():
+    pytest.importorskip("mujoco")
+    pytest.importorskip("pydrake")
+    from studies.cube import physics
+    # a tumbling toss in flight: both engines take the state as the tosses record it (body
+    # angular velocity, world linear velocity, w < 0 kept) and agree to their integrators
+    q = torch.tensor([-0.6, 0.3, -0.5, 0.55], dtype=torch.float64)
+    x0 = torch.cat([q / q.norm(), torch.tensor([0.1, -0.2, 0.8, 4.0, -2.0, 7.0, 0.5, 0.2, 1.0], dtype=torch.float64)])
+    (mj,) = physics.simulate(physics.NOMINAL, [x0.expand(20, 13)])
+    (dk,) = physics.simulate(physics.NOMINAL_DRAKE, [x0.expand(20, 13)])
+    assert float((dk[:, 4:6] - mj[:, 4:6]).abs().max()) < 1e-12
+    # the height: Drake takes one semi-implicit Euler step per period, MuJoCo ten, which differ
+    # by g dt^2 / 2 per step in free fall (19 steps: 4 mm)
+    assert float((dk[:, 6] - mj[:, 6]).abs().max()) < 19 * 9.81 * (1 / 148) ** 2 / 2 * 1.05
+    assert float(geodesic_angle(dk[:, :4].numpy(), mj[:, :4].numpy()).max()) < 1e-2
+    assert float((dk[:, :4] * mj[:, :4]).sum(-1).min()) > 0  # one hemisphere: the sign is continuous
+    assert float((dk[:, 7:] - mj[:, 7:]).abs().max()) < 1e-2
+    drop = torch.zeros(150, 13, dtype=torch.float64)
+    drop[:, 0], drop[:, 6] = 1.0, 0.2
+    (traj,) = physics.simulate(physics.NOMINAL_DRAKE, [drop])
+    assert traj[-1, 6].item() == pytest.approx(physics.NOMINAL_DRAKE.side / 2, abs=2e-3)
+    assert float(traj[-1, 7:].abs().max()) < 1e-2
+
+
 def test_the_seed_table_reports_every_fit_and_the_range(tmp_path):
     from studies.cube import seeds
 

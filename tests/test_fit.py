@@ -568,6 +568,12 @@ def test_unknown_keyword_is_named_with_the_valid_ones(call):
     assert all(repr(k) in str(info.value) for k in FLAT_OPTIONS)
 
 
+def test_a_misspelt_keyword_gets_the_nearest_valid_one():
+    with pytest.raises(LCSInputError, match=r"unknown option\(s\) \['iteration'\]; valid options are .*; "
+                                            r"did you mean 'iterations' for 'iteration'\?$"):
+        resolve_options("best", iteration=10)
+
+
 def test_recipes_are_read_only_and_options_do_not_import_recipes():
     with pytest.raises(TypeError):
         lcs_cvx.RECIPES["paper"] = FitOptions()  # type: ignore[index]

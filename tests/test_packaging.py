@@ -34,7 +34,7 @@ EXTRAS = {
 }
 # (not pyscipopt, the control extra's SCIP: CVXPY itself imports every solver it finds installed)
 OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib", "pyparc", "sklearn", "faiss",
-                    "mip", "pypoman", "cdd", "casadi", "qpth")
+                    "mip", "pypoman", "cdd", "casadi", "qpth", "pydrake")
 
 
 def _name(requirement: str) -> str:

@@ -27,6 +27,7 @@ each is an alias of one or more fields of the groups (:data:`FLAT_ALIASES`), app
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -232,8 +233,11 @@ def known(options: dict[str, Any]) -> dict[str, Any]:
     """``options``, after checking that each is a flat keyword (:data:`FLAT_OPTIONS`)."""
     unknown = sorted(set(options) - set(FLAT_OPTIONS))
     if unknown:
+        near = {k: difflib.get_close_matches(k, FLAT_OPTIONS, n=1) for k in unknown}
+        hint = "; ".join(f"did you mean {m[0]!r} for {k!r}?" for k, m in near.items() if m)
         raise LCSInputError(
             f"options: unknown option(s) {unknown}; valid options are {sorted(FLAT_OPTIONS)}"
+            + (f"; {hint}" if hint else "")
         )
     return options
 

@@ -409,6 +409,7 @@ def specs() -> list[Spec]:
              _fit_lcs(symmetry.symmetric_lcs, True, prepare=symmetry.prepare, candidates=kinematic.CONTACT_N_LAMS,
                       stepper=symmetry.stepper), _load_symmetric),
         Spec("rigid body", "rigid_body", "npz", rigid.fit, rigid.load),
+        Spec("rigid body, rounded corners", "rigid_body_rounded", "npz", rigid.fit_rounded, rigid.load),
     ]
 
 

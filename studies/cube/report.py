@@ -17,7 +17,7 @@ from lcs_cvx.metrics import AffineMap, affine_lstsq
 from . import kinematic
 from . import models as M
 from .metrics import CUTOFF_GROWTH, DIVERGED_GROWTH, GROUPS, UNITS, rollout, rollouts
-from .tosses import DATE, MACHINE, SPLIT_SEED, study_parts, subset
+from .tosses import DATE, MACHINE, SMOKE_TOSSES, SPLIT_SEED, study_parts, subset
 
 __all__ = ["write_report", "target_check", "linear_floor", "ROLLOUT_METRICS"]
 
@@ -264,7 +264,7 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         f"permutation (NumPy `default_rng({SPLIT_SEED})`) gives {len(parts['train'])} training, "
         f"{len(parts['validation'])} validation and {len(parts['test'])} test tosses "
         f"({sum(test.lengths)} test transitions)"
-        + (" (smoke: the first 20 validation and test tosses only)" if smoke else "")
+        + (f" (smoke: the first {SMOKE_TOSSES} validation and test tosses only)" if smoke else "")
         + ". The training set of size n is the first n training tosses (nested); every size is "
         "validated on the whole validation quarter (not scaled with the size) and tested on the whole "
         "test quarter.",

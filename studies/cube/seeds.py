@@ -30,7 +30,7 @@ from .tosses import MACHINE, study_parts, subset
 __all__ = ["MODELS", "run", "main"]
 
 #: The study's models whose seed spread is measured (spec keys).
-MODELS = ("lcs_contact", "lcs_symmetry", "rigid_body")
+MODELS = ("lcs_contact", "lcs_symmetry", "rigid_body", "rigid_body_rounded")
 #: When the committed spread was measured.
 DATE = "2026-11-28"
 
@@ -42,9 +42,10 @@ def _done(path: str) -> dict[tuple[str, int], dict]:
         return {(r["key"], r["seed"]): r for r in map(json.loads, filter(str.strip, f))}
 
 
-def run(out: str, size: int, seeds: list[int]) -> list[dict]:
-    """Fit and evaluate every missing ``(model, seed)``; seed 0 is the study's own cell (read from
-    its record and model file, not refitted)."""
+def run(out: str, size: int, seeds: list[int], models: tuple[str, ...] = MODELS) -> list[dict]:
+    """Fit and evaluate every missing ``(model, seed)`` of ``models``; seed 0 is the study's own
+    cell (read from its record and model file, not refitted). Every record in ``OUT/seeds.jsonl``
+    is returned (other processes' too: runs of other seeds may go side by side)."""
     torch.set_num_threads(1)
     data = cube_tosses()
     parts = study_parts(len(data))
@@ -55,16 +56,16 @@ def run(out: str, size: int, seeds: list[int]) -> list[dict]:
     path = os.path.join(out, "seeds.jsonl")
     done = _done(path)
     os.makedirs(os.path.join(out, "models", "seeds"), exist_ok=True)
-    for key in MODELS:
+    for key in models:
         spec = next(s for s in M.specs() if s.key == key)
-        if (size, key) not in study:
-            print(f"{key}: no study cell at {size} tosses yet (python -m studies.cube.study --sizes {size} "
-                  f"--models {key}); skipped")
-            continue
-        cell = study[(size, key)]
-        n_lam = cell["fit"].get("n_lam")  # None for the rigid body (its units are its contacts)
+        cell = study.get((size, key))
+        n_lam = cell["fit"].get("n_lam") if cell else None  # None for a rigid body (its units are its contacts)
         for seed in seeds:
             if (key, seed) in done:
+                continue
+            if cell is None and (seed == 0 or not key.startswith("rigid_body")):  # an LCS reuses the cell's n_lam
+                print(f"{key}: no study cell at {size} tosses yet (python -m studies.cube.study --sizes {size} "
+                      f"--models {key}); seed {seed} skipped")
                 continue
             t0 = time.perf_counter()
             if seed == 0:
@@ -82,6 +83,7 @@ def run(out: str, size: int, seeds: list[int]) -> list[dict]:
             done[(key, seed)] = rec
             with open(path, "a") as f:
                 f.write(M.to_json(rec) + "\n")
+    done = _done(path)
     return [done[k] for k in sorted(done)]
 
 
@@ -136,8 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=os.path.join("studies", "results", "cube"))
     ap.add_argument("--size", type=int, default=275)
     ap.add_argument("--seeds", default="0,1,2,3")
+    ap.add_argument("--models", default=",".join(MODELS), help="comma-separated model keys (default: all of MODELS)")
     args = ap.parse_args(argv)
-    records = run(args.out, args.size, [int(s) for s in args.seeds.split(",")])
+    records = run(args.out, args.size, [int(s) for s in args.seeds.split(",")], tuple(args.models.split(",")))
     print(write(args.out, records, f"python -m studies.cube.seeds --out {args.out} --size {args.size} "
                                    f"--seeds {args.seeds}"))
     return 0

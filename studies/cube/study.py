@@ -20,7 +20,7 @@ least-squares map and a tuned MLP, along a learning curve of training tosses.
 
     python -m studies.cube.study --out studies/results/cube [--sizes 2,4,...] [--models ...] [--smoke]
 
-``--smoke``: sizes 2 and 4, 20 validation and 20 test tosses, tiny budgets (a check, in about a
+``--smoke``: sizes 2 and 4, 8 validation and 8 test tosses, tiny budgets (a check, in about a
 minute); written to ``cube_smoke.jsonl`` and ``report_smoke.md`` so as not to mix with the study.
 """
 
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                     + ",".join(map(str, SIZES)))
     ap.add_argument("--models", default=None, help="comma-separated model keys (default all): "
                     + ",".join(s.key for s in M.specs()))
-    ap.add_argument("--smoke", action="store_true", help="sizes 2,4, 20 validation/test tosses, tiny budgets")
+    ap.add_argument("--smoke", action="store_true", help="sizes 2,4, 8 validation/test tosses, tiny budgets")
     ap.add_argument("--no-report", action="store_true", help="fit and evaluate only")
     args = ap.parse_args(argv)
     sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else ([2, 4] if args.smoke else list(SIZES))

@@ -12,9 +12,11 @@ import numpy as np
 
 import lcs_cvx
 
-__all__ = ["SPLIT_SEED", "MACHINE", "DATE", "split", "subset", "study_parts"]
+__all__ = ["SPLIT_SEED", "SMOKE_TOSSES", "MACHINE", "DATE", "split", "subset", "study_parts"]
 
 SPLIT_SEED = 0
+#: The validation and test tosses of a smoke run (a check of the plumbing, not a measurement).
+SMOKE_TOSSES = 8
 #: The machine and date of the committed results (the reports' "measured on" note).
 MACHINE = "2-core x86-64 VM, 1 torch thread"
 DATE = "2026-11-26 (the kinematic LCSs, the LCS in the cube's symmetry frames, the rigid body and the comparison with dair_pll: 2026-11-28)"
@@ -34,8 +36,9 @@ def subset(data: lcs_cvx.Trajectories, idx: list[int]) -> lcs_cvx.Trajectories:
 
 
 def study_parts(n_tosses: int, smoke: bool = False) -> dict[str, list[int]]:
-    """:func:`split`, with 20 validation and 20 test tosses for a smoke run."""
+    """:func:`split`, with :data:`SMOKE_TOSSES` validation and test tosses for a smoke run."""
     parts = split(n_tosses)
     if smoke:
-        parts = {"train": parts["train"], "validation": parts["validation"][:20], "test": parts["test"][:20]}
+        parts = {"train": parts["train"], "validation": parts["validation"][:SMOKE_TOSSES],
+                 "test": parts["test"][:SMOKE_TOSSES]}
     return parts
