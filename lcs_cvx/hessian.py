@@ -53,6 +53,7 @@ import torch
 from ._checks import LCSInputError, SolverError, as_matrix, as_transitions, check_positive
 from .losses import violation_fast
 from .parameters import F_adjoint
+from .problems import ViolationProblem
 from .system import LCS, PARAMETER_NAMES
 
 __all__ = [
@@ -101,13 +102,11 @@ def objective_hessian_zz(
          [(I - F / gamma) / eps,        I / (eps gamma)        ]]
 
     Args: C ``(n_x, n)``, F ``(n, n)``; or one per sample, ``(B, n_x, n)``, ``(B, n, n)`` (then
-    ``(B, 2 n, 2 n)``, :func:`lcs_cvx.per_sample.violation_hessian`). Positive definite iff ``C^T C + (F + F^T - gamma I)/eps``
-    is (its Schur complement), which ``0 < gamma < sigma_min(F + F^T)`` guarantees.
+    ``(B, 2 n, 2 n)``, :func:`lcs_cvx.per_sample.violation_hessian`). Positive definite iff
+    ``C^T C + (F + F^T - gamma I)/eps`` is (its Schur complement), which
+    ``0 < gamma < sigma_min(F + F^T)`` guarantees. (:meth:`lcs_cvx.problems.ViolationProblem.hessian_zz`.)
     """
-    eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).expand_as(F)
-    top = torch.cat([C.mT @ C + F.mT @ F / (eps * gamma), (eye - F.mT / gamma) / eps], dim=-1)
-    bottom = torch.cat([(eye - F / gamma) / eps, eye / (eps * gamma)], dim=-1)
-    return torch.cat([top, bottom], dim=-2)
+    return ViolationProblem.hessian_zz(C, F, gamma, eps)
 
 
 class Setup(NamedTuple):

@@ -35,7 +35,6 @@ from ._checks import LCSInputError, SolverError, check_positive
 from ._kernels import lcp as kernel_lcp
 from ._kernels import violation as kernel_violation
 from ._kernels.arrays import TORCH
-from .hessian import objective_hessian_zz
 from .layers import lcp_layer, solve_layer, violation_layer
 from .losses import MAX_ITER, LossInfo
 from .problems import convex_lcp_problem, violation_problem
@@ -223,7 +222,7 @@ def violation_hessian(model: Any, x: Any, u: Any, x_next: Any, gamma: float = 1e
 
     at the solution ``z_t = (lam_t, phi_t)`` of each sample's (V), ``F_t`` its free set (the
     reduction of :mod:`lcs_cvx.hessian`), with ``J_zz`` per sample
-    (:func:`lcs_cvx.hessian.objective_hessian_zz` of ``(C_t, F_t)``). The matrices are
+    (:meth:`lcs_cvx.problems.ViolationProblem.hessian_zz` of ``(C_t, F_t)``). The matrices are
     nonlinear in ``theta`` here, so ``J_thth`` (``z`` fixed) and ``J_zth`` are taken by autograd
     through ``model.sample_lcs`` (reverse over reverse, one pass per parameter entry) rather
     than written out.
@@ -240,7 +239,7 @@ def violation_hessian(model: Any, x: Any, u: Any, x_next: Any, gamma: float = 1e
         z = torch.cat([info.lam, info.phi], dim=1)
         m = (z > 0).to(z.dtype)
         C, r = sample_residual(lcs, x_next)
-        Jzz = objective_hessian_zz(C, lcs.F, gamma, eps)
+        Jzz = violation_problem(info.lam.shape[1]).hessian_zz(C, lcs.F, gamma, eps)
         eye = torch.eye(z.shape[1], dtype=z.dtype, device=z.device)
         chol, bad = torch.linalg.cholesky_ex(Jzz * (m[:, :, None] * m[:, None, :]) + eye * (1.0 - m)[:, None, :])
     if bool((bad != 0).any()):  # not expected: (J_zz)_FF is positive definite (Lemma 3(a))

@@ -219,6 +219,19 @@ class ViolationProblem:
         return kernel.phi(TORCH, lam, F, q, gamma)
 
     @staticmethod
+    def hessian_zz(C: torch.Tensor, F: torch.Tensor, gamma: float, eps: float) -> torch.Tensor:
+        """``J_zz`` of :meth:`objective` in ``z = (lam, phi)``: ``(2 n, 2 n)`` for one model's
+        ``C`` ``(n_x, n)``, ``F`` ``(n, n)``, or ``(B, 2 n, 2 n)`` for one per sample::
+
+            [[C^T C + F^T F / (eps gamma),  (I - F^T / gamma) / eps],
+             [(I - F / gamma) / eps,        I / (eps gamma)        ]]
+        """
+        eye = torch.eye(F.shape[-1], dtype=F.dtype, device=F.device).expand_as(F)
+        top = torch.cat([C.mT @ C + F.mT @ F / (eps * gamma), (eye - F.mT / gamma) / eps], dim=-1)
+        bottom = torch.cat([(eye - F / gamma) / eps, eye / (eps * gamma)], dim=-1)
+        return torch.cat([top, bottom], dim=-2)
+
+    @staticmethod
     def objective(
         lam: torch.Tensor,
         phi: torch.Tensor,
