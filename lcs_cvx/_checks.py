@@ -154,6 +154,16 @@ def as_matrix(
     return t
 
 
+def check_number(name: str, value: Any, minimum: float | None = None) -> float:
+    """``value`` as a float, or an :class:`lcs_cvx.LCSInputError` naming ``name``: a finite
+    number (not a bool), ``>= minimum`` when given."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    if not ok or (minimum is not None and value < minimum):
+        bound = "" if minimum is None else f" >= {minimum:g}"
+        raise LCSInputError(f"{name}: expected a finite number{bound}, received {value!r}")
+    return float(value)
+
+
 def check_positive(name: str, value: Any, *, integer: bool = False, upper: float | None = None) -> Any:
     """Check a positive scalar (``integer`` for counts); return it unchanged."""
     if integer:

@@ -56,7 +56,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ._checks import LCSInputError, as_batch, check_positive
+from ._checks import LCSInputError, as_batch, check_number, check_positive
 from .kinematics import Kinematics, cross_matrix, rotation_matrix
 from .losses import LossInfo
 from .per_sample import SampleLCS, model_loss_info, solve_sample_lcp
@@ -149,9 +149,7 @@ class RigidBodyContact(nn.Module):
             raise LCSInputError(f"learn: expected names among {LEARNABLE}, received {unknown[0]!r}")
         self.mass = float(check_positive("mass", mass))
         self.dt = float(check_positive("dt", dt))
-        if isinstance(gravity, bool) or not isinstance(gravity, (int, float)) or not gravity >= 0:
-            raise LCSInputError(f"gravity: expected a number >= 0, received {gravity!r}")
-        self.gravity = float(gravity)
+        self.gravity = check_number("gravity", gravity, 0.0)
         if isinstance(friction_directions, bool) or not isinstance(friction_directions, int) or friction_directions < 3:
             raise LCSInputError(f"friction_directions: expected an integer >= 3, received {friction_directions!r}")
         self.friction_directions = friction_directions
@@ -159,12 +157,8 @@ class RigidBodyContact(nn.Module):
         if n_u not in (0, 6):
             raise LCSInputError(f"n_u: expected 0 (no input) or 6 (a wrench), received {n_u!r}")
         self.n_x, self.n_u = N_X, int(n_u)
-        if isinstance(mu, bool) or not isinstance(mu, (int, float)) or not math.isfinite(mu) or mu < 0:
-            raise LCSInputError(f"mu: expected a finite number >= 0, received {mu!r}")
+        mu, corner_radius = check_number("mu", mu, 0.0), check_number("corner_radius", corner_radius, 0.0)
         check_positive("compliance", compliance)
-        if isinstance(corner_radius, bool) or not isinstance(corner_radius, (int, float)) \
-                or not math.isfinite(corner_radius) or corner_radius < 0:
-            raise LCSInputError(f"corner_radius: expected a finite number >= 0, received {corner_radius!r}")
         kw = {"dtype": torch.float64}
         if half_sizes is not None:
             hs = torch.as_tensor(np.asarray(half_sizes, dtype=np.float64))
@@ -201,8 +195,7 @@ class RigidBodyContact(nn.Module):
         c = torch.as_tensor(np.asarray(com, dtype=np.float64))
         if c.shape != (3,) or not bool(torch.isfinite(c).all()):
             raise LCSInputError(f"com: expected 3 finite numbers, received {np.asarray(com).tolist()!r}")
-        if isinstance(ground, bool) or not isinstance(ground, (int, float)) or not math.isfinite(ground):
-            raise LCSInputError(f"ground: expected a finite number, received {ground!r}")
+        ground = check_number("ground", ground)
         self.com_scaled = nn.Parameter(c / ell)
         self.ground_scaled = nn.Parameter(torch.tensor(float(ground) / ell, **kw))
         self.register_buffer("compliance_min", torch.tensor(compliance / 2, **kw))
@@ -459,26 +452,25 @@ class RigidBodyContact(nn.Module):
         if xa.shape[0] != 1:
             raise LCSInputError(f"x: expected one state (13,), received {xa.shape[0]} states")
         with torch.no_grad():
-            M, f, J, phi = (t[0].double() for t in self._dynamics(xa))
-            Minv = torch.linalg.inv(M)
-            # nu_free = A_v x + B_v u + d_v at this configuration (f held at x), the residual's map included
+            # the velocity rows of sample_lcs at x, split as nu_free = A_v x + B_v u + d_v (f held at x)
+            lcs = self.sample_lcs(xa, ua)
+            M, _, J, _ = (t[0].double() for t in self._dynamics(xa))
             A = torch.zeros(N_X, N_X, dtype=torch.float64)
             A[7:, 7:] = torch.eye(6, dtype=torch.float64)
             B = torch.zeros(N_X, self.n_u, dtype=torch.float64)
-            B[7:] = (self.dt * Minv)[:, : self.n_u] if self.n_u else B[7:]
-            d = torch.zeros(N_X, dtype=torch.float64)
-            d[7:] = self.dt * Minv @ f
+            B[7:] = (self.dt * torch.linalg.inv(M))[:, : self.n_u]
             if self.residual_map is not None:
                 W = self.residual_map.double()
                 A[7:] += W[:, :N_X]
                 B[7:] += W[:, N_X:N_X + self.n_u]
-                d[7:] += W[:, -1]
+            x0, u0 = xa[0].double(), ua[0].double()
+            d = torch.zeros(N_X, dtype=torch.float64)
+            d[7:] = lcs.r0[0].double() - A[7:] @ x0 - B[7:] @ u0
             C = torch.zeros(N_X, self.n_lam, dtype=torch.float64)
-            C[7:] = Minv @ J.mT
-            kappa = self.compliance.double().repeat_interleave(self.friction_directions)
-            F = J @ C[7:] + torch.diag(kappa)
-            # w = phi / dt + J nu' + kappa lam = (J A_v) x + (J B_v) u + F lam + phi / dt + J d_v
-            c = phi.repeat_interleave(self.friction_directions) / self.dt + J @ d[7:]
-            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=J @ A[7:], E=J @ B[7:], F=F, c=c, dtype=self.dtype)
+            C[7:] = lcs.C[0].double()
+            # w = F lam + q with q = phi / dt + J nu_free = (J A_v) x + (J B_v) u + c
+            D, E = J @ A[7:], J @ B[7:]
+            c = lcs.q[0].double() - D @ x0 - E @ u0
+            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=D, E=E, F=lcs.F[0].double(), c=c, dtype=self.dtype)
             model.with_kinematics(self.kinematics)
             return self.kinematics.to_lcs(model, about=xa[0], u=ua[0])
