@@ -244,7 +244,7 @@ class Kinematics:
                                         f"{tuple(torch.as_tensor(about).shape)}")
                 xa = xa.to(rows["A"])
                 # the model's step there: its velocity rows are eq. (1)'s (only configuration rows are integrated)
-                x_next = model.step(xa, torch.zeros(model.n_u, dtype=model.dtype, device=model.device) if u is None else u)[0]
+                x_next = model.step(xa, torch.zeros(model.n_u, dtype=model.dtype, device=model.device) if u is None else u)
                 for q0, w0 in self.quaternions:
                     self._linearise(rows, new, xa, x_next, q0, w0)
             for k, v in new.items():

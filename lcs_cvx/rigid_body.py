@@ -424,13 +424,15 @@ class RigidBodyContact(nn.Module):
         return solve_sample_lcp(self.sample_lcs(x, u))
 
     def step(self, x: Any, u: Any) -> torch.Tensor:
-        """``x'`` ``(N, 13)``: the velocities of eq. (1) at each state with ``lam`` from its exact
-        LCP, the configuration integrated from them (:class:`lcs_cvx.Kinematics`)."""
+        """``x'`` ``(N, 13)`` (``(13,)`` for one state): the velocities of eq. (1) at each state
+        with ``lam`` from its exact LCP, the configuration integrated from them
+        (:class:`lcs_cvx.Kinematics`)."""
+        single = np.ndim(x) == 1
         x, u = self._xu(x, u)
         lcs = self.sample_lcs(x, u)
-        lam = solve_sample_lcp(lcs)
-        nu = lcs.r0 + (lcs.C @ lam[..., None])[..., 0]
-        return self.kinematics.integrate(x, torch.cat([x[:, :7], nu], dim=1))
+        nu = lcs.r0 + (lcs.C @ solve_sample_lcp(lcs)[..., None])[..., 0]
+        out = self.kinematics.integrate(x, torch.cat([x[:, :7], nu], dim=1))
+        return out[0] if single else out
 
     def forward(self, x: Any, u: Any) -> torch.Tensor:
         """Same as :meth:`step`."""

@@ -382,12 +382,15 @@ class LCS(nn.Module):
         return sol
 
     def step(self, x: Any, u: Any, method: str = "fast") -> torch.Tensor:
-        """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)``; with
-        :attr:`kinematics`, its configuration rows then integrated from the velocities."""
+        """``x' = A x + B u + C lam + d`` with ``lam`` from the exact LCP, ``(N, n_x)`` (``(n_x,)``
+        for one state ``x`` ``(n_x,)``); with :attr:`kinematics`, its configuration rows then
+        integrated from the velocities."""
+        single = np.ndim(x) == 1
         x, u = self._xu(x, u)
         lam = self.solve_lcp(x, u, method=method).lam
         out = x @ self.A.mT + u @ self.B.mT + lam @ self.C.mT + self.d
-        return out if self._kinematics is None else self._kinematics.integrate(x, out)
+        out = out if self._kinematics is None else self._kinematics.integrate(x, out)
+        return out[0] if single else out
 
     def forward(self, x: Any, u: Any) -> torch.Tensor:
         """Same as :meth:`step`."""

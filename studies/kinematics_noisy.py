@@ -44,12 +44,12 @@ def scores(seed: int) -> dict[str, float]:
     data = runs(seed)
     out = {}
     for name, kin in (("learned", None), ("known", KINEMATICS)):
-        result = lcs_cvx.fit(lcs_cvx.LCS(4, 1, 2, seed=1, kinematics=kin), data, iterations=1000, progress=False)
+        result = lcs_cvx.fit(lcs_cvx.LCS(4, 1, 2, seed=1, kinematics=kin), data, recipe="plain", iterations=1000, progress=False)
         out[name] = result.heldout_error
     out["affine"] = result.affine_heldout_error
     old_rule = lambda model, name, others: bool(lcs_cvx.scaling._constrained_entries(model, name).any())  # noqa: E731
     with mock.patch.object(lcs_cvx.scaling, "_held_rows_vary", old_rule):
-        result = lcs_cvx.fit(lcs_cvx.LCS(4, 1, 2, seed=1, kinematics=KINEMATICS), data, iterations=1000,
+        result = lcs_cvx.fit(lcs_cvx.LCS(4, 1, 2, seed=1, kinematics=KINEMATICS), data, recipe="plain", iterations=1000,
                              progress=False)
     out["known, uncentred"] = result.heldout_error
     return out

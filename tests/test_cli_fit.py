@@ -436,7 +436,7 @@ def test_fit_reports_fallbacks_in_one_line(files, tmp_path, capsys, monkeypatch)
     from lcs_cvx.train import phases
 
     argv = ["fit", "--data", str(files["data"]), "--n-lam", "2", "--out", str(tmp_path / "m.npz"),
-            "--iterations", "20"]
+            "--iterations", "20", "--recipe", "plain"]
     assert main(argv) == 0
     assert "fallbacks" not in _facts(capsys.readouterr().out)
     real = phases.violation_fast

@@ -157,7 +157,7 @@ def test_held_out_scores_are_on_the_model_device_whatever_the_datas(monkeypatch)
     model = lcs_cvx.LCS(2, 1, 2, seed=2, dtype=torch.float32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lcs_cvx.FallbackWarning)
-        result = lcs_cvx.fit(model, train, iterations=20, restarts=2, progress=False)
+        result = lcs_cvx.fit(model, train, recipe="plain", iterations=20, restarts=2, progress=False)
     assert seen == [torch.float32]
     assert math.isfinite(result.heldout_error) and math.isfinite(result.affine_heldout_error)
 
@@ -174,7 +174,7 @@ def test_fit_on_trajectories_with_validation_and_the_simulation_error_phase_on_c
     runs = _runs()
     train, validation = runs.split(0.8, seed=0)
     model = lcs_cvx.LCS(2, 1, 2, seed=3).to("cuda")
-    result = lcs_cvx.fit(model, train, validation=validation, iterations=100, rollout_horizon=5,
+    result = lcs_cvx.fit(model, train, recipe="plain", validation=validation, iterations=100, rollout_horizon=5,
                          rollout_iterations=20, holdout_horizon=3, progress=False)
     assert model.device.type == "cuda"
     assert {h["phase"] for h in result.history} >= {"adam", "rollout"}
@@ -192,10 +192,10 @@ def test_select_n_lam_with_data_on_cuda():
     (before: a device mismatch in ``relative_error``)."""
     truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
     data = lcs_cvx.make_dataset(truth, 500, seed=1).to("cuda")
-    selection = lcs_cvx.select_n_lam(data, candidates=(1, 2), iterations=50, progress=False)
+    selection = lcs_cvx.select_n_lam(data, candidates=(1, 2), recipe="plain", iterations=50, progress=False)
     assert selection.model.device.type == "cuda"
     assert all(math.isfinite(row["validation_error"]) for row in selection.table)
-    traj = lcs_cvx.select_n_lam(_runs(), candidates=(2,), iterations=50, progress=False,
+    traj = lcs_cvx.select_n_lam(_runs(), candidates=(2,), recipe="plain", iterations=50, progress=False,
                                 make_model=lambda n: lcs_cvx.LCS(2, 1, n, seed=0).to("cuda"))
     assert traj.model.device.type == "cuda" and math.isfinite(traj.table[0]["validation_error"])
     print("cuda select_n_lam:", [(r["n_lam"], r["validation_error"]) for r in selection.table])
@@ -219,7 +219,7 @@ def test_fit_draws_and_warm_starts_on_the_data_device_as_on_the_cpu(tmp_path, mo
     monkeypatch.setattr(TrainState, "remember", spy)
     truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
     train = lcs_cvx.make_dataset(truth, 400, noise=1e-3, seed=1)
-    options = {"iterations": 60, "batch_size": 100, "lr": 1e-2, "progress": False}
+    options = {"recipe": "plain", "iterations": 60, "batch_size": 100, "lr": 1e-2, "progress": False}
     cpu = lcs_cvx.LCS(2, 1, 2, seed=3)
     lcs_cvx.fit(cpu, train, **options)
     gpu = lcs_cvx.LCS(2, 1, 2, seed=3).to("cuda")

@@ -149,15 +149,15 @@ def _strip(history):
     [
         {"recipe": "paper", "loss": "violation", "lr": 5e-3, "gamma": GAMMA, "eps": EPS},
         {"recipe": "paper", "loss": "prediction", "lr": 1e-3},
-        {"loss": "violation", "lr_schedule": "cosine", "lr": 1e-2, "eps_start": 1e-2, "keep_best": True},
+        {"recipe": "plain", "loss": "violation", "lr_schedule": "cosine", "lr": 1e-2, "eps_start": 1e-2},
     ],
-    ids=["paper-violation", "paper-prediction", "normalised-schedules-keep-best"],
+    ids=["paper-violation", "paper-prediction", "normalised-schedules"],
 )
 def test_fit_ensemble_is_fit_model_by_model(options):
     """Every model's history (losses, e_test, fallbacks) and final parameters are those of its
     own ``fit`` with the same options and seed, bit for bit -- over several epochs, so that warm
-    starts, fresh permutations and (third case) normalisation, the schedules and the best
-    iterate are all exercised."""
+    starts, fresh permutations and (third case) normalisation and the schedules are all
+    exercised."""
     cells = _cells(3, 3, n=300)
     stacked, own = _fit_both(cells, [7, 8, 9], iterations=40, batch_size=50, eval_every=10, **options)
     for r_stacked, r_own in zip(stacked, own, strict=True):
@@ -221,6 +221,8 @@ def test_fit_ensemble_refuses_what_it_does_not_run():
         lcs_cvx.fit_ensemble(models, trains, refine="gauss-newton", progress=False)
     with pytest.raises(LCSInputError, match=r"polish_iterations: .*expected 0, received 5"):
         lcs_cvx.fit_ensemble(models, trains, polish_iterations=5, progress=False)
+    with pytest.raises(LCSInputError, match=r"keep_best: .*expected False, received True"):
+        lcs_cvx.fit_ensemble(models, trains, tests=trains, keep_best=True, progress=False)
     with pytest.raises(LCSInputError, match=r"tests: expected one per model \(2\), received 1"):
         lcs_cvx.fit_ensemble(models, trains, tests=trains[:1], progress=False)
     with pytest.raises(LCSInputError, match=r"trains: expected the same minibatch size .*\[50, 100\]"):
@@ -232,7 +234,7 @@ def test_fit_ensemble_refuses_what_it_does_not_run():
         lcs_cvx.fit_ensemble(models, [trains[0], "data"], progress=False)
 
 
-@pytest.mark.parametrize("options", [{"recipe": "paper", "lr": 5e-3}, {"keep_best": True}],
+@pytest.mark.parametrize("options", [{"recipe": "paper", "lr": 5e-3}, {"recipe": "plain", "keep_best": True}],
                          ids=["paper", "normalised-keep-best"])
 def test_fit_restarts_together_are_the_restarts_one_after_another(options, tmp_path):
     """``fit(restarts=3, ensemble=True)`` trains the restarts in one batched loop: the same
@@ -257,6 +259,6 @@ def test_fit_restarts_together_are_the_restarts_one_after_another(options, tmp_p
 def test_fit_restarts_together_refuse_what_they_do_not_run():
     train, _, model = _cells(1, 2, n=100)[0]
     with pytest.raises(LCSInputError, match=r"callbacks: expected none with ensemble=True"):
-        lcs_cvx.fit(model, train, restarts=2, ensemble=True, callbacks=[lambda rec, m: None], progress=False)
+        lcs_cvx.fit(model, train, recipe="plain", restarts=2, ensemble=True, callbacks=[lambda rec, m: None], progress=False)
     with pytest.raises(LCSInputError, match=r"extra_units: fit_ensemble runs the Adam phase only"):
         lcs_cvx.fit(model, train, recipe="best", restarts=2, restart_tolerance=None, ensemble=True, progress=False)

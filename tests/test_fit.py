@@ -15,6 +15,7 @@ import torch
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
+from lcs_cvx.system import PARAMETER_NAMES
 from lcs_cvx.train import (
     FLAT_OPTIONS,
     AdamOptions,
@@ -38,7 +39,7 @@ def small():
 
 #: the optimisers in the data's own coordinates from the given model (the paper's protocol), so
 #: that these tests measure the optimisers alone; normalisation has its own tests (test_scaling)
-RAW = {"normalize": False, "init": "model"}
+RAW = {"recipe": "plain", "normalize": False, "init": "model"}
 
 
 def _first_below(history, level):
@@ -83,7 +84,7 @@ def test_second_order_needs_far_fewer_iterations_than_adam(small):
 def test_history_records_and_settings(small):
     _, train, test = small
     seen = []
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, progress=False,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", test=test, progress=False,
                          iterations=200, eval_every=50, callbacks=[lambda rec, m: seen.append(rec)])
     assert [h["iteration"] for h in result.history] == [50, 100, 150, 200]
     assert seen == result.history
@@ -95,24 +96,50 @@ def test_history_records_and_settings(small):
 
 def test_callback_stops_training(small):
     _, train, _ = small
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=1000,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False, iterations=1000,
                          eval_every=10, callbacks=[lambda rec, m: rec["iteration"] >= 30])
     assert result.history[-1]["iteration"] == 30
 
 
-def test_keep_best_returns_the_best_iterate(small):
+def test_keep_best_returns_the_best_iterate_on_the_heldout_part(small):
     _, train, test = small
+    fit_part, val = train.split(0.8, seed=1)
     model = lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3)
     # a learning rate too large to settle: the last iterate is not the best one
-    result = lcs_cvx.fit(model, train, test=test, progress=False, iterations=400, lr=0.3,
+    result = lcs_cvx.fit(model, fit_part, recipe="plain", validation=val, test=test, progress=False, iterations=400, lr=0.3,
                          eval_every=20, keep_best=True)
-    best = min(h["e_test"] for h in result.history)
-    assert lcs_cvx.relative_error(model, test) == pytest.approx(best, rel=1e-12)
+    best = min(h["heldout"] for h in result.history)
+    assert best < result.history[-1]["heldout"]
+    assert lcs_cvx.relative_error(model, val) == pytest.approx(best, rel=1e-12)
+    assert all(h["e_test"] is not None for h in result.history)  # reported beside it
+
+
+def test_the_test_set_drives_no_choice(small):
+    """The same model, history of losses and held-out scores with and without ``test``: the
+    kept iterate and the kept restart follow the held-out part only."""
+    _, train, test = small
+    kw = {"recipe": "plain", "iterations": 200, "lr": 0.3, "eval_every": 20, "keep_best": True, "restarts": 2,
+          "progress": False}
+    with_test = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test, **kw)
+    without = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, **kw)
+    assert with_test.restart_scores == without.restart_scores
+    for a, b in zip(with_test.history, without.history, strict=True):
+        assert (a["loss"], a["heldout"]) == (b["loss"], b["heldout"])  # the same operations
+        assert a["e_test"] is not None and b["e_test"] is None
+    for name in PARAMETER_NAMES:
+        assert torch.equal(getattr(with_test.model, name), getattr(without.model, name)), name
+
+
+def test_keep_best_without_a_heldout_part_is_an_error(small):
+    _, train, test = small
+    with pytest.raises(lcs_cvx.LCSInputError, match=r"keep_best: expected a held-out part .* a test set is only "
+                                                    r"reported.*received keep_best=True"):
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", test=test, keep_best=True, iterations=5, progress=False)
 
 
 def test_restarts_pick_the_best_on_holdout(small):
     _, train, _ = small
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False,
                          optimizer="gauss-newton", iterations=3, restarts=3, holdout=0.2)
     assert len(result.restart_scores) == 3
     _, holdout = train.split(0.8, seed=0)
@@ -124,12 +151,12 @@ def test_restarts_pick_the_best_on_holdout(small):
 
 def test_the_kept_restart_names_the_returned_models_records(small):
     _, train, test = small
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, test=test,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", test=test,
                          progress=False, optimizer="gauss-newton", iterations=3, restarts=3)
     records = result.kept_history
     assert {h["restart"] for h in records} == {result.kept_restart}
     assert records[-1]["e_test"] == pytest.approx(lcs_cvx.relative_error(result.model, test))
-    one = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False,
+    one = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False,
                       optimizer="gauss-newton", iterations=1, restarts=1)
     assert one.restart_scores == [] and one.kept_restart == 0 and one.kept_history == one.history
 
@@ -158,7 +185,7 @@ def test_restart_tolerance_runs_restarts_until_one_kept_its_fit(small, monkeypat
 
     monkeypatch.setattr(driver, "kept_fit", verdict)
     monkeypatch.setattr(Split, "affine_score", lambda self: math.inf)  # every run beats it
-    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=20,
+    result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", progress=False, iterations=20,
                          eval_every=10, refine="gauss-newton", refine_iterations=2, restarts=4,
                          restart_tolerance=3.0)
     assert tolerances == [3.0, 3.0]  # the second run kept its fit: restarts 2 and 3 never ran
@@ -170,7 +197,7 @@ def test_restart_tolerance_runs_one_restart_when_the_first_keeps_its_fit(small, 
 
     monkeypatch.setattr(Split, "affine_score", lambda self: math.inf)
     _, train, _ = small
-    options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
+    options = dict(recipe="plain", progress=False, iterations=20, eval_every=10, refine="gauss-newton",
                    refine_iterations=2, restarts=3)
     once = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, restart_tolerance=1e9, **options)
     every = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, **options)
@@ -184,7 +211,7 @@ def test_restart_tolerance_runs_restarts_until_one_beats_the_affine_map(small, m
     from lcs_cvx.train import driver
 
     _, train, _ = small
-    options = dict(progress=False, iterations=20, eval_every=10, refine="gauss-newton",
+    options = dict(recipe="plain", progress=False, iterations=20, eval_every=10, refine="gauss-newton",
                    refine_iterations=2, restarts=3, restart_tolerance=1e9, holdout=0.2)
     every = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=4), train, **{**options, "restart_tolerance": None})
     scores = every.restart_scores
@@ -214,7 +241,7 @@ def test_init_tuple_starts_restart_k_from_its_kth_entry(small, monkeypatch):
         return real(base, init, scaling, data, exact)
 
     monkeypatch.setattr(driver, "start", spy)
-    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=10, restarts=3,
+    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", progress=False, iterations=10, restarts=3,
                 init=("increment", "model"))
     assert kinds == [("increment", True), ("model", False), ("increment", False)]
     assert resolve_options(init=["affine", "model"]).run.init == ("affine", "model")  # TOML lists
@@ -235,7 +262,7 @@ def test_restart_tolerance_is_checked(value):
 def test_restart_tolerance_is_refused_with_restarts_trained_together(small):
     _, train, _ = small
     with pytest.raises(LCSInputError, match="restart_tolerance.*ensemble=True"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=5,
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", progress=False, iterations=5,
                     restarts=2, restart_tolerance=3.0, ensemble=True)
 
 
@@ -290,7 +317,7 @@ def test_recipes_and_option_resolution():
         ({"iterations": 2.5}, r"iterations: expected an integer >= 0, received 2.5"),
         ({"eps_start": 1e-6}, r"eps_start: expected None or a number >= eps"),
         ({"loss": "prediction", "optimizer": "newton"}, r"second-order methods are for the violation loss"),
-        ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best'\), received 'fast'"),
+        ({"recipe": "fast"}, r"recipe: expected one of \('paper', 'best', 'plain'\), received 'fast'"),
         ({"extra_units": 2}, r"extra_units: the pruned model needs a refinement phase"),
         ({"extra_units": "many"}, r"extra_units: expected an integer >= 0 or 'auto', received 'many'"),
         ({"extra_units": -1}, r"extra_units: expected an integer >= 0 or 'auto', received -1"),
@@ -301,7 +328,7 @@ def test_recipes_and_option_resolution():
 def test_invalid_options(small, kwargs, match):
     _, train, _ = small
     with pytest.raises(LCSInputError, match=match):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, **kwargs)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, **{"recipe": "plain", **kwargs})
 
 
 def test_invalid_data(small):
@@ -309,13 +336,13 @@ def test_invalid_data(small):
     x = train.x.clone()
     x[3, 1] = float("nan")
     with pytest.raises(LCSInputError, match=r"train: expected finite real values in x, received NaN/inf"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), lcs_cvx.Dataset(x, train.u, train.x_next), progress=False)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), lcs_cvx.Dataset(x, train.u, train.x_next), recipe="plain", progress=False)
     with pytest.raises(LCSInputError, match=r"train: expected n_x=3, n_u=1 \(the model's\), received n_x=2"):
-        lcs_cvx.fit(lcs_cvx.LCS(3, 1, 2), train, progress=False)
+        lcs_cvx.fit(lcs_cvx.LCS(3, 1, 2), train, recipe="plain", progress=False)
     with pytest.raises(LCSInputError, match="train: expected an lcs_cvx.Dataset"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), (train.x, train.u), progress=False)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), (train.x, train.u), recipe="plain", progress=False)
     with pytest.raises(LCSInputError, match="model: expected an lcs_cvx.LCS"):
-        lcs_cvx.fit(torch.nn.Linear(2, 2), train, progress=False)
+        lcs_cvx.fit(torch.nn.Linear(2, 2), train, recipe="plain", progress=False)
 
 
 def test_options_are_frozen():
@@ -330,10 +357,10 @@ def test_options_are_frozen():
 def test_checkpoint_mismatch_is_refused(small, tmp_path):
     _, train, _ = small
     ckpt = tmp_path / "run.ckpt"
-    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=20,
+    lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False, iterations=20,
                 checkpoint_every=10, checkpoint=ckpt)
     with pytest.raises(LCSInputError, match=r"checkpoint: .* other options \(differing: \['lr'\]\)"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=20,
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False, iterations=20,
                     checkpoint_every=10, checkpoint=ckpt, resume=True, lr=1e-2)
 
 
@@ -359,7 +386,7 @@ _SCRIPT = textwrap.dedent(
 @pytest.mark.parametrize(
     "options, kill",
     [
-        ({"iterations": 2500, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
+        ({"recipe": "plain", "iterations": 2500, "eval_every": 100, "checkpoint_every": 100, "lr": 5e-3,
           "reinit_saturated": True, "eps_start": 1e-2, "lr_schedule": "cosine",
           "refine": "gauss-newton", "refine_iterations": 3, "refine_batch": 1000,
           "extra_units": 1, "polish_iterations": 150}, 1250),
@@ -404,7 +431,7 @@ def test_resume_after_kill_equals_uninterrupted(small, tmp_path, options, kill):
 def test_divergence_is_reported_not_silent(small):
     _, train, _ = small
     with pytest.raises(lcs_cvx.SolverError, match=r"training diverged at iteration \d+: loss = .*not finite; lower lr"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, progress=False, iterations=500, lr=1e200)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, stiffness=1.0, seed=3), train, recipe="plain", progress=False, iterations=500, lr=1e200)
 
 
 def test_fit_takes_options_and_overrides(small):
@@ -420,7 +447,7 @@ def test_fit_takes_options_and_overrides(small):
     with pytest.raises(LCSInputError, match=r"recipe: expected None when options are given"):
         lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, lcs_cvx.RECIPES["paper"], recipe="best", progress=False)
     # a whole group as an override
-    c = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False,
+    c = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", progress=False,
                     adam=lcs_cvx.AdamOptions(iterations=40, lr=5e-3), run=lcs_cvx.RunOptions(eval_every=20))
     assert [h["iteration"] for h in c.history] == [20, 40] and c.settings.adam.lr == 5e-3
 
@@ -430,14 +457,14 @@ def test_fallbacks_are_recorded(small, monkeypatch):
     stretch and their worst residual, and the result sums them: with no pivoting sweeps allowed,
     every sample whose first guess is not its solution falls back, for real, in every phase."""
     _, train, _ = small
-    clean = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, iterations=30,
+    clean = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", progress=False, iterations=30,
                         eval_every=10, optimizer="adam")
     assert clean.n_fallback == 0 and clean.fallback_residual == 0.0
     assert all(h["n_fallback"] == 0 for h in clean.history)
     monkeypatch.setattr(lcs_cvx.losses, "MAX_ITER", 0)
     best = {"recipe": "best", "iterations": 20, "eval_every": 10, "prune_batch": 100,
             "refine_iterations": 1, "refine_batch": 100}  # Adam, pruning with repair, refinement
-    for options in ({"iterations": 30, "eval_every": 10}, {"optimizer": "gauss-newton", "iterations": 2,
+    for options in ({"recipe": "plain", "iterations": 30, "eval_every": 10}, {"optimizer": "gauss-newton", "iterations": 2,
                                                           "batch_size": 300}, best):
         with pytest.warns(lcs_cvx.FallbackWarning) as caught:  # and said so
             result = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, progress=False, **options)
@@ -455,7 +482,7 @@ def test_old_checkpoint_format_is_refused(small, tmp_path):
     ckpt = tmp_path / "old.ckpt"
     torch.save({"format": 3, "options": {}, "done": []}, ckpt)
     with pytest.raises(LCSInputError, match=r"checkpoint: .* has format 3, expected 4 \(written by another version"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, progress=False, checkpoint=ckpt, resume=True)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2), train, recipe="plain", progress=False, checkpoint=ckpt, resume=True)
 
 
 # -- the flat keywords are aliases of fields: replace changes exactly what it names -------------
@@ -584,3 +611,21 @@ def test_recipes_are_read_only_and_options_do_not_import_recipes():
     imported = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     assert not any("recipes" in (m or "") for m in imported), imported
+
+
+def test_the_recommended_recipe_is_the_default(small):
+    """Without ``options`` or ``recipe`` an LCS trained by Adam gets ``"best"`` (the recipe's
+    options, the call's overrides on top); ``"plain"`` names FitOptions' own defaults, which a
+    second-order optimiser keeps as its default."""
+    _, train, _ = small
+    kw = {"iterations": 20, "refine_iterations": 1, "prune_batch": 100, "refine_batch": 100, "progress": False}
+    default = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, **kw)
+    assert default.settings == resolve_options("best", keep_best=False, **{k: v for k, v in kw.items() if k != "progress"})
+    assert lcs_cvx.train.DEFAULT_RECIPE == "best" and default.settings.recipe == "best"
+    plain = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, recipe="plain", iterations=20, progress=False)
+    assert plain.settings == resolve_options(iterations=20, keep_best=False) and plain.settings.recipe is None
+    gn = lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), train, optimizer="gauss-newton", iterations=2, progress=False)
+    assert gn.settings.recipe is None and gn.settings.optimizer == "gauss-newton"
+    # the prediction loss takes the recipe without its violation-only parts
+    pred = resolve_options("best", loss="prediction")
+    assert pred.refine.method is None and pred.adam.extra_units == 0 and pred.adam.lr == 1e-2

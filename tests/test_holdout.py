@@ -38,7 +38,7 @@ def data(truth):
 
 def fit(data, seed=3, **kw):
     model = lcs_cvx.LCS(2, 1, 2, seed=seed)
-    return model, lcs_cvx.fit(model, data, progress=False, **{"iterations": 200, "rollout_iterations": 30, **kw})
+    return model, lcs_cvx.fit(model, data, progress=False, **{"recipe": "plain", "iterations": 200, "rollout_iterations": 30, **kw})
 
 
 def test_whole_trajectories_are_held_out(data):
@@ -81,7 +81,8 @@ def test_the_judgement_shows_the_affine_maps_growth_and_the_per_run_spread(data)
     assert result.affine_heldout_run_errors == pytest.approx(
         [change_error(affine, r, 5, split.scale) for r in runs], rel=1e-12)
     lo, hi = min(result.heldout_run_errors), max(result.heldout_run_errors)
-    assert f"(runs {lo:.3g}-{hi:.3g})" in result.verdict
+    assert f"(per-run range {lo:.3g}-{hi:.3g})" in result.verdict
+    assert len(result.verdict.splitlines()) == 5  # one item per line
     assert f"affine {result.affine_heldout_growth:.3g}" in result.verdict
     # one held-out run: no spread to show
     one = split_data(lcs_cvx.Trajectories(data.xs[:4], data.us[:4]), None, RunOptions(holdout=0.1), None)
@@ -151,9 +152,9 @@ def test_choices_never_keep_a_model_whose_rollouts_leave_the_data_range(truth, d
     with torch.no_grad():
         model.A.add_(0.01)  # a start training improves on
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    result = lcs_cvx.fit(model, data, init="model", normalize=False, iterations=30, eval_every=10,
+    result = lcs_cvx.fit(model, data, recipe="plain", init="model", normalize=False, iterations=30, eval_every=10,
                          rollout_horizon=None, holdout_horizon=4, progress=False)
-    assert len(result.history) >= 3 and [h["e_test"] for h in result.history] == [math.inf] * len(result.history)
+    assert len(result.history) >= 3 and [h["heldout"] for h in result.history] == [math.inf] * len(result.history)
     for k, v in model.state_dict().items():
         assert torch.equal(v, start[k]), k
 
@@ -208,9 +209,9 @@ def test_validation_trajectories_replace_the_split(truth, data):
     assert result.heldout_error == pytest.approx(change_error(model, val, 3, scale), rel=1e-12)
 
 
-def test_keep_best_follows_the_heldout_score_without_a_test_set(data):
+def test_keep_best_follows_the_heldout_score(data):
     model, result = fit(data, keep_best=True, holdout_horizon=4, eval_every=20, lr=3e-2)
-    scores = [h["e_test"] for h in result.history]
+    scores = [h["heldout"] for h in result.history]
     assert all(s is not None and math.isfinite(s) for s in scores)
     assert result.heldout_error == pytest.approx(min(scores), rel=1e-9)
 
@@ -218,11 +219,11 @@ def test_keep_best_follows_the_heldout_score_without_a_test_set(data):
 def test_keep_best_is_on_by_default_where_trajectories_are_held_out(truth, data):
     _, runs = fit(data, holdout_horizon=4, iterations=40, eval_every=10, rollout_iterations=20)
     assert runs.settings.run.keep_best is True
-    scores = [h["e_test"] for h in runs.history]
+    scores = [h["heldout"] for h in runs.history]
     assert all(s is not None for s in scores)
     assert runs.heldout_error <= min(scores) * (1 + 1e-9)  # the best iterate (or the start)
     _, off = fit(data, keep_best=False, iterations=20, eval_every=10, rollout_iterations=10)
-    assert off.settings.run.keep_best is False and all(h["e_test"] is None for h in off.history)
+    assert off.settings.run.keep_best is False and all(h["heldout"] is None for h in off.history)
     _, transitions = fit(lcs_cvx.make_dataset(truth, 300, seed=1), iterations=20, eval_every=10)
     assert transitions.settings.run.keep_best is False
     with pytest.raises(lcs_cvx.LCSInputError, match="keep_best: expected True, False or None"):
@@ -234,9 +235,9 @@ def test_keep_best_returns_the_start_when_training_only_makes_it_worse(truth, da
     raise the held-out error, and the returned model is the start, bit for bit."""
     model = lcs_cvx.random_lcs(2, 1, 2, seed=0).requires_grad_(True)
     start = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    result = lcs_cvx.fit(model, data, init="model", normalize=False, lr=0.5, iterations=30, eval_every=10,
+    result = lcs_cvx.fit(model, data, recipe="plain", init="model", normalize=False, lr=0.5, iterations=30, eval_every=10,
                          rollout_horizon=None, holdout_horizon=4, progress=False)
-    assert all(h["e_test"] > result.heldout_error for h in result.history)
+    assert all(h["heldout"] > result.heldout_error for h in result.history)
     for k, v in model.state_dict().items():
         assert torch.equal(v, start[k]), k
 
@@ -247,8 +248,8 @@ def test_with_keep_best_the_simulation_error_phase_refines_the_best_iterate(trut
     noisy = make_trajectories(truth, 10, 25, seed=1, noise=0.05)
     _, result = fit(noisy, seed=5, keep_best=True, holdout_horizon=4, eval_every=10, lr=2e-1, iterations=90,
                     rollout_horizon=5, rollout_iterations=20, rollout_lr=1e-12)
-    adam = [h["e_test"] for h in result.history if h["phase"] == "adam"]
-    rollout = [h["e_test"] for h in result.history if h["phase"] == "rollout"]
+    adam = [h["heldout"] for h in result.history if h["phase"] == "adam"]
+    rollout = [h["heldout"] for h in result.history if h["phase"] == "rollout"]
     assert adam[-1] > min(adam) * 1.01  # the last Adam iterate is not the best
     assert rollout[0] == pytest.approx(min(adam), rel=1e-6)
     assert result.heldout_error <= min(adam) * (1 + 1e-9)
@@ -272,7 +273,7 @@ def test_the_phase_runs_by_default_on_trajectories_only(truth, data):
     paper = lcs_cvx.RECIPES["paper"]
     assert paper.rollout.horizon is None  # the paper's protocol has no such phase
     with pytest.raises(lcs_cvx.LCSInputError, match="rollout_horizon: restarts trained together run the Adam phase only"):
-        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), data, progress=False, restarts=2, ensemble=True, iterations=10)
+        lcs_cvx.fit(lcs_cvx.LCS(2, 1, 2, seed=3), data, recipe="plain", progress=False, restarts=2, ensemble=True, iterations=10)
 
 
 def test_a_refinement_that_does_not_pay_is_undone(data):
@@ -287,7 +288,8 @@ def test_a_refinement_that_does_not_pay_is_undone(data):
 
 
 def test_a_stopped_simulation_error_phase_resumes_exactly(data, tmp_path):
-    kw = dict(iterations=40, eval_every=10, checkpoint_every=10, rollout_horizon=4, rollout_iterations=40)
+    kw = dict(recipe="plain", iterations=40, eval_every=10, checkpoint_every=10, rollout_horizon=4,
+              rollout_iterations=40)
     ckpt = tmp_path / "run.ckpt"
     stopped = lcs_cvx.LCS(2, 1, 2, seed=3)
     lcs_cvx.fit(stopped, data, progress=False, checkpoint=ckpt,
@@ -303,7 +305,7 @@ def test_a_stopped_simulation_error_phase_resumes_exactly(data, tmp_path):
 
 
 def test_select_n_lam_on_trajectories_scores_by_fit(data):
-    sel = lcs_cvx.select_n_lam(data, [1, 2], iterations=100, progress=False, holdout=0.3, holdout_horizon=3)
+    sel = lcs_cvx.select_n_lam(data, [1, 2], recipe="plain", iterations=100, progress=False, holdout=0.3, holdout_horizon=3)
     for row in sel.table:
         assert row["validation_error"] == sel.results[row["n_lam"]].heldout_error
     assert "trajectories" in sel.validation
@@ -314,7 +316,8 @@ def test_select_n_lam_passes_over_a_candidate_whose_rollouts_grow_more(data, mon
     error; when every candidate grows, the errors alone choose (the verdicts say it)."""
     from lcs_cvx.train.result import FitResult
 
-    kw = {"iterations": 50, "progress": False, "holdout": 0.3, "holdout_horizon": 3, "tolerance": 1e9}
+    kw = {"recipe": "plain", "iterations": 50, "progress": False, "holdout": 0.3, "holdout_horizon": 3,
+          "tolerance": 1e9}
     assert lcs_cvx.select_n_lam(data, [1, 2], **kw).n_lam == 1  # the huge tolerance takes the smallest
     monkeypatch.setattr(FitResult, "grows_more", property(lambda self: self.model.n_lam == 1))
     sel = lcs_cvx.select_n_lam(data, [1, 2], **kw)

@@ -143,7 +143,7 @@ def test_fit_keeps_the_configuration_rows_and_learns_the_velocities(loss):
     np.testing.assert_allclose(data.x_next[:, :2], data.x[:, :2] + 0.1 * data.x_next[:, 2:], rtol=0, atol=1e-14)
     model = lcs_cvx.LCS(4, 1, 2, seed=3, kinematics=POS)
     start = lcs_cvx.relative_error(model, test)
-    lcs_cvx.fit(model, data, loss=loss, iterations=300, restarts=1, progress=False)
+    lcs_cvx.fit(model, data, recipe="plain", loss=loss, iterations=300, restarts=1, progress=False)
     with torch.no_grad():
         np.testing.assert_array_equal(model.A[:2], [[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
         for name in ("B", "C", "d"):
@@ -159,7 +159,7 @@ def test_fit_on_trajectories_with_the_simulation_error_phase():
     truth.with_kinematics(POS)
     tr = simulated_runs(truth, [20] * 8, seed=1)
     model = lcs_cvx.LCS(4, 1, 2, seed=3, kinematics=POS)
-    result = lcs_cvx.fit(model, tr, iterations=200, restarts=1, rollout_horizon=5, rollout_iterations=20,
+    result = lcs_cvx.fit(model, tr, recipe="plain", iterations=200, restarts=1, rollout_horizon=5, rollout_iterations=20,
                          progress=False)
     assert any(h["phase"] == "rollout" for h in result.history)
     assert model.kinematics == POS and math.isfinite(result.heldout_error)
@@ -223,7 +223,8 @@ def test_model_files_keep_the_kinematics(tmp_path):
 def test_select_n_lam_attaches_the_kinematics():
     truth = lcs_cvx.random_lcs(4, 1, 2, seed=0).with_kinematics(POS)
     data = lcs_cvx.make_dataset(truth, 300, seed=1)
-    sel = lcs_cvx.select_n_lam(data, [1, 2], kinematics=POS, iterations=50, restarts=1, progress=False)
+    sel = lcs_cvx.select_n_lam(data, [1, 2], kinematics=POS, recipe="plain", iterations=50, restarts=1,
+                               progress=False)
     assert sel.model.kinematics == POS
 
 

@@ -164,7 +164,7 @@ def test_fit_in_stretches_is_the_fit_step_by_step(recipe, off, monkeypatch):
     truth = lcs_cvx.random_lcs(4, 2, 3, seed=0)
     train = lcs_cvx.make_dataset(truth, 1000, noise=0.01, seed=1)
     kw = ({"recipe": "paper", "iterations": 150} if recipe != "polish" else
-          {"iterations": 100, "polish_iterations": 40, "lr_schedule": "cosine", "eps_start": 1e-1})
+          {"recipe": "plain", "iterations": 100, "polish_iterations": 40, "lr_schedule": "cosine", "eps_start": 1e-1})
 
     def model() -> lcs_cvx.LCS:
         m = lcs_cvx.LCS(4, 2, 3, seed=2)

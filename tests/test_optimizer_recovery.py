@@ -21,7 +21,7 @@ from lcs_cvx.metrics import relative_error
 
 #: the keywords of each run (beyond the defaults) and the bound on its e_test
 RUNS = {
-    "adam": ({"iterations": 2000}, 3e-6),
+    "adam": ({"recipe": "plain", "iterations": 2000}, 3e-6),
     "gauss-newton": ({}, 1e-6),
     "newton": ({}, 1e-6),
 }

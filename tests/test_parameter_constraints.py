@@ -166,7 +166,7 @@ def test_nothing_to_learn_is_an_error(system):
     truth, train, _ = system
     with pytest.raises(LCSInputError, match=r"^model: expected at least one learnable entry.*"
                                             r"random_lcs returns such a model"):
-        lcs_cvx.fit(lcs_cvx.random_lcs(3, 1, 2), train, iterations=1, progress=False)
+        lcs_cvx.fit(lcs_cvx.random_lcs(3, 1, 2), train, recipe="plain", iterations=1, progress=False)
     with pytest.raises(LCSInputError, match=r"^model: expected at least one learnable entry"):
         gauss_newton_step(lcs_cvx.random_lcs(3, 1, 2), train.x, train.u, train.x_next,
                           gamma=GAMMA, eps=EPS, reg=0.0, damping=1.0)
@@ -207,8 +207,8 @@ FIT_PATHS = {
              "refine_batch": 300, "prune_batch": 300},
     "gauss-newton": {"optimizer": "gauss-newton", "iterations": 3},
     "newton": {"optimizer": "newton", "iterations": 3},
-    "prediction+polish": {"loss": "prediction", "iterations": 40, "polish_iterations": 20},
-    "restarts+keep_best": {"iterations": 30, "restarts": 2, "keep_best": True, "eval_every": 10},
+    "prediction+polish": {"recipe": "plain", "loss": "prediction", "iterations": 40, "polish_iterations": 20},
+    "restarts+keep_best": {"recipe": "plain", "iterations": 30, "restarts": 2, "keep_best": True, "eval_every": 10},
 }
 
 
@@ -297,7 +297,7 @@ def test_best_recipe_grows_units_with_structure(system):
 
     truth, train, _ = system
     opts = lcs_cvx.RECIPES["best"]
-    state = TrainState(structured(truth), train, None, opts, 0)
+    state = TrainState(structured(truth), train, opts, 0)
     assert state.n_extra == 1 and state.work.n_lam == 3
     assert set(state.work.masks) == {"C", "D", "d"} and not state.work.A.requires_grad
 
@@ -306,7 +306,7 @@ def test_fix_F_through_gauss_newton(system):
     truth, train, _ = system
     model = LCS(3, 1, 2, stiffness=0.25, seed=3).fix(F=truth.F, c=truth.c)
     G, H, c = model.G.detach().clone(), model.H.detach().clone(), model.c.detach().clone()
-    lcs_cvx.fit(model, train, optimizer="gauss-newton", iterations=2, progress=False)
+    lcs_cvx.fit(model, train, recipe="plain", optimizer="gauss-newton", iterations=2, progress=False)
     assert torch.equal(model.G, G) and torch.equal(model.H, H) and torch.equal(model.c, c)
 
 
@@ -338,7 +338,7 @@ def test_reinit_saturated_redraws_free_entries_only():
         model.c[0] = -1e3  # unit 0 active on every sample: saturated
         model.c[1] = 1e5  # unit 1 never active
     before = {k: getattr(model, k).detach().clone() for k in PARAMETER_NAMES}
-    reinit_saturated(TrainState(model, data, None, lcs_cvx.RECIPES["best"].replace(extra_units=0), 0))
+    reinit_saturated(TrainState(model, data, lcs_cvx.RECIPES["best"].replace(extra_units=0), 0))
     assert torch.equal(model.D, before["D"]) and model.E[0, 0].item() == 0.0
     assert model.c[0].item() != -1e3 and model.C[0, 0].item() != float(before["C"][0, 0])
     assert bool((model.C[1] == 0).all())

@@ -125,6 +125,8 @@ def test_the_lcs_of_a_state_steps_as_the_model_there():
     assert isinstance(lcs, lcs_cvx.LCS) and (lcs.n_x, lcs.n_u, lcs.n_lam) == (13, 0, 32)
     assert float(m.solve_lcp(x, NO_U).max()) > 0  # in contact: the test is not of free flight
     assert torch.allclose(lcs.step(x, NO_U), m.step(x, NO_U), atol=1e-12)
+    assert m.step(x[0], NO_U[0]).shape == (13,) and torch.allclose(m.step(x[0], NO_U[0]), m.step(x, NO_U)[0],
+                                                                   rtol=0, atol=1e-15)
     assert set(lcs.to_c3()) == {"A", "B", "D", "d", "E", "F", "H", "c"}
 
 

@@ -105,7 +105,7 @@ def test_callbacks_see_the_model_in_the_users_units(system):
     def cb(record, model):
         seen.append((record["e_test"], lcs_cvx.relative_error(model, held)))
 
-    lcs_cvx.fit(lcs_cvx.LCS(4, 2, 3), data, test=held, iterations=200, eval_every=100,
+    lcs_cvx.fit(lcs_cvx.LCS(4, 2, 3), data, recipe="plain", test=held, iterations=200, eval_every=100,
                 callbacks=[cb], progress=False)
     assert len(seen) == 2
     for recorded, recomputed in seen:
@@ -117,7 +117,7 @@ def test_starts(system, init):
     truth, train, _ = system
     model = lcs_cvx.LCS(4, 2, 3, seed=1)
     before = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    result = lcs_cvx.fit(model, rescaled(train), init=init, iterations=1, eval_every=1, progress=False)
+    result = lcs_cvx.fit(model, rescaled(train), recipe="plain", init=init, iterations=1, eval_every=1, progress=False)
     assert result.settings.run.init == init
     assert any(not torch.equal(before[k], v) for k, v in model.state_dict().items())
 
@@ -147,7 +147,7 @@ def test_bad_options_are_named():
 def test_resume_under_normalisation_gives_the_uninterrupted_result(system, tmp_path):
     _, train, test = system
     data = rescaled(train)
-    kw = {"iterations": 300, "eval_every": 50, "checkpoint_every": 50, "progress": False}
+    kw = {"recipe": "plain", "iterations": 300, "eval_every": 50, "checkpoint_every": 50, "progress": False}
     full = lcs_cvx.LCS(4, 2, 3, seed=2)
     lcs_cvx.fit(full, data, **kw)
     path = tmp_path / "ckpt.pt"
@@ -175,7 +175,7 @@ def test_structure_survives_the_change_of_coordinates(system):
     assert not normalised.B.requires_grad and not normalised.c.requires_grad
     assert normalised.A[0, 0] == 0 and normalised.A[2, 1] == 0
     assert bool((normalised.C[~mask_C] == 0).all())
-    lcs_cvx.fit(model, data, iterations=200, eval_every=100, progress=False)
+    lcs_cvx.fit(model, data, recipe="plain", iterations=200, eval_every=100, progress=False)
     assert torch.equal(model.B, truth.B) and torch.equal(model.c, truth.c)
     assert model.A[0, 0].item() == 0.0 and model.A[2, 1].item() == 0.0
     assert bool((model.C[~mask_C] == 0).all())

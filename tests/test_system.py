@@ -256,13 +256,14 @@ def test_batched_equals_single_samples(small_system):
     batched = sys.step(x, u)
     lam_b = sys.solve_lcp(x, u).lam
     for i in range(30):
-        single = sys.step(x[i], u[i])
-        assert single.shape == (1, 4)
-        assert torch.allclose(single[0], batched[i], rtol=1e-12, atol=1e-12)
+        single = sys.step(x[i], u[i])  # one state in, one state out
+        assert single.shape == (4,)
+        assert torch.allclose(single, batched[i], rtol=1e-12, atol=1e-12)
         assert torch.allclose(sys.solve_lcp(x[i], u[i]).lam[0], lam_b[i], rtol=1e-12, atol=1e-12)
     # numpy and nested lists are accepted as well: the same 30 rows are the same operations in
     # the same order (bit-identical); 2 rows against 30 are another BLAS blocking (a few ulps)
     assert torch.equal(sys.step(x.numpy(), u.numpy()), batched)
+    assert sys.step(x[0].tolist(), u[0].numpy()).shape == (4,)
     assert torch.allclose(sys.step(x[:2].tolist(), u[:2].tolist()), batched[:2], rtol=1e-12, atol=1e-12)
 
 

@@ -42,7 +42,7 @@ def test_threads_default_to_torchs_and_bad_counts_are_named():
     with pytest.raises(LCSInputError, match="^threads:"):
         lcs_cvx.prediction_value_and_grad(model, data.x, data.u, data.x_next, threads=0)
     with pytest.raises(LCSInputError, match="^threads:"):
-        lcs_cvx.fit(model, data, iterations=1, progress=False, threads=0)
+        lcs_cvx.fit(model, data, recipe="plain", iterations=1, progress=False, threads=0)
 
 
 @pytest.mark.parametrize("loss", ["violation", "prediction"])

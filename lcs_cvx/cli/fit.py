@@ -66,7 +66,10 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     # None = not given: lcs_cvx.fit's own defaults and recipes decide
     p.add_argument("--loss", choices=("violation", "prediction"), default=None)
     p.add_argument("--optimizer", choices=("adam", "gauss-newton", "newton"), default=None)
-    p.add_argument("--recipe", choices=("paper", "best"), default=None)
+    p.add_argument("--recipe", choices=("best", "paper", "plain"), default=None,
+                   help="the options' starting point (default: best, the recommended recipe; plain: "
+                        "lcs_cvx.FitOptions' own defaults, and the default with --optimizer "
+                        "gauss-newton or newton)")
     p.add_argument("--iterations", type=positive_int, default=None)
     p.add_argument("--lr", type=positive_float, default=None, help="learning rate")
     p.add_argument("--batch-size", type=positive_int, default=None)

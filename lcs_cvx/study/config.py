@@ -56,7 +56,7 @@ from typing import Any
 
 from .._checks import LCSInputError
 from ..train.phase_options import LOSSES
-from ..train.recipes import FLAT_OPTIONS, RECIPES, resolve_options
+from ..train.recipes import FLAT_OPTIONS, RECIPES, VIOLATION_ONLY, resolve_options
 from .baselines import BASELINES, baseline_options
 
 __all__ = ["load_config", "config_hash", "fit_options", "method_parts", "CONVENTIONS", "SWEEPABLE"]
@@ -68,9 +68,10 @@ KINDS = ("grid", "module")
 _FIT_RESERVED = ("loss", "recipe", "seed")
 _FIT_KEYS = tuple(k for k in FLAT_OPTIONS if k not in _FIT_RESERVED)
 
-#: Recipe options the prediction loss cannot take, and what it gets instead: the second-order
-#: refinement is for the violation loss (Lemma 4), and pruning extra units needs the refinement.
-_VIOLATION_ONLY = {"refine": None, "extra_units": 0}
+#: Recipe options the prediction loss cannot take, and what it gets instead
+#: (:data:`lcs_cvx.train.recipes.VIOLATION_ONLY`): written into a prediction cell's options, so
+#: part of its key.
+_VIOLATION_ONLY = VIOLATION_ONLY
 
 _TOP = {"name", "panel", "description", "kind", "module", "extends", "seed", "trials", "methods",
         "reference_methods", "recipe", "convention", "sweep", "system", "data", "learner", "fit",

@@ -24,6 +24,7 @@ from .phase_options import RefineOptions as RefineOptions
 from .phase_options import RolloutOptions as RolloutOptions
 from .phase_options import RunOptions as RunOptions
 from .phase_options import extra_units as extra_units
+from .recipes import DEFAULT_RECIPE as DEFAULT_RECIPE
 from .recipes import FLAT_OPTIONS as FLAT_OPTIONS
 from .recipes import RECIPES as RECIPES
 from .recipes import resolve_options as resolve_options
@@ -33,5 +34,5 @@ from .state import TrainState as TrainState
 __all__ = [
     "fit", "fit_ensemble", "FitResult", "FitOptions", "RECIPES", "FLAT_OPTIONS", "ObjectiveOptions", "AdamOptions",
     "PruneOptions", "RefineOptions", "PolishOptions", "RolloutOptions", "RunOptions", "TrainState", "extra_units",
-    "resolve_options", "CHECKPOINT_FORMAT",
+    "resolve_options", "CHECKPOINT_FORMAT", "DEFAULT_RECIPE",
 ]

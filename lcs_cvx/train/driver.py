@@ -39,6 +39,7 @@ from .holdout import split_data
 from .inputs import check_data, check_per_sample, fit_options, per_sample_options, resolve_keep_best
 from .options import FitOptions
 from .phases import run_phases
+from .recipes import DEFAULT_RECIPE, PLAIN
 from .result import FitResult, lowest
 from .starts import fresh_like, jittered, start
 from .state import TrainState
@@ -117,7 +118,7 @@ def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] |
     if r.keep_best:
         state.restore_best()
         start, best = state.rollout_start, state.best
-        if start is not None and best is not None and state.score is state.validate:
+        if start is not None and best is not None:
             # the phase is kept where one of its iterates is the one returned
             state.rollout_kept = best[0] < start[0]
     model = state.model
@@ -128,15 +129,15 @@ def close_run(state: TrainState, r: Any, holdout_score: Callable[[LCS], float] |
 
 
 def _restarts_together(done: list[dict], history: list[dict], r: Any, opts: FitOptions,
-                       learner_for: Callable[[int], LCS], fit_data: Dataset, test_data: Dataset | None,
-                       run_score: Callable[[LCS], float] | None, holdout_score: Callable[[LCS], float] | None,
-                       elapsed: Callable[[], float]) -> LCS:
+                       learner_for: Callable[[int], LCS], fit_data: Dataset,
+                       test_score: Callable[[LCS], float] | None,
+                       holdout_score: Callable[[LCS], float] | None, elapsed: Callable[[], float]) -> LCS:
     """``fit(ensemble=True)``: the restarts not in ``done`` trained in one batched loop
     (:func:`lcs_cvx.train.ensemble.train_together`), then closed as the sequential loop closes
     each (best iterate, held-out score, ``done`` and ``history``). Returns the last learner."""
     remaining = range(len(done), r.restarts)
     learners = [learner_for(k) for k in remaining]
-    states = [TrainState(m, fit_data, test_data, opts, k, score=run_score)
+    states = [TrainState(m, fit_data, opts, k, test_score=test_score, validate=holdout_score)
               for m, k in zip(learners, remaining, strict=True)]
     train_together(states, throw=True, elapsed=elapsed)
     for st in states:
@@ -169,13 +170,19 @@ def fit(
             :class:`lcs_cvx.Trajectories`: then whole trajectories are held out (``holdout``),
             the held-out score can be a rollout error (``holdout_horizon``) and the
             simulation-error phase can run (``rollout_horizon``).
-        options: a :class:`FitOptions` (e.g. ``lcs_cvx.RECIPES["best"]``); default: ``recipe``'s.
+        options: a :class:`FitOptions` (e.g. ``lcs_cvx.RECIPES["paper"]``); default: ``recipe``'s.
         validation: held-out data (transitions or trajectories) instead of a part of ``train``:
-            the held-out score of restarts, ``keep_best`` without ``test``, and
-            :attr:`FitResult.heldout_error`.
+            the held-out score that every choice follows (the kept iterate, the kept restart,
+            whether the simulation-error phase is kept) and :attr:`FitResult.heldout_error`.
         test: optional dataset; its relative error (the paper's e_test) is recorded with every
-            history record and drives ``keep_best``.
-        recipe: ``"paper"``, ``"best"`` or None (plain defaults), when ``options`` is not given.
+            history record. It is only reported: no choice of the fit looks at it (the same
+            model is returned with and without it).
+        recipe: when ``options`` is not given: ``"best"`` (the recommended options; the
+            default for an :class:`lcs_cvx.LCS`), ``"paper"`` (the paper's protocol) or
+            ``"plain"`` (:class:`FitOptions`' own defaults). None: ``"best"``
+            (:data:`~lcs_cvx.train.recipes.DEFAULT_RECIPE`) for an LCS trained by Adam;
+            ``"plain"`` with ``optimizer="gauss-newton"`` or ``"newton"`` (their own defaults)
+            and for a model of per-sample matrices.
         callbacks: ``cb(record, model)`` after every history record; a true return value stops
             training (a checkpoint is written first).
         checkpoint: path of the checkpoint file (written atomically; not a model file -- use
@@ -205,7 +212,8 @@ def fit(
         >>> truth = lcs_cvx.random_lcs(2, 1, 2, seed=0)
         >>> data = lcs_cvx.make_dataset(truth, 500, seed=1)
         >>> model = lcs_cvx.LCS(2, 1, 2, seed=2)
-        >>> result = lcs_cvx.fit(model, data, optimizer="gauss-newton", iterations=5, progress=False)
+        >>> result = lcs_cvx.fit(model, data, recipe="plain", optimizer="gauss-newton", iterations=5,
+        ...                      progress=False)
         >>> len(result.history), len(result.restart_scores), result.n_fallback
         (15, 3, 0)
     """
@@ -215,6 +223,8 @@ def fit(
                             f"(lcs_cvx.RigidBodyContact), received {type(model).__name__}")
     check_learnable(model) if lcs else check_per_sample(model)
     resolve_threads(threads)
+    if options is None and recipe is None:  # "best" is Adam's recipe
+        recipe = DEFAULT_RECIPE if lcs and overrides.get("optimizer", "adam") == "adam" else PLAIN
     opts = fit_options(options, recipe, overrides)
     if not lcs:
         opts = per_sample_options(opts, overrides)
@@ -237,7 +247,6 @@ def fit(
     # targets are their own prediction); rollouts and scores integrate the configuration
     fit_rows = model.kinematics.one_step(fit_user) if model.kinematics is not None else fit_user
     fit_data = scaling.encode(fit_rows) if scaling is not None else fit_rows
-    test_data = scaling.encode(test) if scaling is not None and test is not None else test
 
     def in_units(m: LCS) -> LCS:
         return in_user_coordinates(scaling, m, model)
@@ -248,13 +257,8 @@ def fit(
     def holdout_score(m: LCS) -> float:  # inf where the held-out rollouts leave the data's range
         return split.choice_score(in_units(m))
 
-    def run_score() -> Callable[[LCS], float] | None:
-        """What a run records as ``e_test`` and ``keep_best`` follows: ``test``'s error, else the
-        held-out score with ``keep_best``."""
-        if test is not None:
-            return score_on(test)
-        return holdout_score if r.keep_best and holdout is not None else None
-
+    test_score = score_on(test) if test is not None else None  # recorded only
+    validate = holdout_score if holdout is not None else None
     user_callbacks = [lambda rec, m, cb=cb: cb(rec, in_units(m)) for cb in callbacks]
     done: list[dict] = [] if ckpt is None else ckpt["done"]
     t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
@@ -297,17 +301,16 @@ def fit(
                             f"trained together), received {len(callbacks)}")
     try:
         if ensemble and len(done) < r.restarts:
-            learner = _restarts_together(done, history, r, opts, learner_for, fit_data, test_data,
-                                         run_score(), holdout_score if holdout is not None else None, elapsed)
+            learner = _restarts_together(done, history, r, opts, learner_for, fit_data, test_score,
+                                         validate, elapsed)
             if bar is not None:
                 bar.update(bar.total - bar.n)
         for restart in range(len(done), r.restarts):
             if r.restart_tolerance is not None and any(succeeded(d) for d in done):
                 break
             learner = learner_for(restart)
-            state = TrainState(learner, fit_data, test_data, opts, restart, score=run_score(),
-                               windows=windows, scaling=scaling,
-                               validate=holdout_score if holdout is not None else None, threads=threads,
+            state = TrainState(learner, fit_data, opts, restart, test_score=test_score, validate=validate,
+                               windows=windows, scaling=scaling, threads=threads,
                                kinematics=model.kinematics,
                                sigma=None if lcs or windows is None else split.scale)
             if ckpt is not None and ckpt["restart"] == restart and ckpt["run"] is not None:
@@ -319,7 +322,7 @@ def fit(
                 store.save(restart, done, state.state_dict(), elapsed())
 
             stopped = run_phases(state, callbacks=user_callbacks, save=save, elapsed=elapsed, bar=bar)
-            done.append(close_run(state, r, holdout_score if holdout is not None else None))
+            done.append(close_run(state, r, validate))
             history.extend(state.history)
             if stopped:
                 break

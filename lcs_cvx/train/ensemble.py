@@ -14,8 +14,9 @@ bit (tested); on other devices (torch kernels) to round-off.
 :func:`lcs_cvx.fit`'s ``ensemble=True`` trains a run's restarts the same way
 (:func:`train_together`).
 
-Scope: the Adam phase with its learning-rate and ``eps`` schedules, ``keep_best``,
-``normalize`` and ``init`` -- the "paper" recipe and the plain defaults. The parts that change
+Scope: the Adam phase with its learning-rate and ``eps`` schedules, ``normalize`` and ``init`` --
+the "paper" recipe and the plain defaults (``keep_best`` too for :func:`lcs_cvx.fit`'s restarts,
+which have a held-out part; the test sets of :func:`fit_ensemble` are only reported). The parts that change
 a model's shape or step it differently (extra units and pruning, refinement, polish,
 re-initialisation of saturated units, restarts) are refused with a message; so are
 checkpoints (an interrupted ensemble is run again; :mod:`lcs_cvx.study` stores each finished
@@ -58,8 +59,9 @@ def check_supported(opts: FitOptions, restarts: bool = False) -> None:
         "refine": (opts.refine.method, None), "polish_iterations": (opts.polish.iterations, 0),
         "rollout_horizon": (None if opts.rollout.horizon == "auto" else opts.rollout.horizon, None),
     }
-    if not restarts:
+    if not restarts:  # the models of fit_ensemble have no held-out part to keep an iterate by
         refused["restarts"] = (opts.run.restarts, 1)
+        refused["keep_best"] = (bool(opts.run.keep_best), False)
     for name, (value, allowed) in refused.items():
         if value != allowed:
             raise LCSInputError(
@@ -76,10 +78,9 @@ class _Member:
         r = opts.run
         self.scaling = Scaling.fit(train, model) if r.normalize else None
         fit_data = self.scaling.encode(train) if self.scaling is not None else train
-        test_data = self.scaling.encode(test) if self.scaling is not None and test is not None else test
         self.learner = start(model, r.init, self.scaling, fit_data, exact=True)
         score = (lambda m: relative_error(self.in_units(m), test)) if test is not None else None
-        self.state = TrainState(self.learner, fit_data, test_data, opts, 0, score=score)
+        self.state = TrainState(self.learner, fit_data, opts, 0, test_score=score)
 
     def in_units(self, m: LCS) -> LCS:
         """The learner in the user's coordinates (as :func:`lcs_cvx.fit`'s)."""

@@ -114,7 +114,7 @@ class Split:
         """The held-out score in words (the verdict's)."""
         if isinstance(self.holdout, Trajectories):
             return f"{self.horizon}-step rollout error relative to the recorded change"
-        return "one-step relative error"
+        return "one-step error relative to |x'|^2 (as e_test)"
 
     def growth(self, model: Any) -> float | None:
         """:func:`lcs_cvx.simulation_error.rollout_growth` on the held-out trajectories (None

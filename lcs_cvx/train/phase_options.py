@@ -265,11 +265,12 @@ class RunOptions:
         eval_every: Adam and polish steps between history records.
         checkpoint_every: Adam and polish steps between checkpoints (the pruning and every
             second-order step are always followed by one).
-        keep_best: return the iterate with the lowest e_test on ``test`` instead of the last
-            (without ``test``, the lowest held-out score when there is a held-out part); the
-            starting model is a candidate too. None (the default): True when the training data
-            are :class:`lcs_cvx.Trajectories` with a held-out part (``validation``, or the
-            ``holdout`` fraction of whole trajectories), else False.
+        keep_best: return the iterate with the lowest held-out score instead of the last (the
+            starting model is a candidate too); it needs a held-out part (``validation``, the
+            ``holdout`` fraction of whole trajectories, or of transitions with ``restarts >
+            1``). A test set never chooses: it is only reported. None (the default): True when
+            the training data are :class:`lcs_cvx.Trajectories` with a held-out part, else
+            False.
         holdout_horizon: with :class:`lcs_cvx.Trajectories` as data, the held-out score is the
             rollout error at this horizon on the held-out trajectories, relative to the
             recorded change, each coordinate scaled by the spread of its one-step change

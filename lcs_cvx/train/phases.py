@@ -426,8 +426,8 @@ def run_phases(
             if phase.record_every is not None and (k % phase.record_every == 0 or k == n):
                 rec = state.record(phase.name(state), out.eps, out.lr, elapsed())
                 if bar is not None:
-                    bar.set_postfix(loss=f"{rec['loss']:.3e}", e_test="-" if rec["e_test"] is None
-                                    else f"{rec['e_test']:.2e}")
+                    bar.set_postfix({k: f"{rec[k]:.3e}" for k in ("loss", "heldout", "e_test")
+                                     if rec[k] is not None})
                 if any(bool(cb(rec, state.model)) for cb in callbacks):
                     save()
                     return True

@@ -17,7 +17,7 @@ from typing import Any
 from .options import FLAT_OPTIONS, RECIPE_NAMES, FitOptions, apply_flat, known
 from .phase_options import option_error
 
-__all__ = ["FLAT_OPTIONS", "RECIPES", "RECIPE_VERSIONS", "resolve_options"]
+__all__ = ["DEFAULT_RECIPE", "FLAT_OPTIONS", "PLAIN", "RECIPES", "RECIPE_VERSIONS", "resolve_options"]
 
 #: The recipes, as the flat keywords they set (see the docs' training page for the measurements).
 _RECIPE_KEYWORDS: dict[str, dict[str, Any]] = {
@@ -48,18 +48,36 @@ RECIPE_VERSIONS: MappingProxyType[str, int] = MappingProxyType({"paper": 1, "bes
 assert tuple(RECIPE_VERSIONS) == RECIPE_NAMES
 
 
+#: What ``loss="prediction"`` turns off of a recipe unless the call sets it: the parts that are
+#: the violation loss's own (Lemma 4's refinement, and the extra units its pruning removes).
+VIOLATION_ONLY: MappingProxyType[str, Any] = MappingProxyType({"refine": None, "extra_units": 0})
+
+#: The recipe :func:`lcs_cvx.fit` takes for an :class:`lcs_cvx.LCS` when neither ``options`` nor
+#: ``recipe`` is given: the recommended one.
+DEFAULT_RECIPE = "best"
+
+#: The name of :class:`FitOptions`' own defaults (no recipe; ``FitOptions().recipe`` is None).
+PLAIN = "plain"
+
+
 def resolve_options(recipe: str | None = None, **options: Any) -> FitOptions:
     """:class:`FitOptions` from flat keywords: defaults < optimizer defaults < ``recipe`` <
-    ``options``; unknown names are rejected with the list of valid ones.
+    ``options``; unknown names are rejected with the list of valid ones. ``recipe`` None or
+    ``"plain"``: no recipe, the defaults of :class:`FitOptions`. With ``loss="prediction"`` the
+    recipe's violation-only parts (:data:`VIOLATION_ONLY`) are off unless ``options`` sets them.
 
     The default options with the recipe's keywords and then ``options`` applied as by
     :meth:`FitOptions.replace` (:func:`~lcs_cvx.train.options.apply_flat`): a second-order
     ``optimizer`` brings its defaults (:data:`~lcs_cvx.train.options.OPTIMIZER_DEFAULTS`) for the
     keywords neither the recipe nor ``options`` set."""
     known(options)
+    if recipe == PLAIN:
+        recipe = None
     if recipe is not None and recipe not in RECIPE_NAMES:
-        raise option_error("recipe", f"one of {RECIPE_NAMES}", recipe)
+        raise option_error("recipe", f"one of {(*RECIPE_NAMES, PLAIN)}", recipe)
     explicit = {**(_RECIPE_KEYWORDS[recipe] if recipe else {}), **options}
+    if explicit.get("loss") == "prediction":  # the recipe's violation-only parts, unless given
+        explicit.update({k: v for k, v in VIOLATION_ONLY.items() if k not in options})
     return apply_flat(FitOptions(recipe=recipe), explicit)
 
 

@@ -33,8 +33,8 @@ def growth_limit(affine_growth: float | None) -> float:
 
 
 def _spread(scores: tuple[float, ...] | None) -> str:
-    """`` (runs LO-HI)``: the range of per-run held-out scores ('' without them)."""
-    return "" if not scores else f" (runs {min(scores):.3g}-{max(scores):.3g})"
+    """`` (per-run range LO-HI)``: the range of per-run held-out scores ('' without them)."""
+    return "" if not scores else f" (per-run range {min(scores):.3g}-{max(scores):.3g})"
 
 
 def lowest(scores: list[float]) -> int:
@@ -50,7 +50,9 @@ class FitResult:
         model: the trained model (the same object as the ``model`` argument, updated in place).
         history: one dict per record: ``iteration``, ``phase`` (``"adam"``, ``"gauss-newton"``,
             ``"newton"`` or ``"polish"``), ``loss`` (mean regularised training loss since the last
-            record), ``eps``, ``lr``, ``e_test`` (None without ``test``), ``wall_time`` (s),
+            record), ``eps``, ``lr``, ``e_test`` (the test set's relative error, reported only;
+            None without ``test``), ``heldout`` (the held-out score ``keep_best`` chooses the
+            returned iterate by; None without ``keep_best``), ``wall_time`` (s),
             ``restart``, ``n_fallback`` (samples the fast solvers handed to the reference solver
             since the last record) and ``fallback_residual`` (the worst relative KKT residual of those
             reference answers; 0.0 when there were none -- pivoting's own answers are exact).
@@ -60,7 +62,8 @@ class FitResult:
         wall_time: seconds, summed over resumed pieces.
         scaling: the normalised coordinates the model was learned in
             (:class:`lcs_cvx.scaling.Scaling`; None with ``normalize=False``). ``loss`` in the
-            history is in those coordinates; ``e_test`` and the restart scores are in the user's.
+            history is in those coordinates; ``e_test``, ``heldout`` and the restart scores are in
+            the user's.
         heldout_error: the held-out score of the learned model (:func:`lcs_cvx.relative_error`
             on held-out transitions; on held-out trajectories the rollout error at
             ``holdout_horizon`` relative to the recorded change, each coordinate scaled,
@@ -126,25 +129,31 @@ class FitResult:
 
     @property
     def verdict(self) -> str:
-        """One line on the learned model against the affine map on held-out data."""
+        """The learned model against the affine map on held-out data, one item per line: the
+        held-out score and its scale, each model's score with its per-run range, the largest
+        rollout growth (with trajectories) and the conclusion."""
         if self.beats_affine is None:
             return "no held-out data: the learned LCS was not compared with the affine map"
-        line = (f"held-out {self.heldout_score}: LCS {self.heldout_error:.4g}{_spread(self.heldout_run_errors)}, "
-                f"affine least squares {self.affine_heldout_error:.4g}{_spread(self.affine_heldout_run_errors)}")
+        lines = [f"held-out score: {self.heldout_score} (0: exact)",
+                 f"  LCS: {self.heldout_error:.4g}{_spread(self.heldout_run_errors)}",
+                 f"  affine least squares: {self.affine_heldout_error:.4g}{_spread(self.affine_heldout_run_errors)}"]
         if self.heldout_growth is not None:
-            line += f"; largest held-out rollout growth: LCS {self.heldout_growth:.3g}"
+            growth = f"  largest rollout growth (max |x| of a rollout over its run's; 1: the data's own): " \
+                     f"LCS {self.heldout_growth:.3g}"
             if not self.heldout_growth <= DIVERGING_GROWTH:
-                line += " (its open-loop rollouts DIVERGE)"
+                growth += " (its open-loop rollouts DIVERGE)"
             if self.affine_heldout_growth is not None:
-                line += f", affine {self.affine_heldout_growth:.3g}"
+                growth += f", affine {self.affine_heldout_growth:.3g}"
+            lines.append(growth)
         if self.beats_affine:
-            return line + ": the LCS is better"
+            return "\n".join([*lines, "verdict: the LCS is better"])
         why = ""
         if self.grows_more and self.heldout_error < self.affine_heldout_error:
             why = " (lower error, but its rollouts leave the data's range)"
-        return line + (f": the LCS is NOT better than the affine map{why}" +
-                       ("; the affine map is returned (affine_if_better)" if self.returned_affine
-                        else "; fit(..., affine_if_better=True) returns the affine map"))
+        lines.append(f"verdict: the LCS is NOT better than the affine map{why}" +
+                     ("; the affine map is returned (affine_if_better)" if self.returned_affine
+                      else "; fit(..., affine_if_better=True) returns the affine map"))
+        return "\n".join(lines)
 
     @property
     def kept_restart(self) -> int:

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._checks import LCSInputError
 from ..data import Dataset
-from ..metrics import relative_error
 from ..parameter_constraints import allowed_extra_units
 from ..resizing import add_units
 from ..scaling import Scaling
@@ -51,13 +51,13 @@ class Outcome:
 class TrainState:
     """One run of :func:`lcs_cvx.fit` (one restart)."""
 
-    def __init__(self, model: LCS, train: Dataset, test: Dataset | None, options: FitOptions,
-                 restart: int, score: Callable[[LCS], float] | None = None,
+    def __init__(self, model: LCS, train: Dataset, options: FitOptions, restart: int, *,
+                 test_score: Callable[[LCS], float] | None = None,
+                 validate: Callable[[LCS], float] | None = None,
                  windows: Windows | None = None, scaling: Scaling | None = None,
-                 validate: Callable[[LCS], float] | None = None, threads: int | None = None,
-                 kinematics: Any = None, sigma: torch.Tensor | None = None) -> None:
-        self.model, self.train, self.test, self.options, self.restart = (
-            model, train, test, options, restart)
+                 threads: int | None = None, kinematics: Any = None,
+                 sigma: torch.Tensor | None = None) -> None:
+        self.model, self.train, self.options, self.restart = model, train, options, restart
         # the compiled kernels' threads, and the training data as arrays for the one-call steps
         # (:mod:`lcs_cvx.train.onecall`; None where they are not float64 CPU tensors)
         self.threads = threads
@@ -69,15 +69,20 @@ class TrainState:
         # the simulation error's scale of each coordinate in the data's units, for a model learned
         # in them (a model of per-sample matrices): the spread of its one-step change
         self.rollout_sigma = None if sigma is None else sigma.to(dtype=model.dtype, device=self.device)
-        # the held-out score (None: no held-out part) that decides whether the simulation-error
-        # phase's result is kept; the model and score before that phase; whether it was kept
+        # the held-out score (None: no held-out part): what every choice follows -- the kept
+        # iterate (``keep_best``) and whether the simulation-error phase's result is kept; the
+        # model and score before that phase; whether it was kept
         self.validate = validate
         self.rollout_start: tuple[float, dict[str, torch.Tensor]] | None = None
         self.rollout_kept: bool | None = None
-        # e_test of a model being trained (default: its relative error on ``test``; under
-        # normalisation, the error of the folded-back model in the user's units)
-        self.score = score if score is not None else (lambda m: relative_error(m, test))
-        self.scored = score is not None or test is not None
+        # e_test of a model being trained (the error on ``test`` of the model in the user's
+        # units): recorded only, never chosen by
+        self.test_score = test_score
+        if options.run.keep_best and validate is None:
+            raise LCSInputError("keep_best: expected a held-out part to choose the iterate by (validation=, "
+                                "or Trajectories with a holdout fraction; a test set is only reported), "
+                                "received keep_best=True without one")
+        self.keeps_best = bool(options.run.keep_best)
         a = options.adam
         self.generator = torch.Generator().manual_seed(options.run.seed * 1_000_003 + restart)
         # the model Adam trains: the user's, or a larger one the pruning phase cuts back
@@ -94,8 +99,8 @@ class TrainState:
         self.history: list[dict[str, Any]] = []
         self.damping = options.refine.damping
         self.best: tuple[float, dict[str, torch.Tensor]] | None = None
-        if options.run.keep_best and self.scored:  # the start is a candidate too
-            self._consider(self.score(model))
+        if self.keeps_best:  # the start is a candidate too
+            self._consider(validate(model))
         self._reset_stretch()
         # the fast solver's final active sets per training sample: the warm start of the
         # sample's next visit; the loss does not depend on them, the solver's work does
@@ -183,20 +188,22 @@ class TrainState:
         self.acc_residual = max(self.acc_residual, out.fallback_residual)
 
     def record(self, phase: str, eps: float, lr: float | None, elapsed: float) -> dict[str, Any]:
-        """Close the current stretch of steps as one history record (and track the best iterate
-        when ``keep_best``)."""
-        e_test = self.score(self.work) if self.scored else None
+        """Close the current stretch of steps as one history record: the mean training loss, the
+        test error ``e_test`` (with a test set; reported only) and, with ``keep_best``, the
+        held-out score ``heldout`` that picks the iterate returned."""
+        tracked = self.work is self.model  # not while a grown model is trained
+        heldout = self.validate(self.work) if self.keeps_best and tracked else None
         rec = {
             "iteration": self.iteration, "phase": phase,
             "loss": self.acc_loss / max(1, self.acc_n), "eps": eps, "lr": lr,
-            "e_test": e_test, "wall_time": elapsed, "restart": self.restart,
+            "e_test": self.test_score(self.work) if self.test_score is not None else None,
+            "heldout": heldout, "wall_time": elapsed, "restart": self.restart,
             "n_fallback": self.acc_fallback, "fallback_residual": self.acc_residual,
         }
         self._reset_stretch()
         self.history.append(rec)
-        tracked = self.work is self.model  # not while a grown model is trained
-        if self.options.run.keep_best and tracked and e_test is not None:
-            self._consider(e_test)
+        if heldout is not None:
+            self._consider(heldout)
         return rec
 
     def _consider(self, score: float) -> None:

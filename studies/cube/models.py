@@ -334,7 +334,7 @@ def _fit_lcs(make: Callable[[int], lcs_cvx.LCS], rollout: bool,
             sel = lcs_cvx.select_n_lam(train, list(n_lams or candidates or budget.n_lams), validation=val,
                                        make_model=lambda n: make(n, seed=seed),
                                        iterations=budget.lcs_iterations, holdout_horizon=VALIDATION_HORIZON,
-                                       progress=False, seed=seed, **extra)
+                                       progress=False, seed=seed, recipe="plain", **extra)
         table: list[dict[str, Any]] = []
         for row in sel.table:
             n = row["n_lam"]

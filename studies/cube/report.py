@@ -281,9 +281,9 @@ def write_report(out: str, records: list[dict[str, Any]], *, cmd: str, smoke: bo
         "- *constant increment*: x' = x + m, m the mean training increment (where `lcs_cvx.fit` starts; "
         "a reference without dynamics, not a target);",
         f"- *LCS*: `lcs_cvx.select_n_lam(train, {list(budget.n_lams)}, validation=val, "
-        f"holdout_horizon={M.VALIDATION_HORIZON}, rollout_horizon={budget.rollout_horizon})` on the tosses as "
-        "`lcs_cvx.Trajectories`, with the "
-        "library's default options otherwise" + (" (10,000 Adam iterations of batch 200, violation loss, "
+        f"holdout_horizon={M.VALIDATION_HORIZON}, rollout_horizon={budget.rollout_horizon}, "
+        "recipe=\"plain\")` on the tosses as `lcs_cvx.Trajectories`, with the "
+        "plain defaults otherwise" + (" (10,000 Adam iterations of batch 200, violation loss, "
         "normalised coordinates, then the simulation-error phase: 300 Adam steps on 10-step windows, "
         "kept only if the held-out score fell)" if budget.lcs_iterations == 10_000
         else f" but `iterations={budget.lcs_iterations}`") + "; on trajectories with a held-out part "

@@ -53,7 +53,8 @@ def run(tosses: int, iterations: int | None = None) -> dict[str, Any]:
         t0 = time.perf_counter()
         # only the split differs: neither the simulation-error phase nor the best iterate
         opts = {"rollout_horizon": None, "keep_best": False} if isinstance(given, lcs_cvx.Trajectories) else {}
-        sel = lcs_cvx.select_n_lam(given, list(CANDIDATES), holdout=0.2, progress=False, seed=0, **opts, **extra)
+        sel = lcs_cvx.select_n_lam(given, list(CANDIDATES), holdout=0.2, progress=False, seed=0,
+                                   recipe="plain", **opts, **extra)
         rows = []
         for row in sel.table:
             m = sel.results[row["n_lam"]].model

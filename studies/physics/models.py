@@ -223,7 +223,8 @@ def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
     """Learn one LCS (a process-pool job; plain data in, plain data out).
 
     ``job``: ``x, u, x_next`` (training, physical units) and ``x_val, u_val, x_next_val``
-    (validation: monitored, and scored at the end), ``n_lam``, ``loss``, ``recipe``, ``options``
+    (validation: with ``keep_best`` in the options the held-out part the kept iterate and restart
+    are chosen on, else monitored only; scored at the end), ``n_lam``, ``loss``, ``recipe``, ``options``
     (more :func:`lcs_cvx.fit` options), ``stiffness``, ``init_scale``, ``init`` (the
     :func:`lcs_cvx.fit` option: ``"increment"``, ``"affine"`` or ``"model"``), ``seed``. The fit
     normalises the data itself and returns the model in physical units. Returns its
@@ -238,8 +239,11 @@ def fit_lcs(job: dict[str, Any]) -> dict[str, Any]:
     model = LCS(train.n_x, train.n_u, job["n_lam"], stiffness=job["stiffness"],
                 init_scale=job["init_scale"], seed=job["seed"])
     try:
-        result = lcs_cvx.fit(model, train, test=val, recipe=job["recipe"], loss=job["loss"],
-                             seed=job["seed"], init=job["init"], progress=False, **job["options"])
+        # with keep_best the validation set is the held-out part the iterate is chosen on; else it
+        # is monitored only (e_test) and the restarts are chosen on fit's own held-out fraction
+        held = {"validation": val} if job["options"].get("keep_best") else {"test": val}
+        result = lcs_cvx.fit(model, train, recipe=job["recipe"], loss=job["loss"], seed=job["seed"],
+                             init=job["init"], progress=False, **held, **job["options"])
     except lcs_cvx.SolverError as exc:  # a diverged run: reported, never selected
         return {"matrices": None, "val_error": math.inf, "history": [], "settings": None,
                 "wall_time": time.perf_counter() - t0, "error": str(exc)}
