@@ -1,11 +1,11 @@
 # Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
-# package and every extra (studies, physics, docs, dev, baselines, control, solvers) installed at the versions of
+# package and every extra (studies, plot, logs, physics, docs, dev, baselines, control, solvers) installed at the versions of
 # constraints.txt (the versions the suite last passed with); `make lock` refreshes that file.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS := studies,physics,docs,dev,baselines,control,solvers
+EXTRAS := studies,plot,logs,physics,docs,dev,baselines,control,solvers
 # torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
 # `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
 TORCH  := torch==2.13.0

@@ -1,7 +1,7 @@
 """lcs_cvx: learning linear complementarity systems (Jin, Aydinoglu, Halm, Posa; L4DC 2022).
 
 The subpackages :mod:`lcs_cvx.control`, :mod:`lcs_cvx.datasets`, :mod:`lcs_cvx.study` and the
-modules :mod:`lcs_cvx.bench` and :mod:`lcs_cvx.cli` are imported on first access
+modules :mod:`lcs_cvx.bench`, :mod:`lcs_cvx.cli` and :mod:`lcs_cvx.plot` are imported on first access
 (``lcs_cvx.datasets.cube_tosses()`` after ``import lcs_cvx``), so that ``import lcs_cvx`` stays
 light; none of them imports an optional dependency before it is used.
 """
@@ -110,7 +110,7 @@ __all__ = [
 ]
 
 #: Public subpackages and modules imported when first accessed as attributes.
-_LAZY = ("bench", "cli", "control", "datasets", "study")
+_LAZY = ("bench", "cli", "control", "datasets", "plot", "study")
 
 
 def __getattr__(name: str):

@@ -17,6 +17,7 @@ import torch
 from ._checks import LCSInputError
 from .data import Dataset, csv_columns, csv_numbers, read_csv
 from .io import atomic_write, read_npz
+from .streams import Description
 
 __all__ = ["Trajectories", "rollout_error"]
 
@@ -59,6 +60,9 @@ class Trajectories:
             ``(T_i + 1, n_x)`` with ``T_i >= 1``.
         us: a list of ``K`` input arrays, ``us[i]`` of shape ``(T_i, n_u)``: ``u_t`` drives
             ``x_t`` to ``x_{t+1}``.
+        names: optional names of the ``n_x`` state coordinates (with units, say ``"z [m]"``):
+            the plots' labels (:mod:`lcs_cvx.plot`); a CSV file's column names by default.
+        input_names: optional names of the ``n_u`` inputs.
 
     The arrays are copied as float64 CPU tensors. Every problem is an :class:`LCSInputError`
     naming the argument (``us[3]: expected 17 rows (one fewer than xs[3]'s 18), received 16``):
@@ -66,7 +70,8 @@ class Trajectories:
     ``n_x`` or ``n_u`` that differ between trajectories, NaN or inf entries.
     """
 
-    def __init__(self, xs: Sequence[Any], us: Sequence[Any]) -> None:
+    def __init__(self, xs: Sequence[Any], us: Sequence[Any], names: Sequence[str] | None = None,
+                 input_names: Sequence[str] | None = None) -> None:
         xs_l, us_l = _as_list("xs", xs), _as_list("us", us)
         if not xs_l:
             raise LCSInputError("xs: expected at least one trajectory, received an empty list")
@@ -93,6 +98,10 @@ class Trajectories:
                         f"{name}[{i}]: expected {ref.shape[1]} columns ({what} of {name}[0]), "
                         f"received {a.shape[1]}"
                     )
+        self.names = _names("names", names, self.n_x)
+        self.input_names = _names("input_names", input_names, self.n_u)
+        #: what a reader did to make these runs (:class:`lcs_cvx.streams.Description`), or None
+        self.description: Description | None = None
 
     # -- properties -----------------------------------------------------------------------
     @property
@@ -147,7 +156,89 @@ class Trajectories:
             )
         perm = torch.randperm(len(self), generator=torch.Generator().manual_seed(int(seed))).tolist()
         parts = perm[:k], perm[k:]
-        return tuple(Trajectories([self._xs[i] for i in p], [self._us[i] for i in p]) for p in parts)  # type: ignore[return-value]
+        return tuple(Trajectories([self._xs[i] for i in p], [self._us[i] for i in p], self.names,  # type: ignore[return-value]
+                                  self.input_names) for p in parts)
+
+    def describe(self, velocities: Mapping[Any, Any] | None = None, dt: float | None = None) -> str:
+        """What these runs are, in words: their count, lengths and columns, what a reader did to
+        make them (each stream's measured period, what was resampled, split or dropped), and
+        with ``velocities`` (``{position: velocity}``, indices or names) each pair's *effective
+        period*: the least-squares slope of the position's change on the next velocity,
+        ``sum dp_t v_{t+1} / sum v_{t+1}^2`` over every run -- the period a known integration
+        ``p' = p + dt v'`` must use, compared with ``dt`` (default: the reader's clock)."""
+        lines = [repr(self) + f", steps per run {min(self.lengths)}-{max(self.lengths)}"]
+        if self.names:
+            lines.append("  state: " + ", ".join(self.names))
+        if self.input_names:
+            lines.append("  input: " + ", ".join(self.input_names))
+        if self.description is not None:
+            lines.append(str(self.description))
+        step = dt if dt is not None else (self.description.dt if self.description is not None else None)
+        for p, v in (velocities or {}).items():
+            i, j = (self._column(c) for c in (p, v))
+            dp = torch.cat([x[1:, i] - x[:-1, i] for x in self._xs])
+            vn = torch.cat([x[1:, j] for x in self._xs])
+            period = float(dp @ vn / (vn @ vn)) if float(vn @ vn) > 0 else float("nan")
+            lines.append(f"  effective period of {self._label(i)} by {self._label(j)}: {period:.6g} s"
+                         + (f" (clock {step:.6g} s, ratio {period / step:.4g})" if step else ""))
+        return "\n".join(lines)
+
+    def _column(self, c: Any) -> int:
+        if isinstance(c, str):
+            if not self.names or c not in self.names:
+                raise LCSInputError(f"velocities: expected state names {list(self.names or ())} or indices, received {c!r}")
+            return self.names.index(c)
+        if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c < self.n_x:
+            raise LCSInputError(f"velocities: expected state indices in [0, {self.n_x}), received {c!r}")
+        return int(c)
+
+    def _label(self, i: int) -> str:
+        return self.names[i] if self.names else f"x[{i}]"
+
+    # -- robot logs -------------------------------------------------------------------------
+    @classmethod
+    def _from_runs(cls, read: tuple) -> Trajectories:
+        runs, names, input_names, desc = read
+        out = cls([x for x, _ in runs], [u for _, u in runs], names or None, input_names or None)
+        out.description = desc
+        return out
+
+    @classmethod
+    def from_mcap(cls, path: str | os.PathLike, state: Mapping[str, Sequence[str]],
+                  input: Mapping[str, Sequence[str]] | None = None, dt: float | None = None,
+                  max_gap: float | None = None, drop_nan: bool = False) -> Trajectories:
+        """A ROS 2 bag in MCAP (:func:`lcs_cvx.recordings.read_mcap`; the ``logs`` extra):
+        ``state``/``input`` map topics to fields, ``{"/joint_states": ["position[0]",
+        "velocity[0]"]}``; CDR (ROS 2) and JSON channels; each topic timed by its messages' log
+        time and put on one clock of period ``dt`` (default: the slowest topic's period) by
+        :func:`lcs_cvx.streams.align` -- states interpolated, inputs held, the run split at
+        gaps longer than ``max_gap``. :meth:`describe` says what was done."""
+        from .recordings import read_mcap
+
+        return cls._from_runs(read_mcap(path, state, input, dt, max_gap, drop_nan))
+
+    @classmethod
+    def from_hdf5(cls, path: str | os.PathLike, state: Sequence[str], input: Sequence[str] = (),
+                  runs: Any = "data", time: str | Mapping[str, str] | None = None, period: float | None = None,
+                  dt: float | None = None, max_gap: float | None = None, drop_nan: bool = False) -> Trajectories:
+        """An HDF5 file with one group per run (:func:`lcs_cvx.recordings.read_hdf5`; robomimic's
+        ``data/demo_<i>`` by default, or a list of group paths): ``state``/``input`` list
+        datasets of a run (``"obs/joint_pos"``, or one column ``"obs/joint_pos[0]"``), timed by
+        the run's ``time`` dataset (or ``{dataset: its time dataset}``) or ``period`` seconds
+        per row, on one clock as :meth:`from_mcap`."""
+        from .recordings import read_hdf5
+
+        return cls._from_runs(read_hdf5(path, state, input, runs, time, period, dt, max_gap, drop_nan))
+
+    @classmethod
+    def from_lerobot(cls, path: str | os.PathLike, state: str = "observation.state", input: str | None = "action",
+                     dt: float | None = None, max_gap: float | None = None, drop_nan: bool = False) -> Trajectories:
+        """A LeRobot dataset folder, layouts v2.1 and v3.0 (:func:`lcs_cvx.recordings.read_lerobot`):
+        each episode a run, ``observation.state`` the state and ``action`` the input (held),
+        timed by ``timestamp`` and put on one clock (default: the dataset's ``fps``)."""
+        from .recordings import read_lerobot
+
+        return cls._from_runs(read_lerobot(path, state, input, dt, max_gap, drop_nan))
 
     # -- files ----------------------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
@@ -254,7 +345,15 @@ class Trajectories:
             us.append(csv_numbers(path, header, g[:-1], names["u"]))  # the last row's inputs: unread
             if time is not None:
                 _check_steps(path, tid, csv_numbers(path, header, g, [time])[:, 0])
-        return cls(xs, us)
+        return cls(xs, us, names["x"], names["u"] or None)
+
+
+def _names(name: str, names: Sequence[str] | None, k: int) -> tuple[str, ...] | None:
+    if names is None:
+        return None
+    if isinstance(names, str) or len(names) != k or not all(isinstance(n, str) for n in names):
+        raise LCSInputError(f"{name}: expected {k} strings (one per column), received {names!r}")
+    return tuple(names)
 
 
 def _check_steps(path: str, tid: str, t: Any) -> None:

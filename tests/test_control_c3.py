@@ -107,7 +107,7 @@ def test_warm_start_shifts_the_previous_plan(cartpole):
     assert torch.equal(u0, first.u[0])
     shifted = ctrl._shift(first, 1)
     assert torch.equal(shifted[0, :-1], first.delta[1:]) and torch.equal(shifted[0, -1], first.delta[-1])
-    x1 = cartpole.model.step(cartpole.x0, u0.detach().numpy())[0].detach()
+    x1 = cartpole.model.step(cartpole.x0, u0.detach().numpy()).detach()
     warm = ctrl.solve(x1, warm_start=first)
     cold = ctrl.solve(x1)
     assert not torch.equal(warm.u, cold.u)  # the start matters to a finite ADMM
@@ -345,7 +345,7 @@ def test_penalize_input_change_measures_the_inputs_from_the_previous_plan(cartpo
     ctrl(x0)
     first = ctrl.last_plan
     shifted = torch.cat([first.u[1:], first.u[-1:]])
-    x1 = P.model.step(x0, first.u[0].numpy())[0].detach()
+    x1 = P.model.step(x0, first.u[0].numpy()).detach()
     assert torch.equal(ctrl.solve(x1, warm_start=first, u_ref=shifted.numpy()).u,
                        ctrl.solve(x1, warm_start=first, u_ref=first).u)
     with pytest.raises(lcs_cvx.LCSInputError, match=r"u_ref: expected a Plan or finite inputs of shape \(5, 1\)"):

@@ -48,6 +48,10 @@ DOCUMENTED_MODULES = (
     "lcs_cvx.io",
     "lcs_cvx.train",
     "lcs_cvx.datasets",
+    "lcs_cvx.plot",
+    "lcs_cvx.train.log",
+    "lcs_cvx.streams",
+    "lcs_cvx.recordings",
 )
 
 #: Words that narrate how the software was made rather than what it does.

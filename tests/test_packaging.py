@@ -25,16 +25,19 @@ CORE = {"torch", "numpy", "scipy", "cvxpy", "cvxpylayers", "clarabel", "diffcp",
         "tqdm", "numba"}
 EXTRAS = {
     "studies": {"dask", "matplotlib"},
+    "plot": {"matplotlib", "tensorboard"},
+    "logs": {"mcap", "mcap-ros2-support", "h5py", "pyarrow"},
     "physics": {"mujoco"},
     "docs": {"mkdocs-material", "mkdocstrings"},
-    "dev": {"pytest", "hypothesis", "ruff", "pytest-timeout"},
+    "dev": {"pytest", "hypothesis", "ruff", "pytest-timeout", "pytest-xdist"},
     "baselines": {"pyparc", "pypoman", "pycddlib", "mip", "faiss-cpu", "scikit-learn"},
     "control": {"pyscipopt"},
     "solvers": {"piqp", "proxsuite", "daqp", "ecos", "casadi"},
 }
 # (not pyscipopt, the control extra's SCIP: CVXPY itself imports every solver it finds installed)
 OPTIONAL_MODULES = ("dask", "distributed", "mujoco", "matplotlib", "pyparc", "sklearn", "faiss",
-                    "mip", "pypoman", "cdd", "casadi", "qpth", "pydrake")
+                    "mip", "pypoman", "cdd", "casadi", "qpth", "pydrake", "tensorboard", "mcap",
+                    "mcap_ros2", "h5py", "pyarrow")
 
 
 def _name(requirement: str) -> str:

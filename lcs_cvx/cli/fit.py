@@ -4,6 +4,7 @@ a saved model on a data file."""
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from typing import Any
 
@@ -100,6 +101,9 @@ def configure_fit(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", default=None,
                    help="continue from --checkpoint")
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+    p.add_argument("--plots", default=None, metavar="DIR",
+                   help="write the training history, the rollouts of the first trajectory (trajectory files) "
+                        "and the modes along the data as PNG files to DIR (created; the plot extra)")
 
 
 def _horizon_or_none(text: str) -> int | str:
@@ -231,7 +235,28 @@ def run_fit(args: argparse.Namespace) -> int:
         print(result.verdict)
     print(f"wall time: {wall:.2f} s")
     print(f"saved: {args.out}")
+    if args.plots is not None:
+        _plots(args.plots, result.model, trajectories if trajectories is not None else train, result)
     return 0
+
+
+def _plots(directory: str, model: Any, data: Any, result: Any = None) -> None:
+    """``--plots DIR``: the fit's history (with a result), the rollouts of the first run (with
+    trajectories) and the modes along the data, as PNG files in ``directory`` (created)."""
+    from .. import plot
+    from ..trajectories import Trajectories
+
+    os.makedirs(directory, exist_ok=True)
+    written = []
+    if result is not None:
+        written.append(os.path.join(directory, "history.png"))
+        plot.history(result, path=written[-1])
+    if isinstance(data, Trajectories):
+        written.append(os.path.join(directory, "rollouts.png"))
+        plot.rollouts(model, data, path=written[-1])
+    written.append(os.path.join(directory, "modes.png"))
+    plot.modes(model, data, path=written[-1])
+    print(f"plots: {', '.join(written)}")
 
 
 def _train(args: argparse.Namespace, run: Any) -> Any:
@@ -256,6 +281,9 @@ def configure_predict(p: argparse.ArgumentParser) -> None:
                    help="rollout horizons for trajectory files (default: 1,5,20)")
     add_column_options(p)
     p.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default: 1)")
+    p.add_argument("--plots", default=None, metavar="DIR",
+                   help="write the rollouts of the first trajectory and the modes along the data as PNG "
+                        "files to DIR (created; the plot extra)")
 
 
 def run_predict(args: argparse.Namespace) -> int:
@@ -303,4 +331,6 @@ def run_predict(args: argparse.Namespace) -> int:
         except LCSInputError as exc:
             raise reraise_for("out", exc) from None
         print(f"predictions: {args.out}")
+    if args.plots is not None:
+        _plots(args.plots, model, trajs if trajs is not None else data)
     return 0

@@ -37,6 +37,7 @@ from ..trajectories import Trajectories
 from .ensemble import train_together
 from .holdout import split_data
 from .inputs import check_data, check_per_sample, fit_options, per_sample_options, resolve_keep_best
+from .log import record_logger
 from .options import FitOptions
 from .phases import run_phases
 from .recipes import DEFAULT_RECIPE, PLAIN
@@ -155,6 +156,7 @@ def fit(
     test: Dataset | None = None,
     recipe: str | None = None,
     callbacks: Sequence[Callable[[dict, LCS], Any]] = (),
+    log: Any = None,
     checkpoint: str | os.PathLike | None = None,
     resume: bool = False,
     progress: bool = True,
@@ -185,6 +187,10 @@ def fit(
             and for a model of per-sample matrices.
         callbacks: ``cb(record, model)`` after every history record; a true return value stops
             training (a checkpoint is written first).
+        log: every history record also goes to ``log``: a callable of the record, or a directory
+            (created if missing) where TensorBoard event files get one scalar per record for the
+            loss, the held-out score, e_test, the learning rate, eps, the wall time and the
+            phase (:mod:`lcs_cvx.train.log`; ``tensorboard --logdir DIRECTORY`` shows them).
         checkpoint: path of the checkpoint file (written atomically; not a model file -- use
             :func:`lcs_cvx.save_model` for that).
         resume: continue from ``checkpoint`` if it exists (the options must be the same).
@@ -260,6 +266,12 @@ def fit(
     test_score = score_on(test) if test is not None else None  # recorded only
     validate = holdout_score if holdout is not None else None
     user_callbacks = [lambda rec, m, cb=cb: cb(rec, in_units(m)) for cb in callbacks]
+    if ensemble and log is not None:
+        raise LCSInputError("log: expected None with ensemble=True (the restarts are trained together; "
+                            f"their records are in the result's history), received {type(log).__name__}")
+    log_record, close_log = record_logger(log)
+    if log_record is not None:  # first, so that a record is logged before a callback stops the run
+        user_callbacks.insert(0, lambda rec, m: log_record(rec) and False)
     done: list[dict] = [] if ckpt is None else ckpt["done"]
     t_offset = 0.0 if ckpt is None else ckpt["elapsed"]
     bar = None
@@ -329,6 +341,7 @@ def fit(
     finally:
         if bar is not None:
             bar.close()
+        close_log()
     scores = [d["score"] for d in done] if r.restarts > 1 else []
     refinement_kept = None
     if done:  # the chosen run (also when a resumed checkpoint had finished them all)

@@ -155,6 +155,13 @@ class FitResult:
                       else "; fit(..., affine_if_better=True) returns the affine map"))
         return "\n".join(lines)
 
+    def plot(self, **kwargs: Any) -> Any:
+        """The training as a figure: :func:`lcs_cvx.plot.history` of this result (``ax``,
+        ``path``); a :class:`matplotlib.figure.Figure`."""
+        from ..plot import history
+
+        return history(self, **kwargs)
+
     @property
     def kept_restart(self) -> int:
         """The run :attr:`model` comes from: the index of the lowest of :attr:`restart_scores`
