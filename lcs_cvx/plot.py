@@ -81,7 +81,7 @@ def history(result: Any, ax: Any = None, path: str | os.PathLike | None = None) 
     if not isinstance(records, list) or not records:
         raise LCSInputError("result: expected an lcs_cvx.FitResult with at least one history record, received "
                             + (f"{type(result).__name__}" if records is None else "an empty history"))
-    fig, (ax,) = _figure(ax, 1, (7.0, 4.0))
+    fig, (ax,) = _figure(ax, 1, (7.5, 5.0))
     kept = result.kept_restart
     mine = [h for h in records if h.get("restart", 0) == kept]
     for r in sorted({h.get("restart", 0) for h in records} - {kept}):
@@ -91,12 +91,11 @@ def history(result: Any, ax: Any = None, path: str | os.PathLike | None = None) 
     it = [h["iteration"] for h in mine]
     ax.semilogy(it, [h["loss"] for h in mine], color="C0", lw=1.6, label="training loss"
                 + (f", restart {kept} (kept)" if len(result.restart_scores) > 1 else ""))
-    lo = 0
+    lo, bands = 0, {}
     for phase, group in itertools.groupby(mine, key=lambda h: h["phase"]):  # a band per phase
         hi = list(group)[-1]["iteration"]
-        ax.axvspan(lo, hi, color=PHASE_COLORS.get(phase, "#eeeeee"), zorder=0, lw=0)
-        ax.text((lo + hi) / 2, 0.98, phase, transform=ax.get_xaxis_transform(), ha="center", va="top",
-                fontsize=8, color="0.35")
+        band = ax.axvspan(lo, hi, color=PHASE_COLORS.get(phase, "#eeeeee"), zorder=0, lw=0)
+        bands.setdefault(f"phase: {phase}", band)
         lo = hi
     ax.set_xlabel("iteration")
     ax.set_ylabel("mean regularised training loss")
@@ -114,7 +113,9 @@ def history(result: Any, ax: Any = None, path: str | os.PathLike | None = None) 
     if right is not None:
         right.set_ylabel("score")
     handles = [a.get_legend_handles_labels() for a in (ax, right) if a is not None]
-    ax.legend(sum((h for h, _ in handles), []), sum((lab for _, lab in handles), []), fontsize=8, loc="upper right")
+    handles.append((list(bands.values()), list(bands)))
+    ax.legend(sum((h for h, _ in handles), []), sum((lab for _, lab in handles), []), fontsize=8,
+              loc="upper center", bbox_to_anchor=(0.5, -0.15), ncols=3, frameon=False)
     ax.set_title(f"fit: {len(mine)} records" + (f", {len(result.restart_scores)} restarts"
                                                  if len(result.restart_scores) > 1 else ""))
     return _save(fig, path)

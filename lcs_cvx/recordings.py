@@ -74,25 +74,68 @@ def _get(message: Any, path: str, where: str) -> float:
         raise LCSInputError(f"{where}: field {path!r}: expected a number, received {type(value).__name__}") from None
 
 
-def _json_decoders() -> Any:
-    decoder = require("mcap.decoder", "logs", "Trajectories.from_mcap")
+def _chunk_bytes(chunk: Any) -> bytes:
+    """A chunk's records, decompressed."""
+    if chunk.compression == "zstd":
+        return require("zstandard", "logs", "Trajectories.from_mcap").decompress(chunk.data, chunk.uncompressed_size)
+    if chunk.compression == "lz4":
+        return require("lz4.frame", "logs", "Trajectories.from_mcap").decompress(chunk.data)
+    if chunk.compression:
+        raise LCSInputError(f"path: expected chunks compressed with zstd, lz4 or not at all, received {chunk.compression!r}")
+    return bytes(chunk.data)
 
-    class JsonDecoderFactory(decoder.DecoderFactory):
-        """Channels whose messages are JSON (``message_encoding == "json"``)."""
 
-        def decoder_for(self, message_encoding: str, schema: Any) -> Any:
-            return (lambda data: json.loads(data)) if message_encoding == "json" else None
+def _messages(path: str, channels: dict[int, Any]) -> dict[int, tuple[list, list, list, list]]:
+    """``{channel id: (buffers, log times, starts, lengths)}`` of the messages of ``channels``,
+    in file order, read in place from the file's decompressed chunks (the compiled scan,
+    :mod:`lcs_cvx._kernels.mcap`) and from messages outside chunks."""
+    records = require("mcap.records", "logs", "Trajectories.from_mcap")
+    stream_reader = require("mcap.stream_reader", "logs", "Trajectories.from_mcap")
+    from ._kernels.mcap import scan_messages
 
-    return JsonDecoderFactory()
+    wanted = np.zeros(max(channels) + 1, dtype=np.bool_)
+    wanted[list(channels)] = True
+    out: dict[int, tuple[list, list, list, list]] = {c: ([], [], [], []) for c in channels}
+    with open(path, "rb") as f:
+        for rec in stream_reader.StreamReader(f, emit_chunks=True).records:
+            if isinstance(rec, records.Chunk):
+                buf, channel, log_time, start, length = scan_messages(_chunk_bytes(rec), wanted)
+                for c in np.unique(channel):
+                    at = channel == c
+                    for lst, v in zip(out[int(c)], (buf, log_time[at], start[at], length[at]), strict=True):
+                        lst.append(v)
+            elif isinstance(rec, records.Message) and rec.channel_id in channels:
+                for lst, v in zip(out[rec.channel_id], (np.frombuffer(rec.data, np.uint8), np.array([rec.log_time]),
+                                                        np.array([0]), np.array([len(rec.data)])), strict=True):
+                    lst.append(v)
+    return out
+
+
+def _numbers(channel: Any, schema: Any, found: tuple[list, list, list, list], fields: list[str],
+             where: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(log times (ns), values (N, len(fields)))`` of one channel's messages."""
+    buffers, times, starts, lengths = found
+    t = np.concatenate(times) if times else np.zeros(0, np.int64)
+    if channel.message_encoding == "cdr":
+        from .ros2 import parse_definition, read_fields
+
+        definition = parse_definition(schema.name, schema.data.decode())
+        return t, read_fields(definition, buffers, starts, lengths, fields, where)
+    if channel.message_encoding == "json":
+        rows = [[_get(json.loads(buf[s:s + n].tobytes()), p, where) for p in fields]
+                for buf, st, ln in zip(buffers, starts, lengths, strict=True) for s, n in zip(st, ln, strict=True)]
+        return t, np.array(rows, dtype=np.float64).reshape(len(rows), len(fields))
+    raise LCSInputError(f"{where}: expected a ROS 2 (cdr) or JSON channel, received message encoding "
+                        f"{channel.message_encoding!r}")
 
 
 def read_mcap(path: str | os.PathLike, state: Mapping[str, Sequence[str]],
               input: Mapping[str, Sequence[str]] | None = None, dt: float | None = None,
               max_gap: float | None = None, drop_nan: bool = False) -> Runs:
     """One MCAP file: each topic of ``state`` and ``input`` one stream, timed by the messages'
-    log time; ROS 2 (CDR) and JSON channels."""
+    log time, in file order; ROS 2 (CDR, :mod:`lcs_cvx.ros2`) and JSON channels. The file's
+    summary names its channels."""
     reader_mod = require("mcap.reader", "logs", "Trajectories.from_mcap")
-    ros2 = require("mcap_ros2.decoder", "logs", "Trajectories.from_mcap")
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise LCSInputError(f"path: expected an existing MCAP file, received {path!r} (not found)")
@@ -100,26 +143,27 @@ def read_mcap(path: str | os.PathLike, state: Mapping[str, Sequence[str]],
     if not specs["state"]:
         raise LCSInputError("state: expected at least one topic, received none")
     topics = {t: kind for kind, s in specs.items() for t in s}
-    found: dict[str, list[tuple[int, list[float]]]] = {t: [] for t in topics}
     with open(path, "rb") as f:
-        reader = reader_mod.make_reader(f, decoder_factories=[ros2.DecoderFactory(), _json_decoders()])
-        summary = reader.get_summary()
-        have = sorted({c.topic for c in summary.channels.values()}) if summary is not None else []
-        missing = [t for t in topics if t not in have]
-        if missing:
-            raise LCSInputError(f"state/input: expected topics {missing} in {path!r}, which has {have}")
-        for _, channel, message, decoded in reader.iter_decoded_messages(topics=list(topics)):
-            fields = specs[topics[channel.topic]][channel.topic]
-            where = f"{path!r}, topic {channel.topic!r} at log time {message.log_time} ns"
-            found[channel.topic].append((message.log_time, [_get(decoded, p, where) for p in fields]))
-    t0 = min(rows[0][0] for rows in found.values() if rows) if any(found.values()) else 0
-    streams = []
+        summary = reader_mod.make_reader(f).get_summary()
+    if summary is None:
+        raise LCSInputError(f"path: expected an MCAP file with a summary section (its channels), received {path!r}")
+    by_topic = {c.topic: c for c in summary.channels.values()}
+    missing = [t for t in topics if t not in by_topic]
+    if missing:
+        raise LCSInputError(f"state/input: expected topics {missing} in {path!r}, which has {sorted(by_topic)}")
+    found = _messages(path, {by_topic[t].id: t for t in topics})
+    streams, t0 = [], None
+    raw = {}
     for topic, kind in topics.items():
-        rows = found[topic]
-        t = np.array([(r[0] - t0) * 1e-9 for r in rows])
-        values = np.array([r[1] for r in rows], dtype=np.float64).reshape(len(rows), -1)
+        ch = by_topic[topic]
+        raw[topic] = _numbers(ch, summary.schemas.get(ch.schema_id), found[ch.id], specs[kind][topic],
+                              f"{path!r}, topic {topic!r}")
+        if len(raw[topic][0]):
+            t0 = int(raw[topic][0][0]) if t0 is None else min(t0, int(raw[topic][0][0]))
+    for topic, kind in topics.items():
+        t, values = raw[topic]
         names = tuple(f"{topic}.{p}" for p in specs[kind][topic])
-        streams.append(Stream(topic, t, values, kind, names, run=os.path.basename(path)))
+        streams.append(Stream(topic, (t - (t0 or 0)) * 1e-9, values, kind, names, run=os.path.basename(path)))
     runs, desc = align(streams, dt, max_gap, drop_nan, run=os.path.basename(path))
     return runs, _names(streams, "state"), _names(streams, "input"), _with_source(desc, path)
 

@@ -28,10 +28,11 @@ omega`` and the centre of mass's centripetal term, all at ``x`` (explicit). Subs
 ``nu'`` gives, at each state, the velocity rows of eq. (1) with per-sample matrices:
 
 $$
-\nu' = \nu_\text{free}(x, u) + C(x)\,\lambda, \qquad
-w = F(x)\,\lambda + q(x, u), \qquad
-C = M^{-1}\tilde J^\top,\ F = \tilde J M^{-1} \tilde J^\top + \operatorname{diag}(\kappa),\
-q = \phi/\Delta t + \tilde J \nu_\text{free},
+\begin{aligned}
+\nu' &= \nu_\text{free}(x, u) + C(x)\,\lambda, & w &= F(x)\,\lambda + q(x, u), \\
+C &= M^{-1}\tilde J^\top, & F &= \tilde J M^{-1} \tilde J^\top + \operatorname{diag}(\kappa),
+\quad q = \phi/\Delta t + \tilde J \nu_\text{free},
+\end{aligned}
 $$
 
 ``nu_free = nu + dt M^{-1} (f + u)``. ``F`` is symmetric positive definite (``kappa > 0``: the

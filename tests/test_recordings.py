@@ -45,18 +45,19 @@ def effort(k):
     return float((-1.0) ** k * (1 + 0.1 * k))
 
 
-def write_ros2_bag(path, t_joint, t_effort):
+def write_ros2_bag(path, t_joint, t_effort, frame=lambda k: ""):
     """``/joint_states`` (sensor_msgs/msg/JointState: a sine and its rate) at the times
-    ``t_joint`` and ``/effort`` (std_msgs/msg/Float64) at ``t_effort`` (s; 1 ns resolution)."""
+    ``t_joint`` and ``/effort`` (std_msgs/msg/Float64) at ``t_effort`` (s; 1 ns resolution);
+    ``frame(k)`` the frame id of joint message ``k``."""
     with open(path, "wb") as f:
         w = ros2_writer.Writer(f)
         js = w.register_msgdef("sensor_msgs/msg/JointState", JOINT_STATE)
         fl = w.register_msgdef("std_msgs/msg/Float64", FLOAT64)
-        for t in t_joint:
+        for k, t in enumerate(t_joint):
             ns = round(t * 1e9)
             p, v = joint(t)
             w.write_message("/joint_states", js, {
-                "header": {"stamp": {"sec": ns // 10**9, "nanosec": ns % 10**9}, "frame_id": ""},
+                "header": {"stamp": {"sec": ns // 10**9, "nanosec": ns % 10**9}, "frame_id": frame(k)},
                 "name": ["slider", "hinge"], "position": [p, 2 * p], "velocity": [v, 2 * v], "effort": []},
                 log_time=ns, publish_time=ns)
         for k, t in enumerate(t_effort):
@@ -111,6 +112,19 @@ def test_a_ros2_bag_reads_back_to_the_arrays_written(tmp_path):
     assert abs(period - 0.005) < 1e-4
 
 
+def test_messages_of_other_layouts_are_read_one_by_one(tmp_path):
+    """Frame ids of changing length move the arrays behind them: every message is read at its
+    own offsets (the bulk read takes those of the first message's layout only)."""
+    path = tmp_path / "frames.mcap"
+    t_joint = np.arange(100) * 0.005
+    write_ros2_bag(path, t_joint, np.arange(25) * 0.02, frame=lambda k: "base" + "_" * (k % 7))
+    runs = lcs_cvx.Trajectories.from_mcap(path, STATE, INPUT, dt=0.005)
+    want = np.column_stack(joint(t_joint[: len(runs.xs[0])]))
+    assert np.abs(runs.xs[0].numpy() - want).max() <= 1e-12
+    stamp = lcs_cvx.Trajectories.from_mcap(path, {"/joint_states": ["header.stamp.nanosec"]}, dt=0.005)
+    assert np.abs(stamp.xs[0].numpy()[:, 0] - np.round(t_joint * 1e9) % 10**9).max() == 0
+
+
 def test_two_rates_resampled_onto_one_clock_against_the_sine(tmp_path):
     """A JSON channel: the state at 100 Hz, the command at 30 Hz; the default clock is the
     slower stream's period, and the interpolated sine is within the linear interpolation's
@@ -147,7 +161,7 @@ def test_bad_mcap_input_is_named(tmp_path):
     write_ros2_bag(path, np.arange(40) * 0.005, np.arange(10) * 0.02)
     with pytest.raises(LCSInputError, match=r"expected topics \['/odom'\] in .*which has \['/effort', '/joint_states'\]"):
         lcs_cvx.Trajectories.from_mcap(path, {"/odom": ["x"]})
-    with pytest.raises(LCSInputError, match=r"expected a field 'positions' .*received fields \[.*'position'"):
+    with pytest.raises(LCSInputError, match=r"expected a numeric field 'positions\[0\]', received fields \['effort', 'header', 'position', 'velocity'\]"):
         lcs_cvx.Trajectories.from_mcap(path, {"/joint_states": ["positions[0]"]})
     with pytest.raises(LCSInputError, match=r"index 2 out of range \(length 2\)"):
         lcs_cvx.Trajectories.from_mcap(path, {"/joint_states": ["position[2]"]})
