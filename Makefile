@@ -1,10 +1,14 @@
-# Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use, with the
-# package and every extra (studies, plot, logs, physics, docs, dev, baselines, control, solvers) installed at the versions of
+# Entry points: `make demo`, `make test` and `make docs`. Each creates .venv on first use: `make demo`
+# with the package alone (what the demo needs), the others with every extra too (studies, plot, logs,
+# physics, docs, dev, baselines, control, solvers), installed at the versions of
 # constraints.txt (the versions the suite last passed with); `make lock` refreshes that file.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
+CORE   := $(VENV)/.core
 STAMP  := $(VENV)/.installed
+# test workers (pytest-xdist): one per core; a file's tests on one worker (its fixtures built once)
+JOBS   ?= auto
 EXTRAS := studies,plot,logs,physics,docs,dev,baselines,control,solvers
 # torch first, pinned: this pin resolves to the local CPU wheel (no CUDA download); a bare
 # `torch` (or the package's own `torch>=2.2`, were torch not installed yet) would pull CUDA.
@@ -21,10 +25,14 @@ DRAKE  := drake==1.51.1
 
 .PHONY: demo test test-portable docs lint bench lock clean
 
-$(STAMP): pyproject.toml constraints.txt
+$(CORE): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt $(TORCH)
+	$(PY) -m pip install --quiet -c constraints.txt -e .
+	touch $(CORE)
+
+$(STAMP): $(CORE)
 	$(PY) -m pip install --quiet -c constraints.txt -e '.[$(EXTRAS)]'
 	$(PY) -m pip install --quiet -c constraints.txt --no-deps $(QPTH)
 	$(PY) -m pip install --quiet -c constraints.txt --no-deps $(DRAKE)
@@ -44,18 +52,18 @@ lock:
 	  .lock-venv/bin/python -m pip freeze --exclude-editable; } > constraints.txt
 	rm -rf .lock-venv
 
-demo: $(STAMP)
+demo: $(CORE)
 	$(VENV)/bin/lcs-cvx demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(JOBS) --dist loadfile
 
 # The suite again as on another processor (tools/other-cpus: numba, torch and BLAS on the code
 # paths of a generic x86-64 CPU by default; CPUS="generic avx2 avx512" for more), so that a test
 # asserting a fact of this machine's round-off fails here and not on a user's machine.
 CPUS ?= generic
 test-portable: $(STAMP)
-	CPUS="$(CPUS)" PY=$(PY) bash tools/other-cpus
+	CPUS="$(CPUS)" PY=$(PY) bash tools/other-cpus -n $(JOBS) --dist loadfile
 
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site

@@ -65,7 +65,8 @@ def _demo_learning(args: argparse.Namespace) -> None:
     test = make_dataset(truth, 1000, seed=args.seed + 3)
     print(
         f"learning: a random LCS n_x={args.n_x}, n_u={args.n_u}, n_lam={n_lam} "
-        f"({count_modes(truth, train)} modes in {len(train)} noisy samples)"
+        f"({count_modes(truth, train)} modes in {len(train)} noisy samples; the first run on a machine "
+        f"also compiles the training kernels, about a minute, cached on disk for the next)"
     )
     runs = (
         ("violation", {"recipe": "best", "refine_iterations": 5}),

@@ -78,13 +78,13 @@ def controller(model: LCS) -> C3:
     return C3(model, 10, Q=list(Q_STAGE), R=[1.0], u_bounds=(-U_MAX, U_MAX))
 
 
-def random_data(n: int) -> Dataset:
-    tr = sample_transitions(n, seed=0)
+def random_data(n: int, seed: int = 0) -> Dataset:
+    tr = sample_transitions(n, seed=seed)
     return Dataset.from_arrays(tr.x, tr.u, tr.x_next)
 
 
-def fresh_model() -> LCS:
-    return LCS(4, 1, N_LAM, stiffness=1.0, init_scale=0.1, seed=0)
+def fresh_model(seed: int = 0) -> LCS:
+    return LCS(4, 1, N_LAM, stiffness=1.0, init_scale=0.1, seed=seed)
 
 
 def read_rounds(path: str) -> list[dict[str, Any]]:
@@ -103,15 +103,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int, default=None, help="Adam steps of each fit (default: the recipe's)")
     ap.add_argument("--fresh", action="store_true", help="refit from a fresh start each round (not warm)")
     ap.add_argument("--smoke", action="store_true", help="3 starts, 1 s runs, 1 round, short fits")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of the random transitions, the model's start and the fits (default 0)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     steps = 100
-    fit_options = dict(FIT) if args.iterations is None else dict(FIT, iterations=args.iterations)
+    fit_options = dict(FIT, seed=args.seed)
+    if args.iterations is not None:
+        fit_options["iterations"] = args.iterations
     if args.smoke:
         args.starts, args.rounds, steps = 3, 1, 25
         fit_options.update(iterations=200, restarts=1)
     name = ("relearn" + ("_fresh" if args.fresh else "") + (f"_it{args.iterations}" if args.iterations else "")
-            + ("_smoke" if args.smoke else ""))
+            + (f"_seed{args.seed}" if args.seed else "") + ("_smoke" if args.smoke else ""))
     cache = os.path.join(args.out, f"{name}_cache")
     os.makedirs(cache, exist_ok=True)
     log = os.path.join(args.out, f"{name}.jsonl")
@@ -135,16 +139,16 @@ def main(argv: list[str] | None = None) -> int:
                 data = Dataset.load(os.path.join(cache, f"data_after_{last}.npz"))
                 kw = {"fit_first": False, "first_round": last + 1}
             else:
-                model, data, kw = fresh_model(), random_data(args.random), {}
+                model, data, kw = fresh_model(args.seed), random_data(args.random, args.seed), {}
             relearn(model, data, plant, controller, X0, plant.success, rounds=args.rounds, steps=steps,
                     fit_options=fit_options, warm_start=not args.fresh, on_round=save, progress=lambda line: print(line, flush=True), **kw)
         done = [r for r in read_rounds(log) if r["kind"] == "round"]
         baseline = [r for r in read_rounds(log) if r["kind"] == "baseline"]
         if not baseline:
             n = done[-1]["data_size"]
-            model = fresh_model()
-            lcs_cvx.fit(model, random_data(n), progress=False, **fit_options)
-            res = relearn(model, random_data(args.random), plant, controller, X0, plant.success, rounds=0,
+            model = fresh_model(args.seed)
+            lcs_cvx.fit(model, random_data(n, args.seed), progress=False, **fit_options)
+            res = relearn(model, random_data(args.random, args.seed), plant, controller, X0, plant.success, rounds=0,
                           steps=steps, fit_first=False)
             rec = {"kind": "baseline", "random": n, **dataclasses.asdict(res.rounds[0])}
             with open(log, "a") as f:
@@ -160,7 +164,8 @@ def _rounds_text(rows: list[dict[str, Any]]) -> str:
 
 def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: dict[str, Any], wall: float) -> None:
     flags = (" --smoke" if args.smoke else f" --rounds {args.rounds} --random {args.random}"
-             + (f" --iterations {args.iterations}" if args.iterations else "") + (" --fresh" if args.fresh else ""))
+             + (f" --iterations {args.iterations}" if args.iterations else "") + (" --fresh" if args.fresh else "")
+             + (f" --seed {args.seed}" if args.seed else ""))
     cmd = f"python -m studies.control.relearn --out {args.out}{flags}"
     refit = ("refitted from a fresh start as the first fit" if args.fresh
              else "the model refitted from where it was (`init=\"model\"`)")
@@ -172,7 +177,7 @@ def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: d
         f"`{name}.jsonl` (this invocation ran {wall:.0f} s).",
         "",
         f"**Loop** (`lcs_cvx.control.relearn`): an LCS with n_lam = {N_LAM} learned from {args.random} random "
-        "transitions of `studies.physics.plant.sample_transitions` (seed 0; `recipe=\"best\"`, stiffness 1, "
+        f"transitions of `studies.physics.plant.sample_transitions` (seed {args.seed}; `recipe=\"best\"`, stiffness 1, "
         f"init_scale 0.1{steps}), then per round C3 with the package's defaults "
         "(`C3(model, 10, Q=diag(5, 20, 0.5, 0.5), R=[1], u_bounds=(-4, 4))`) closed on MuJoCo from the starts "
         "of `mujoco_closed_loop.md` (its task and success test), the closed-loop transitions added to the data "
@@ -204,6 +209,18 @@ def write_report(args: Any, name: str, rounds: list[dict[str, Any]], baseline: d
             base = [r for r in rows if r["kind"] == "baseline"]
             lines.append(f"- {variants[k]}: {_rounds_text(rs)}"
                          + (f"; random data {base[0]['successes']}/{base[0]['runs']}" if base else "") + ".")
+        lines.append("")
+    seeds = {0 if k == "relearn" else int(k.removeprefix("relearn_seed")): read_rounds(os.path.join(args.out, f"{k}.jsonl"))
+             for k in ["relearn"] + [f"relearn_seed{s}" for s in range(1, 10)]}
+    seeds = {s: rows for s, rows in seeds.items() if any(r["kind"] == "baseline" for r in rows)}
+    if len(seeds) > 1 and not args.smoke and not args.fresh and not args.iterations:
+        lines += ["**Seeds** (`--seed S`: the random transitions, the model's start and every fit's minibatches; "
+                  "success per round 0, 1, ..., then the random-data baseline):", "",
+                  "| seed | rounds | random data |", "|---:|---|---|"]
+        for s, rows in sorted(seeds.items()):
+            base = next(r for r in rows if r["kind"] == "baseline")
+            lines.append(f"| {s} | {_rounds_text([r for r in rows if r['kind'] == 'round'])} | "
+                         f"{base['successes']}/{base['runs']} |")
         lines.append("")
     with open(os.path.join(args.out, f"{name}.md"), "w") as f:
         f.write("\n".join(lines))
