@@ -20,7 +20,25 @@ import numpy as np
 
 from ._checks import LCSInputError
 
-__all__ = ["MessageDefinition", "Layout", "parse_definition", "layout", "read_fields"]
+__all__ = ["MessageDefinition", "Layout", "parse_definition", "layout", "read_fields", "JOINT_STATE"]
+
+#: ``sensor_msgs/msg/JointState``'s definition with its dependencies, as a bag stores it (what a
+#: writer registers for the commonest robot message: ``register_msgdef("sensor_msgs/msg/JointState",
+#: JOINT_STATE)``).
+JOINT_STATE = """std_msgs/Header header
+string[] name
+float64[] position
+float64[] velocity
+float64[] effort
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
 
 #: Primitive ROS 2 types and their NumPy dtypes (little-endian; CDR's byte order is the header's).
 PRIMITIVES = {

@@ -24,21 +24,7 @@ import numpy as np
 import torch
 
 import lcs_cvx
-
-JOINT_STATE = """std_msgs/Header header
-string[] name
-float64[] position
-float64[] velocity
-float64[] effort
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
-"""
+from lcs_cvx.ros2 import JOINT_STATE
 
 
 def write_bag(path: str, messages: int) -> None:

@@ -12,6 +12,7 @@ import pytest
 
 import lcs_cvx
 from lcs_cvx import LCSInputError
+from lcs_cvx.ros2 import JOINT_STATE
 
 h5py = pytest.importorskip("h5py")
 pa = pytest.importorskip("pyarrow")
@@ -19,20 +20,6 @@ pq = pytest.importorskip("pyarrow.parquet")
 mcap_writer = pytest.importorskip("mcap.writer")
 ros2_writer = pytest.importorskip("mcap_ros2.writer")
 
-JOINT_STATE = """std_msgs/Header header
-string[] name
-float64[] position
-float64[] velocity
-float64[] effort
-================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
-"""
 FLOAT64 = "float64 data\n"
 OMEGA = 2 * math.pi * 0.5  # the sine's angular frequency (rad/s)
 
