@@ -13,6 +13,7 @@ A field is named by a path into a message or a run: ``"position[0]"`` (element 0
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -173,8 +174,6 @@ def _names(streams: Sequence[Stream], kind: str) -> tuple[str, ...]:
 
 
 def _with_source(desc: Description, path: str) -> Description:
-    import dataclasses
-
     return dataclasses.replace(desc, source=os.path.basename(path))
 
 

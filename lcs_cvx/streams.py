@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -86,7 +86,6 @@ class Description:
     dropped_pieces: int = 0
     dropped_nan: int = 0
     source: str = ""
-    notes: tuple[str, ...] = field(default=())
 
     def merge(self, other: Description) -> Description:
         """This run's description with another run's counts added."""
@@ -94,7 +93,7 @@ class Description:
             self, streams=self.streams + other.streams, runs=self.runs + other.runs,
             transitions=self.transitions + other.transitions, splits=self.splits + other.splits,
             dropped_pieces=self.dropped_pieces + other.dropped_pieces,
-            dropped_nan=self.dropped_nan + other.dropped_nan, notes=self.notes + other.notes)
+            dropped_nan=self.dropped_nan + other.dropped_nan)
 
     def __str__(self) -> str:
         lines = [f"{self.source}: " if self.source else ""]
@@ -111,7 +110,6 @@ class Description:
                          + (f", {gaps} gaps" if gaps else "") + (" -- resampled" if not math.isclose(p, self.dt, rel_tol=1e-6) else ""))
         lines.append(f"  split at {self.splits} gaps; dropped {self.dropped_pieces} pieces shorter than one step "
                      f"and {self.dropped_nan} samples with NaN")
-        lines += [f"  {n}" for n in self.notes]
         return "\n".join(lines)
 
 
@@ -195,8 +193,10 @@ def align(streams: Sequence[Stream], dt: float | None = None, max_gap: float | N
         cuts += [(float(s.t[i]), float(s.t[i + 1])) for i in at]
     pieces, start = [], lo
     for a, b in sorted(cuts):
-        if a > start:
-            pieces.append((start, min(a, hi)))
+        if a >= hi:  # past the common span
+            break
+        if a >= start:  # (a lone sample between two gaps is a piece too, dropped and counted)
+            pieces.append((start, a))
         start = max(start, b)
     if start < hi:
         pieces.append((start, hi))
