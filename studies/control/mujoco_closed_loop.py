@@ -50,6 +50,7 @@ all of them at the end. The fitted affine/MLP models are cached in ``OUT/mujoco_
 from __future__ import annotations
 
 import argparse
+import glob
 import math
 import os
 import sys
@@ -325,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
+    global MODELS  # the factories read the learned models from here
     ap = argparse.ArgumentParser(description="C3 and baselines in closed loop on the MuJoCo cart-pole with walls.")
     ap.add_argument("--out", default=os.path.join("studies", "results", "control"))
     ap.add_argument("--starts", type=int, default=50)
@@ -332,7 +334,13 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--transitions", type=int, default=20000)
     ap.add_argument("--only", nargs="*", default=None, help="controller names (default all)")
     ap.add_argument("--smoke", action="store_true", help="2 starts, 0.8 s runs, a small MLP: a quick check")
+    ap.add_argument("--models", default=MODELS,
+                    help=f"the learned LCSs' folder (default {MODELS}: the physics study's)")
+    ap.add_argument("--tag", default=None,
+                    help="another draw of the learned models (with --models): runs and report as "
+                         "mujoco_closed_loop_<tag>.*, and a row per tag in the main report's seed table")
     args = ap.parse_args(argv)
+    MODELS = args.models
     torch.set_num_threads(1)
     if args.smoke:
         args.starts, args.seconds, args.transitions = 2, 0.8, 1000
@@ -344,13 +352,49 @@ def _main(argv: list[str] | None = None) -> int:
     names = list(CONTROLLERS) if not args.only else args.only
     t0 = time.perf_counter()
     records, ctx = harness.run_units(
-        os.path.join(args.out, "mujoco_closed_loop.jsonl"), names, starts(args.starts), steps,
+        os.path.join(args.out, _stem(args) + ".jsonl"), names, starts(args.starts), steps,
         lambda: _context(args.out, args.smoke, args.transitions),
         lambda name, ctx, x0: run_one(name, ctx, x0, steps, last),
         lambda rec: (f"success={rec['success']} |θ_T|={rec['final_abs_theta']:.3f} "
                      f"{rec['ms_per_step_median']:.2f} ms"))
     write_report(records, names, args, steps, last, time.perf_counter() - t0, ctx)
     return 0
+
+
+def _stem(args: Any) -> str:
+    return "mujoco_closed_loop" + (f"_{args.tag}" if args.tag else "")
+
+
+#: the rows whose spread over draws of the learned models the seed table gives
+SEED_ROWS = ("C3 (defaults), learned LCS n_lam=8", "C3 (defaults), learned LCS n_lam=4",
+             "C3 (defaults), learned LCS n_lam=2")
+
+
+def _seeds(args: Any, steps: int) -> list[str]:
+    """The seed table of the main report: the C3 (defaults) rows on the physics study's models
+    (its fits' seeds 0, 1) beside the same rows on other draws (``--tag seedsAB``: the study run
+    with ``--seeds A B``), where those runs exist."""
+    if args.tag or args.smoke:
+        return []
+    draws = {"0, 1": os.path.join(args.out, "mujoco_closed_loop.jsonl")}
+    for path in sorted(glob.glob(os.path.join(args.out, "mujoco_closed_loop_seeds*.jsonl"))):
+        tag = os.path.basename(path)[len("mujoco_closed_loop_seeds"):-len(".jsonl")]
+        draws[", ".join(tag)] = path
+    if len(draws) < 2:
+        return []
+    found = {d: summarise(list(harness.read_records(p, steps).values()), list(SEED_ROWS)) for d, p in draws.items()}
+    lines = ["## The spread over draws of the learned models", "",
+             "The same `C3 (defaults)` rows on LCSs the physics study learned from other seeds of its fits "
+             "(`python -m studies.physics.cartpole_walls --config studies/configs/physics_cartpole.toml --out "
+             "studies/results/physics_seedsAB --seeds A B --losses violation`, then this study with `--models "
+             "studies/results/physics_seedsAB/models --tag seedsAB`): each draw keeps, per `n_lam`, the restart "
+             "of lowest validation error among its seeds and both starts.", "",
+             "| controller | " + " | ".join(f"fits' seeds {d}" for d in draws) + " |",
+             "|---|" + "---|" * len(draws)]
+    for row in SEED_ROWS:
+        cells = [f"{found[d][row]['success']}/{found[d][row]['runs']}" if row in found[d] else "" for d in draws]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict[str, float]]:
@@ -372,11 +416,12 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
                  wall: float, ctx: dict[str, Any] | None) -> None:
     summ = summarise(records, names)
     cmd = "python -m studies.control.mujoco_closed_loop --out " + args.out + (
-        " --smoke" if args.smoke else f" --starts {args.starts}")
+        " --smoke" if args.smoke else f" --starts {args.starts}") + (
+        f" --models {args.models} --tag {args.tag}" if args.tag else "")
     lines = [
         "# C3 and baselines in closed loop on the MuJoCo cart-pole with soft walls",
         "",
-        f"Written by `{cmd}` on {DATE} ({MACHINE}); the runs are kept in `mujoco_closed_loop.jsonl`"
+        f"Written by `{cmd}` on {DATE} ({MACHINE}); the runs are kept in `{_stem(args)}.jsonl`"
         + (f" (this invocation ran {wall:.0f} s, skipping the runs already there)." if wall >= 1 else "."),
         "",
         f"**Task.** {args.starts} random starts (seed 0): side `s = ±1`, `x_c ~ U[-0.1, 0.1]` m, "
@@ -407,12 +452,12 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
                   "`studies.physics.plant.sample_transitions` (seed 0); the MLP's held-out error "
                   f"(normalised increment, mean squared) is {ctx['mlp_val']:.4f}. MPPI: "
                   + ", ".join(f"{k} {v}" for k, v in ctx["mppi"].items()) + ".", ""]
-    lines += _FINDINGS + _versus_mlp(summ) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
+    lines += _FINDINGS + _seeds(args, steps) + _versus_mlp(summ) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
                                               "(`studies/control/pusher_closed_loop.py`): its learned LCS plans in the slider's "
                                               "frame, so the world pose is appended to the model there."] + ["", "![final |θ| and success per controller](mujoco_closed_loop.png)", ""]
-    with open(os.path.join(args.out, "mujoco_closed_loop.md"), "w") as f:
+    with open(os.path.join(args.out, _stem(args) + ".md"), "w") as f:
         f.write("\n".join(lines))
-    _plot(records, list(summ), os.path.join(args.out, "mujoco_closed_loop.png"))
+    _plot(records, list(summ), os.path.join(args.out, _stem(args) + ".png"))
     print("\n".join(lines))
 
 

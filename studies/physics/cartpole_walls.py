@@ -53,10 +53,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the training jobs on Dask: 'local' (a LocalCluster of --workers "
                     "processes) or a scheduler address tcp://host:8786 (default: local processes)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="the LCS fits' seeds instead of the config's [lcs] seeds (another draw of the study's "
+                         "restarts, for the spread of what it chose)")
+    ap.add_argument("--losses", nargs="+", default=None, help="the LCS losses instead of the config's")
     args = ap.parse_args(argv)
     with open(args.config, "rb") as f:
         config = tomllib.load(f)
     config.setdefault("name", os.path.splitext(os.path.basename(args.config))[0])
+    for key, value in (("seeds", args.seeds), ("losses", args.losses)):
+        if value is not None:
+            config.setdefault("lcs", {})[key] = value
     run_study(config, args.out, args.workers, scheduler=args.scheduler)
     return 0
 
