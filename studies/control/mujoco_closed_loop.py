@@ -357,6 +357,8 @@ def _main(argv: list[str] | None = None) -> int:
         lambda name, ctx, x0: run_one(name, ctx, x0, steps, last),
         lambda rec: (f"success={rec['success']} |θ_T|={rec['final_abs_theta']:.3f} "
                      f"{rec['ms_per_step_median']:.2f} ms"))
+    if ctx is None and not args.tag:  # every run was there: the report still describes the models (cached)
+        ctx = _context(args.out, args.smoke, args.transitions)
     write_report(records, names, args, steps, last, time.perf_counter() - t0, ctx)
     return 0
 
@@ -421,7 +423,8 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
     lines = [
         "# C3 and baselines in closed loop on the MuJoCo cart-pole with soft walls",
         "",
-        f"Written by `{cmd}` on {DATE} ({MACHINE}); the runs are kept in `{_stem(args)}.jsonl`"
+        f"Written by `{cmd}` on {time.strftime('%Y-%m-%d') if args.tag else DATE} ({MACHINE}); the runs are kept "
+        f"in `{_stem(args)}.jsonl`"
         + (f" (this invocation ran {wall:.0f} s, skipping the runs already there)." if wall >= 1 else "."),
         "",
         f"**Task.** {args.starts} random starts (seed 0): side `s = ±1`, `x_c ~ U[-0.1, 0.1]` m, "
@@ -447,12 +450,19 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
     lines += ["", "Time per control step: the controller's call only (not MuJoCo), median over a run, "
               "then median over the runs. Plan gap: `Plan.gap`, the largest difference between the "
               "planned states and the model's own rollout of the plan's inputs.", ""]
+    if args.tag:  # another draw of the learned models: its table; the main report discusses them
+        lines += ["These models: another draw of the physics study's fits (`--models`); the main report, "
+                  "`mujoco_closed_loop.md`, sets them beside its own.", ""]
+        with open(os.path.join(args.out, _stem(args) + ".md"), "w") as f:
+            f.write("\n".join(lines))
+        print("\n".join(lines))
+        return
     if ctx is not None:
         lines += [f"The affine and MLP models learn from {ctx['n_transitions']} transitions of "
                   "`studies.physics.plant.sample_transitions` (seed 0); the MLP's held-out error "
                   f"(normalised increment, mean squared) is {ctx['mlp_val']:.4f}. MPPI: "
                   + ", ".join(f"{k} {v}" for k, v in ctx["mppi"].items()) + ".", ""]
-    lines += _FINDINGS + _seeds(args, steps) + _versus_mlp(summ) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
+    lines += _FINDINGS + _versus_mlp(summ) + [""] + _seeds(args, steps) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
                                               "(`studies/control/pusher_closed_loop.py`): its learned LCS plans in the slider's "
                                               "frame, so the world pose is appended to the model there."] + ["", "![final |θ| and success per controller](mujoco_closed_loop.png)", ""]
     with open(os.path.join(args.out, _stem(args) + ".md"), "w") as f:
