@@ -16,6 +16,7 @@ cart-pole study (:mod:`studies.control.cartpole_c3`).
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import sys
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["Timed", "plan_medians", "read_records", "run_units", "MPPI"]
+__all__ = ["Timed", "plan_medians", "read_records", "run_units", "MPPI", "draws_table"]
 
 
 class Timed:
@@ -137,3 +138,25 @@ class MPPI:
         u0 = self.mean[0]
         self.mean = torch.cat([self.mean[1:], self.mean[-1:]])
         return u0
+
+
+def draws_table(out: str, stem: str, rows: Sequence[str], steps: int,
+                summarise: Callable[[list[dict[str, Any]], list[str]], dict[str, dict[str, Any]]],
+                how: str) -> list[str]:
+    """The success of ``rows`` on every draw of the learned models whose runs ``out`` holds:
+    ``stem.jsonl`` (the study's own models, its fits' seeds 0 and 1) and ``stem_seedsAB.jsonl``
+    (``--models ... --tag seedsAB``: a draw with the fits' seeds A and B); a report section, or
+    nothing with one draw. ``how``: the commands of a draw, in words."""
+    draws = {"0, 1": os.path.join(out, f"{stem}.jsonl")}
+    for path in sorted(glob.glob(os.path.join(out, f"{stem}_seeds*.jsonl"))):
+        draws[", ".join(os.path.basename(path)[len(stem) + len("_seeds"):-len(".jsonl")])] = path
+    if len(draws) < 2:
+        return []
+    found = {d: summarise(list(read_records(p, steps).values()), list(rows)) for d, p in draws.items()}
+    lines = ["## The spread over draws of the learned models", "", how, "",
+             "| controller | " + " | ".join(f"fits' seeds {d}" for d in draws) + " |",
+             "|---|" + "---|" * len(draws)]
+    for row in rows:
+        cells = [f"{found[d][row]['success']}/{found[d][row]['runs']}" if row in found[d] else "" for d in draws]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines + [""]

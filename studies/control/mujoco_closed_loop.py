@@ -50,7 +50,6 @@ all of them at the end. The fitted affine/MLP models are cached in ``OUT/mujoco_
 from __future__ import annotations
 
 import argparse
-import glob
 import math
 import os
 import sys
@@ -373,30 +372,16 @@ SEED_ROWS = ("C3 (defaults), learned LCS n_lam=8", "C3 (defaults), learned LCS n
 
 
 def _seeds(args: Any, steps: int) -> list[str]:
-    """The seed table of the main report: the C3 (defaults) rows on the physics study's models
-    (its fits' seeds 0, 1) beside the same rows on other draws (``--tag seedsAB``: the study run
-    with ``--seeds A B``), where those runs exist."""
+    """The seed table of the main report (:func:`studies.control.harness.draws_table`)."""
     if args.tag or args.smoke:
         return []
-    draws = {"0, 1": os.path.join(args.out, "mujoco_closed_loop.jsonl")}
-    for path in sorted(glob.glob(os.path.join(args.out, "mujoco_closed_loop_seeds*.jsonl"))):
-        tag = os.path.basename(path)[len("mujoco_closed_loop_seeds"):-len(".jsonl")]
-        draws[", ".join(tag)] = path
-    if len(draws) < 2:
-        return []
-    found = {d: summarise(list(harness.read_records(p, steps).values()), list(SEED_ROWS)) for d, p in draws.items()}
-    lines = ["## The spread over draws of the learned models", "",
-             "The same `C3 (defaults)` rows on LCSs the physics study learned from other seeds of its fits "
-             "(`python -m studies.physics.cartpole_walls --config studies/configs/physics_cartpole.toml --out "
-             "studies/results/physics_seedsAB --seeds A B --losses violation`, then this study with `--models "
-             "studies/results/physics_seedsAB/models --tag seedsAB`): each draw keeps, per `n_lam`, the restart "
-             "of lowest validation error among its seeds and both starts.", "",
-             "| controller | " + " | ".join(f"fits' seeds {d}" for d in draws) + " |",
-             "|---|" + "---|" * len(draws)]
-    for row in SEED_ROWS:
-        cells = [f"{found[d][row]['success']}/{found[d][row]['runs']}" if row in found[d] else "" for d in draws]
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
-    return lines + [""]
+    return harness.draws_table(
+        args.out, "mujoco_closed_loop", SEED_ROWS, steps, summarise,
+        "The same `C3 (defaults)` rows on LCSs the physics study learned from other seeds of its fits "
+        "(`python -m studies.physics.cartpole_walls --config studies/configs/physics_cartpole.toml --out "
+        "studies/results/physics_seedsAB --seeds A B --losses violation`, then this study with `--models "
+        "studies/results/physics_seedsAB/models --tag seedsAB`): each draw keeps, per `n_lam`, the restart "
+        "of lowest validation error among its seeds and both starts.")
 
 
 def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict[str, float]]:
@@ -462,7 +447,8 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
                   "`studies.physics.plant.sample_transitions` (seed 0); the MLP's held-out error "
                   f"(normalised increment, mean squared) is {ctx['mlp_val']:.4f}. MPPI: "
                   + ", ".join(f"{k} {v}" for k, v in ctx["mppi"].items()) + ".", ""]
-    lines += _FINDINGS + _versus_mlp(summ) + [""] + _seeds(args, steps) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
+    draws = _seeds(args, steps)
+    lines += _FINDINGS + _versus_mlp(summ) + ([""] + draws if draws else []) + ["", "The pusher–slider has its own closed-loop study, `pusher_closed_loop.md` "
                                               "(`studies/control/pusher_closed_loop.py`): its learned LCS plans in the slider's "
                                               "frame, so the world pose is appended to the model there."] + ["", "![final |θ| and success per controller](mujoco_closed_loop.png)", ""]
     with open(os.path.join(args.out, _stem(args) + ".md"), "w") as f:

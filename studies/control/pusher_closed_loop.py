@@ -367,6 +367,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
+    global MODELS  # the factories read the learned models from here
     ap = argparse.ArgumentParser(description="C3 and baselines pushing the MuJoCo pusher-slider to a goal pose.")
     ap.add_argument("--out", default=os.path.join("studies", "results", "control"))
     ap.add_argument("--starts", type=int, default=50)
@@ -374,7 +375,12 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--transitions", type=int, default=20000)
     ap.add_argument("--only", nargs="*", default=None, help="controller names (default all)")
     ap.add_argument("--smoke", action="store_true", help="2 starts, 0.5 s runs, a small MLP: a quick check")
+    ap.add_argument("--models", default=MODELS, help=f"the learned LCSs' folder (default {MODELS}: the pusher study's)")
+    ap.add_argument("--tag", default=None,
+                    help="another draw of the learned models (with --models): runs and report as "
+                         "pusher_closed_loop_<tag>.*, and a column per tag in the main report's seed table")
     args = ap.parse_args(argv)
+    MODELS = args.models
     torch.set_num_threads(1)
     if args.smoke:
         args.starts, args.seconds, args.transitions = 2, 0.5, 1000
@@ -383,7 +389,8 @@ def _main(argv: list[str] | None = None) -> int:
     names = list(CONTROLLERS) if not args.only else args.only
     t0 = time.perf_counter()
     records, ctx = harness.run_units(
-        os.path.join(args.out, "pusher_closed_loop.jsonl"), names, starts(args.starts), steps,
+        os.path.join(args.out, "pusher_closed_loop" + (f"_{args.tag}" if args.tag else "") + ".jsonl"), names,
+        starts(args.starts), steps,
         lambda: _context(args.out, args.smoke, args.transitions),
         lambda name, ctx, st: run_one(name, ctx, st, steps),
         lambda rec: (f"success={rec['success']} pos {rec['final_position_error']:.2f} cm "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from typing import Any
 
 import numpy as np
@@ -46,12 +47,15 @@ def summarise(records: list[dict[str, Any]], names: list[str]) -> dict[str, dict
 def write_report(records: list[dict[str, Any]], names: list[str], args: Any, steps: int, wall: float,
                  ctx: dict[str, Any] | None) -> None:
     summ = summarise(records, names)
+    stem = "pusher_closed_loop" + (f"_{args.tag}" if args.tag else "")
     cmd = "python -m studies.control.pusher_closed_loop --out " + args.out + (
-        " --smoke" if args.smoke else f" --starts {args.starts}")
+        " --smoke" if args.smoke else f" --starts {args.starts}") + (
+        f" --models {args.models} --tag {args.tag}" if args.tag else "")
     lines = [
         "# C3 and baselines pushing the MuJoCo pusher-slider to a goal pose",
         "",
-        f"Written by `{cmd}` on {DATE} ({MACHINE}); the runs are kept in `pusher_closed_loop.jsonl`"
+        f"Written by `{cmd}` on {time.strftime('%Y-%m-%d') if args.tag else DATE} ({MACHINE}); the runs are "
+        f"kept in `{stem}.jsonl`"
         + (f" (this invocation ran {wall:.0f} s, skipping the runs already there)." if wall >= 1 else "."),
         "",
         f"**Task.** {args.starts} random starts (seed 0): the slider at rest at the world origin with heading "
@@ -79,12 +83,26 @@ def write_report(records: list[dict[str, Any]], names: list[str], args: Any, ste
                      f"{s['ms']:.2f} | {viol} | {gap} |")
     lines += ["", "Time per control step: the controller's call only (not MuJoCo), median over a run, "
               "then median over the runs. C3s are built once per process (not timed).", ""]
+    if args.tag:  # another draw of the learned model: its table; the main report discusses it
+        lines += ["This model: another draw of the pusher study's fits (`--models`); the main report, "
+                  "`pusher_closed_loop.md`, sets it beside its own.", ""]
+        with open(os.path.join(args.out, stem + ".md"), "w") as f:
+            f.write("\n".join(lines))
+        print("\n".join(lines))
+        return
     if ctx is not None:
         lines += [f"The affine and MLP models learn from {ctx['n_transitions']} transitions of "
                   "`studies.physics.pusher_plant.sample_transitions` (seed 0); the MLP's held-out error "
                   f"(normalised increment, mean squared) is {ctx['mlp_val']:.4f}. MPPI: "
                   + ", ".join(f"{k} {v}" for k, v in ctx["mppi"].items()) + ".", ""]
-    lines += _FINDINGS + _versus_mlp(summ) + ["", "![box paths and final errors per controller](pusher_closed_loop.png)", ""]
+    draws = [] if args.smoke else harness.draws_table(
+        args.out, "pusher_closed_loop", ("C3 (defaults), learned LCS (violation loss)",), steps, summarise,
+        "The `C3 (defaults)` row of the violation-loss model on LCSs the pusher study learned from other seeds "
+        "of its fits at its largest size (`lcs-cvx study run studies/configs/pusher_slider_seedsAB.toml --out "
+        "studies/results/pusher_slider_seedsAB`: 20,000 transitions, n_lam = 16, the lowest validation error "
+        "of the seeds A, B and both starts kept; then this study with `--models "
+        "studies/results/pusher_slider_seedsAB/models --tag seedsAB`).")
+    lines += _FINDINGS + _versus_mlp(summ) + ([""] + draws if draws else []) + ["", "![box paths and final errors per controller](pusher_closed_loop.png)", ""]
     with open(os.path.join(args.out, "pusher_closed_loop.md"), "w") as f:
         f.write("\n".join(lines))
     _plot(records, list(summ), os.path.join(args.out, "pusher_closed_loop.png"))
