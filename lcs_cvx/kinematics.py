@@ -40,7 +40,11 @@ import torch
 
 from ._checks import LCSInputError
 
-__all__ = ["Kinematics", "quaternion_product", "quaternion_exp", "up_in_body", "rotation_matrix", "cross_matrix"]
+__all__ = ["Kinematics", "quaternion_product", "quaternion_exp", "up_in_body", "rotation_matrix", "cross_matrix",
+           "unit_quaternions", "UNIT_TOL"]
+
+#: How far from unit norm a data quaternion may be before it is an error, not round-off.
+UNIT_TOL = 1e-6
 
 FRAMES = ("body", "world")
 
@@ -311,6 +315,18 @@ def quaternion_exp(phi: torch.Tensor) -> torch.Tensor:
     w = torch.where(small, 1.0 - t2 / 8.0, torch.cos(0.5 * t))
     s = torch.where(small, 0.5 - t2 / 48.0, torch.sin(0.5 * t) / t)
     return torch.cat([w, s * phi], dim=-1)
+
+
+def unit_quaternions(name: str, q: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """``(q / |q|, off)`` for quaternions ``q`` ``(N, 4)``, ``off`` the largest distance of a norm
+    from 1; past 1e-2 (or not finite) an :class:`LCSInputError` naming ``name``: recorded data, not
+    round-off."""
+    norm = q.norm(dim=-1)
+    off = float((norm.detach() - 1).abs().max()) if len(norm) else 0.0
+    if off > 1e-2 or not math.isfinite(off):
+        raise LCSInputError(f"{name}: expected unit quaternions (w, x, y, z), received "
+                            f"norms off by up to {off:.3g}")
+    return q / norm[:, None], off
 
 
 def rotation_matrix(q: torch.Tensor) -> torch.Tensor:

@@ -58,10 +58,11 @@ import torch
 from torch import nn
 
 from ._checks import LCSInputError, as_batch, check_number, check_positive
-from .kinematics import Kinematics, cross_matrix, rotation_matrix
+from .kinematics import UNIT_TOL, Kinematics, cross_matrix, rotation_matrix, unit_quaternions
 from .losses import LossInfo
 from .per_sample import SampleLCS, model_loss_info, solve_sample_lcp
-from .system import LCS, rollout
+from .rollout import rollout
+from .state_lcs import lcs_of_state
 
 __all__ = ["RigidBodyContact", "FORMULATIONS", "LEARNABLE", "box_vertices"]
 
@@ -73,8 +74,6 @@ LEARNABLE = ("vertices", "radius", "mu", "inertia", "com", "ground", "compliance
 #: Quaternion rows, position rows, angular velocity rows, linear velocity rows of the state.
 Q, P, W, V = slice(0, 4), slice(4, 7), slice(7, 10), slice(10, 13)
 N_X = 13
-#: How far from unit norm a data quaternion may be before it is an error, not round-off.
-UNIT_TOL = 1e-6
 
 
 def box_vertices(half_sizes: torch.Tensor) -> torch.Tensor:
@@ -341,18 +340,14 @@ class RigidBodyContact(nn.Module):
         """``x`` ``(N, 13)`` with its quaternions (columns 0-3) normalised: within
         :data:`UNIT_TOL` of unit norm silently, within 1e-2 with a warning (once per model);
         farther is an :class:`lcs_cvx.LCSInputError` naming ``name``."""
-        norm = x[:, Q].norm(dim=-1)
-        off = float((norm.detach() - 1).abs().max()) if len(norm) else 0.0
-        if off > 1e-2 or not math.isfinite(off):
-            raise LCSInputError(f"{name}: expected unit quaternions in columns 0-3 (w, x, y, z), received "
-                                f"norms off by up to {off:.3g}")
+        q, off = unit_quaternions(name, x[:, Q])
         if off > UNIT_TOL and not self._quaternion_note:
             warnings.warn(f"{name}: quaternions up to {off:.2e} from unit norm were normalised", stacklevel=3)
             self._quaternion_note = True
-        return torch.cat([x[:, Q] / norm[:, None], x[:, 4:]], dim=1)
+        return torch.cat([q, x[:, 4:]], dim=1)
 
     # -- the LCS of each state -----------------------------------------------------------------
-    def _dynamics(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def dynamics(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(M (N, 6, 6), f (N, 6), J~ (N, K m, 6), phi (N, K))`` at the states ``x`` (module
         docstring): the mass matrix, the forces (no input), the cone edges' Jacobians (contact-major)
         and the gaps."""
@@ -387,7 +382,7 @@ class RigidBodyContact(nn.Module):
         """The velocity rows of eq. (1) at every state ``x`` ``(N, 13)`` under ``u`` ``(N, n_u)``
         (module docstring): ``nu' = nu_free + C lam``, ``0 <= lam _|_ F lam + q >= 0``;
         differentiable in the parameters."""
-        M, f, J, phi = self._dynamics(x)
+        M, f, J, phi = self.dynamics(x)
         if self.n_u:
             f = f + u
         Minv = torch.linalg.inv(M)
@@ -441,39 +436,14 @@ class RigidBodyContact(nn.Module):
 
     def rollout(self, x0: Any, us: Any) -> torch.Tensor:
         """Simulate from ``x0`` ``(N, 13)`` under ``us`` ``(N, T, n_u)`` (a single run: ``(13,)``
-        and ``(T, n_u)``); returns ``(N, T + 1, 13)`` (:func:`lcs_cvx.system.rollout`)."""
+        and ``(T, n_u)``); returns ``(N, T + 1, 13)`` (:func:`lcs_cvx.rollout.rollout`)."""
         return rollout(self, x0, us)
 
     def lcs_at(self, x: Any, u: Any = None) -> Any:
         """The plain :class:`lcs_cvx.LCS` (13 states, ``n_u`` inputs, ``K m`` units) of the state
-        ``x`` ``(13,)``: its velocity and complementarity rows the time-stepping LCS of ``x``'s
-        configuration (``f`` held at its value at ``x``), its configuration rows ``p' = p + dt v'``
-        exact and ``q'`` linearised about ``x`` and the model's own step there under ``u``
-        (default 0; :meth:`lcs_cvx.Kinematics.to_lcs`). Detached: a model to simulate or control
-        (``to_c3()``, :class:`lcs_cvx.control.C3`)."""
+        ``x`` ``(13,)`` under ``u`` (default 0), detached: a model to simulate or control
+        (``to_c3()``, :class:`lcs_cvx.control.C3`; :func:`lcs_cvx.state_lcs.lcs_of_state`)."""
         xa, ua = self._xu(x, torch.zeros(self.n_u, dtype=self.dtype) if u is None else u)
         if xa.shape[0] != 1:
             raise LCSInputError(f"x: expected one state (13,), received {xa.shape[0]} states")
-        with torch.no_grad():
-            # the velocity rows of sample_lcs at x, split as nu_free = A_v x + B_v u + d_v (f held at x)
-            lcs = self.sample_lcs(xa, ua)
-            M, _, J, _ = (t[0].double() for t in self._dynamics(xa))
-            A = torch.zeros(N_X, N_X, dtype=torch.float64)
-            A[7:, 7:] = torch.eye(6, dtype=torch.float64)
-            B = torch.zeros(N_X, self.n_u, dtype=torch.float64)
-            B[7:] = (self.dt * torch.linalg.inv(M))[:, : self.n_u]
-            if self.residual_map is not None:
-                W = self.residual_map.double()
-                A[7:] += W[:, :N_X]
-                B[7:] += W[:, N_X:N_X + self.n_u]
-            x0, u0 = xa[0].double(), ua[0].double()
-            d = torch.zeros(N_X, dtype=torch.float64)
-            d[7:] = lcs.r0[0].double() - A[7:] @ x0 - B[7:] @ u0
-            C = torch.zeros(N_X, self.n_lam, dtype=torch.float64)
-            C[7:] = lcs.C[0].double()
-            # w = F lam + q with q = phi / dt + J nu_free = (J A_v) x + (J B_v) u + c
-            D, E = J @ A[7:], J @ B[7:]
-            c = lcs.q[0].double() - D @ x0 - E @ u0
-            model = LCS.from_matrices(A=A, B=B, C=C, d=d, D=D, E=E, F=lcs.F[0].double(), c=c, dtype=self.dtype)
-            model.with_kinematics(self.kinematics)
-            return self.kinematics.to_lcs(model, about=xa[0], u=ua[0])
+        return lcs_of_state(self, xa, ua)

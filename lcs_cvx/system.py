@@ -34,8 +34,9 @@ from .parameters import (
     split_F,
 )
 from .problems import sym_min_eig
+from .rollout import rollout
 
-__all__ = ["LCS", "rollout", "PARAMETER_NAMES", "MATRIX_NAMES", "ACTIVE_TOL", "DEFAULT_STIFFNESS", "MASKABLE",
+__all__ = ["LCS", "PARAMETER_NAMES", "MATRIX_NAMES", "ACTIVE_TOL", "DEFAULT_STIFFNESS", "MASKABLE",
            "C3_NAMES", "parameter_shapes", "F_matrix", "split_F"]
 
 #: ``lam_i > ACTIVE_TOL`` marks unit ``i`` active (:meth:`LCS.active_set`,
@@ -438,23 +439,3 @@ class LCS(nn.Module):
             raise LCSInputError(f"matrices: expected C3's keys {tuple(C3_NAMES)}, missing {missing}")
         return cls.from_matrices(**{ours: matrices[c3] for c3, ours in C3_NAMES.items()}, dtype=dtype)
 
-
-def rollout(model: Any, x0: Any, us: Any) -> torch.Tensor:
-    """``model.step`` from ``x0`` ``(N, n_x)`` under ``us`` ``(N, T, n_u)`` (one run: ``(n_x,)``
-    and ``(T, n_u)``), ``(N, T + 1, n_x)``: an :class:`LCS`'s rollout and that of any model with
-    its ``step``, ``n_x``, ``n_u``, ``dtype`` and ``device`` (:class:`lcs_cvx.RigidBodyContact`)."""
-    single = not (isinstance(x0, torch.Tensor) and x0.dim() == 2) and np.ndim(x0) == 1
-    x = as_batch("x0", x0, model.n_x, dtype=model.dtype, device=model.device)
-    us_t = torch.as_tensor(us, dtype=model.dtype, device=model.device) if not isinstance(us, torch.Tensor) else us
-    if us_t.dim() == 2:
-        us_t = us_t.unsqueeze(0)
-    if us_t.dim() != 3 or us_t.shape[0] != x.shape[0] or us_t.shape[2] != model.n_u:
-        raise LCSInputError(
-            f"us: expected shape ({x.shape[0]}, T, {model.n_u}) or (T, {model.n_u}), "
-            f"received shape {tuple(torch.as_tensor(us).shape)}"
-        )
-    xs = [x]
-    for t in range(us_t.shape[1]):
-        xs.append(model.step(xs[-1], us_t[:, t]))
-    out = torch.stack(xs, dim=1)
-    return out[0] if single else out

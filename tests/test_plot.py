@@ -52,7 +52,12 @@ def test_the_three_plots_and_the_fit_shortcut_write_pngs(fitted, tmp_path):
     labels = [t.get_text() for t in figs["history"].axes[0].get_legend().get_texts()]
     assert "kept iterate" in labels and any("held-out score" in s for s in labels)
     assert "distinct modes" in figs["modes"].axes[0].get_title()
-    assert plot.history(result) is not None and not list(tmp_path.glob("*.pdf"))  # nothing unless asked
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.MonkeyPatch.context() as mp:  # without a path nothing is written, not even in the cwd
+        mp.chdir(tmp_path)
+        assert isinstance(plot.history(result), figure.Figure)
+        plot.rollouts(model, runs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
 def test_a_plot_draws_on_the_axes_it_is_given(fitted):

@@ -108,12 +108,12 @@ def test_a_rounded_box_rests_on_a_face_at_its_half_size_and_on_an_edge_lower_tha
     rho = 0.01
     m = cube(corner_radius=rho, ground=0.02)
     assert torch.allclose(m.vertices.abs(), torch.full((8, 3), HALF - rho, dtype=F64), atol=1e-15)
-    flat = m._dynamics(state(p=(0, 0, 0.02 + HALF)))[3][0]
+    flat = m.dynamics(state(p=(0, 0, 0.02 + HALF)))[3][0]
     assert torch.allclose(flat.sort().values[:4], torch.zeros(4, dtype=F64), atol=1e-15)
     # on an edge, 45 degrees about x: the rounded edge's centre is (h - rho) sqrt 2 + rho above the floor
     s = math.sin(math.pi / 8)
     height = 0.02 + (HALF - rho) * math.sqrt(2) + rho
-    edge = m._dynamics(state(q=(math.cos(math.pi / 8), s, 0, 0), p=(0, 0, height)))[3][0]
+    edge = m.dynamics(state(q=(math.cos(math.pi / 8), s, 0, 0), p=(0, 0, height)))[3][0]
     assert torch.allclose(edge.sort().values[:2], torch.zeros(2, dtype=F64), atol=1e-15)
     assert height < 0.02 + HALF * math.sqrt(2)
 
