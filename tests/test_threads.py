@@ -103,3 +103,100 @@ def test_non_finite_data_in_a_later_part_are_named():
     with pytest.raises(LCSInputError, match="^x: expected finite values"):
         lcs_cvx.violation_value_and_grad(model, x, data.u, data.x_next, threads=2)
     assert np.isfinite(float(lcs_cvx.violation_loss(model, data.x, data.u, data.x_next, threads=2).detach()))
+
+
+def test_row_kernels_are_numpys_take_and_put():
+    """The gathers and write-back of a minibatch's rows (lcs_cvx/_kernels/rows.py) against
+    NumPy's indexing, the weighted sum of a call's parts against Python's ``sum``, bit for bit."""
+    from lcs_cvx._kernels.rows import AHEAD, all_seen, put_rows, take_batch, weighted_rows
+
+    rng = np.random.default_rng(0)
+    N = 3 * AHEAD + 50
+    x, u, xn = rng.normal(size=(N, 5)), rng.normal(size=(N, 2)), rng.normal(size=(N, 5))
+    warm = rng.random((N, 6)) < 0.5
+    for rows in (rng.permutation(N), rng.permutation(N)[:AHEAD - 3], np.zeros(0, dtype=np.int64)):
+        got = take_batch(x, u, xn, warm, rows)
+        for a, b in zip(got, (x, u, xn, warm), strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b[rows])
+        assert take_batch(x, u, xn, calls.COLD, rows)[3] is not None  # the cold start passes through
+    table, seen = np.zeros((N, 6), dtype=np.bool_), np.zeros(N, dtype=np.bool_)
+    rows = rng.permutation(N)[: N // 2]
+    assert not all_seen(seen, rows)
+    put_rows(table, seen, rows, warm[: len(rows)])
+    assert np.array_equal(table[rows], warm[: len(rows)]) and all_seen(seen, rows)
+    assert seen.sum() == len(rows) and not table[~seen].any()
+    w, parts = rng.random(7), rng.normal(size=(7, 11))
+    assert np.array_equal(weighted_rows(w, parts), sum(wk * p for wk, p in zip(w, parts, strict=True)))
+
+
+@pytest.mark.parametrize("loss", ["violation", "prediction"])
+def test_a_call_on_rows_is_the_call_on_the_gathered_batch(loss):
+    """``compiled_call(..., rows=)`` (a minibatch read where it lies, the warm start read from a
+    table and the active sets written back, a training step's) against the batch gathered first:
+    the same value and gradients, bit for bit, on one part and on several, on 1 and 2 threads."""
+    from lcs_cvx import losses
+
+    model, data = make_problem(n_lam=3, n=5 * MIN_CHUNK, model="perturbed", seed=6)
+    params, arrays, s = calls.model_arrays(model)
+    n = model.n_lam
+    if loss == "violation":
+        fn, width, opts = calls.compiled().violation, 2 * n, (GAMMA, EPS, losses.VIOLATION_TOL, losses.MAX_ITER,
+                                                              losses.STALL)
+    else:
+        fn, width, opts = calls.compiled().prediction, n, (losses.LCP_TOL, losses.MAX_ITER, losses.STALL,
+                                                           losses.DEGENERATE_TOL)
+    xa, ua, xna = (t.numpy() for t in (data.x, data.u, data.x_next))
+    rng = np.random.default_rng(1)
+    for size in (MIN_CHUNK // 2, 3 * MIN_CHUNK + 11):
+        rows = rng.permutation(len(xa))[:size]
+        _, first = calls.compiled_call(fn, arrays, float(s), xa[rows], ua[rows], xna[rows], None, width, *opts,
+                                       tensors=False)
+        table = np.zeros((len(xa), width), dtype=np.bool_)
+        table[rows] = ~first[4]  # a warm start other than the answer
+        seen = np.zeros(len(xa), dtype=np.bool_)
+        for threads in (1, 2):
+            status, want = calls.compiled_call(fn, arrays, float(s), xa[rows], ua[rows], xna[rows], table[rows],
+                                               width, *opts, tensors=False, threads=threads)
+            store = (table.copy(), seen.copy())
+            status2, got = calls.compiled_call(fn, arrays, float(s), xa, ua, xna, table, width, *opts, tensors=False,
+                                               threads=threads, rows=rows, store=store, per_sample=False)
+            assert status == status2 == 0
+            assert got[0] == want[0] and all(np.array_equal(a, b) for a, b in zip(got[1], want[1], strict=True))
+            assert got[2] is got[3] is got[4] is None
+            assert np.array_equal(store[0][rows], want[4]) and store[1][rows].all() and store[1].sum() == size
+
+
+def test_the_lean_loss_is_the_loss_of_the_info_path():
+    """``violation_loss`` / ``prediction_loss`` on the compiled kernel without the diagnostics:
+    the value and gradients of the ``*_info`` call, bit for bit (the same kernel call)."""
+    model, data = make_problem(n_lam=4, n=300, model="perturbed", seed=8)
+    for plain, info in ((lcs_cvx.violation_loss, lcs_cvx.violation_loss_info),
+                        (lcs_cvx.prediction_loss, lcs_cvx.prediction_loss_info)):
+        grads = []
+        for fn in (lambda plain=plain: plain(model, data.x, data.u, data.x_next),
+                   lambda info=info: info(model, data.x, data.u, data.x_next).loss):
+            model.zero_grad()
+            value = fn()
+            value.backward()
+            grads.append((value.detach(), [getattr(model, k).grad.clone() for k in PARAMETER_NAMES]))
+        assert torch.equal(grads[0][0], grads[1][0])
+        assert all(torch.equal(a, b) for a, b in zip(grads[0][1], grads[1][1], strict=True))
+
+
+def test_parts_go_to_whichever_thread_is_free(monkeypatch):
+    """A thread that is slow takes fewer parts (each thread takes the next part not yet taken),
+    and every part runs exactly once."""
+    import threading
+    import time
+
+    main = threading.get_ident()
+    ran: list[tuple[int, bool]] = []
+
+    def work(i):
+        if threading.get_ident() == main:
+            time.sleep(0.02)  # the calling thread is slow
+        ran.append((i, threading.get_ident() == main))
+
+    calls._share(work, 12, 2)
+    assert sorted(i for i, _ in ran) == list(range(12))
+    assert 1 <= sum(on_main for _, on_main in ran) <= 4

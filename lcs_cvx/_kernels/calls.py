@@ -10,6 +10,7 @@ the compiled kernels through :func:`call_on_model` and :func:`compiled_call`.
 from __future__ import annotations
 
 import functools
+import itertools
 import operator
 import os
 import weakref
@@ -174,41 +175,83 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL
 
 
-#: How the outputs of one kernel's parts combine, by position after ``(value, grads)``: the
-#: first three are per-sample arrays (``rows``, written in place by the threads), then the count
-#: of unconverged samples (added; -1, non-finite data, wins), the sweeps (their maximum) and, for
-#: the prediction loss, the degenerate samples (added).
+#: How the counts of one kernel's parts combine, by position after its per-sample arrays: the
+#: unconverged samples (added; -1, non-finite data, wins), the sweeps (their maximum) and, for the
+#: prediction loss, the degenerate samples (added).
 _COUNTS = {"violation": (sum, max), "prediction": (sum, max, sum)}
 
 
-def _combine(name: str, outs: list[tuple], sizes: list[int], rows: list[np.ndarray]) -> tuple:
+def _combine(name: str, outs: list[tuple], sizes: list[int], rows: list[np.ndarray | None]) -> tuple:
     """One call's outputs from its parts' (``sizes`` samples each, in order; their per-sample
-    arrays already in ``rows``): the mean value and its gradients as the parts' means weighted
-    by their shares of the batch, summed in the parts' order (equal to one whole call's to
-    round-off: the sums are taken in another order), and the counts."""
+    arrays already in ``rows``; each part's value and gradients flattened into one row,
+    ``out[0]``): the mean value and its gradients as the parts' means weighted by their shares
+    of the batch, summed in the parts' order (:func:`.rows.weighted_rows`; equal to one whole
+    call's to round-off: the sums are taken in another order), and the counts."""
     N = sum(sizes)
-    w = [n / N for n in sizes]
-    value = sum(wk * out[0] for wk, out in zip(w, outs, strict=True))
-    grads = tuple(sum(wk * out[1][i] for wk, out in zip(w, outs, strict=True)) for i in range(len(outs[0][1])))
-    counts = [rule([out[5 + i] for out in outs]) for i, rule in enumerate(_COUNTS[name])]
-    if any(out[5] < 0 for out in outs):
+    w = np.array([n / N for n in sizes])
+    flat = _rows_kernels().weighted_rows(w, np.stack([out[0] for out in outs]))
+    shapes = outs[0][1]
+    grads, at = [], 1
+    for shape in shapes:
+        size = int(np.prod(shape))
+        grads.append(flat[at:at + size].reshape(shape))
+        at += size
+    counts = [rule([out[2 + i] for out in outs]) for i, rule in enumerate(_COUNTS[name])]
+    if any(out[2] < 0 for out in outs):
         counts[0] = -1
-    return (value, grads, *rows, *counts)
+    return (float(flat[0]), tuple(grads), *rows, *counts)
+
+
+def _rows_kernels() -> Any:
+    """The module :mod:`.rows` (compiled; imported with the kernels)."""
+    from . import rows
+
+    return rows
+
+
+def _share(work: Any, n_parts: int, threads: int) -> None:
+    """``work(i)`` for every part ``i < n_parts``, on ``threads`` threads (this one and the
+    pool's): each takes the next part not yet taken, so a thread slowed by the machine (a
+    virtual core shared with another guest, a busy neighbour) takes fewer parts instead of
+    holding up the call; what a part computes does not depend on the thread that runs it."""
+    taken = itertools.count()  # its next() is atomic under the GIL
+
+    def loop() -> None:
+        for i in iter(taken.__next__, None):
+            if i >= n_parts:
+                return
+            work(i)
+
+    k = min(threads, n_parts)
+    with _OneBlasThread():
+        pending = [_pool().submit(loop) for _ in range(k - 1)]
+        try:
+            loop()
+        finally:
+            for p in pending:
+                p.result()
 
 
 def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: torch.Tensor | np.ndarray,
                   u: torch.Tensor | np.ndarray, x_next: torch.Tensor | np.ndarray,
                   warm_start: torch.Tensor | np.ndarray | None, width: int, *options: Any,
-                  threads: int | None = None, tensors: bool = True) -> tuple[int, tuple]:
+                  threads: int | None = None, tensors: bool = True, rows: np.ndarray | None = None,
+                  store: tuple[np.ndarray, np.ndarray] | None = None, per_sample: bool = True) -> tuple[int, tuple]:
     """``fn`` (:func:`.compiled.violation` or ``.prediction``) on one model's
     parameter arrays ``params`` (``A, B, C, d, D, E, G, H, c``) and a batch; returns its status
     (0; 1: a sample did not converge, and the caller runs the array kernels, which end it with
     the reference solvers; -1: the data are not finite) and its outputs, the gradients as
     tensors (``tensors=False``: as the kernel's arrays; the data and ``warm_start`` may then be
     arrays too, the trainer's one-call step). A batch of at least ``2 * MIN_CHUNK`` samples is
-    solved in parts (:func:`chunks`), shared among ``threads`` threads (consecutive parts to
-    each) and combined in their order (:func:`_combine`): the same numbers for every
-    ``threads``."""
+    solved in parts (:func:`chunks`), shared among ``threads`` threads (:func:`_share`) and
+    combined in their order (:func:`_combine`): the same numbers for every ``threads``.
+
+    ``rows``: the batch is the rows ``rows`` of ``x``, ``u``, ``x_next`` (arrays of all the
+    data) and of ``warm_start`` (then a table of every sample's active sets, or None), each
+    part's gathered by its thread (:mod:`.rows`; the same numbers as gathering first);
+    ``store``: then a trainer's tables ``(active (N, width), seen (N,))``, into which each part
+    writes its samples' active sets (by its thread, as it ends). ``per_sample=False``: no
+    per-sample outputs (a training step's: ``lam``, ``phi``/``w`` and the active sets None)."""
     A, B, C, d, D, E, G, H, c = params
     warm = COLD
     if isinstance(warm_start, np.ndarray):
@@ -217,37 +260,43 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
         check_warm_start(warm_start, (x.shape[0], width))
         warm = np.ascontiguousarray(warm_start.numpy())
     xa, ua, xna = as_arrays(x, u, x_next)
-    parts = chunks(x.shape[0])
+    N = x.shape[0] if rows is None else rows.shape[0]
+    parts = chunks(N)
+    take = _rows_kernels().take_batch if rows is not None else None
 
-    def run(rows: tuple[int, int]) -> tuple:
-        a, b = rows
-        own = warm[a:b] if warm.shape[0] else warm
-        return fn(A, B, C, d, D, E, c, G, H, stiffness, xa[a:b], ua[a:b], xna[a:b], *options, own)
+    def run(a: int, b: int) -> tuple:
+        if take is None:
+            own = warm[a:b] if warm.shape[0] else warm
+            return fn(A, B, C, d, D, E, c, G, H, stiffness, xa[a:b], ua[a:b], xna[a:b], *options, own)
+        r = rows[a:b]
+        xs, us, xns, own = take(xa, ua, xna, warm, r)
+        out = fn(A, B, C, d, D, E, c, G, H, stiffness, xs, us, xns, *options, own)
+        if store is not None:
+            _rows_kernels().put_rows(*store, r, out[4])
+        return out
 
     if len(parts) == 1:
-        out = run(parts[0])
+        out = run(*parts[0])
+        if not per_sample:
+            out = out[:2] + (None, None, None) + out[5:]
     else:
-        N, n = x.shape[0], C.shape[1]
-        widths = (n, n, width)  # lam, phi or w, and the active (free) sets
-        rows_out = [np.empty((N, k), dtype=np.bool_ if j == 2 else np.float64) for j, k in enumerate(widths)]
+        n = C.shape[1]
+        widths = ((n, np.float64), (n, np.float64), (width, np.bool_))  # lam, phi or w, the active sets
+        rows_out = [np.empty((N, k), dtype=t) if per_sample else None for k, t in widths]
+        outs: list[Any] = [None] * len(parts)
 
-        def run_all(group: list[tuple[int, int]]) -> list[tuple]:
-            """The parts ``group`` one after the other; each one's per-sample arrays copied into
-            ``rows_out`` (by this thread) and dropped."""
-            kept = []
-            for a, b in group:
-                out = run((a, b))
-                for j in range(3):
+        def work(i: int) -> None:
+            """Part ``i``: its per-sample arrays copied into ``rows_out`` and dropped, its value
+            and gradients flattened into one row (for :func:`_combine`)."""
+            a, b = parts[i]
+            out = run(a, b)
+            for j in range(3):
+                if rows_out[j] is not None:
                     rows_out[j][a:b] = out[2 + j]
-                kept.append(out[:2] + (None, None, None) + out[5:])
-            return kept
+            outs[i] = (np.concatenate(([out[0]], *(g.reshape(-1) for g in out[1]))),
+                       [g.shape for g in out[1]], *out[5:])
 
-        k = min(resolve_threads(threads), len(parts))
-        cut = [len(parts) * i // k for i in range(k + 1)]
-        groups = [parts[cut[i]:cut[i + 1]] for i in range(k)]
-        with _OneBlasThread():
-            pending = [_pool().submit(run_all, group) for group in groups[1:]]
-            outs = run_all(groups[0]) + [o for p in pending for o in p.result()]
+        _share(work, len(parts), resolve_threads(threads))
         out = _combine(fn.__name__, outs, [b - a for a, b in parts], rows_out)
     status = out[5]
     if status:
@@ -257,13 +306,13 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
 
 def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
                   warm_start: torch.Tensor | None, width: int, *options: Any,
-                  gamma: float | None = None, threads: int | None = None) -> tuple | None:
+                  gamma: float | None = None, threads: int | None = None, per_sample: bool = True) -> tuple | None:
     """:func:`compiled_call` of the kernel ``name`` (``"violation"`` or ``"prediction"``) on the
     model: ``(params, outputs)``, or None where the array kernels take over. Non-finite data
     raise :func:`lcs_cvx._checks.as_transitions`'s error (the kernel checks them: the public
     losses skip that check for tensors ready for it). ``gamma``: also check Lemma 2's
     ``gamma < sigma_min(F + F^T)`` (:func:`lcs_cvx._checks.check_gamma`, needed only from
-    ``2 s`` on); ``threads``: as :func:`compiled_call`'s."""
+    ``2 s`` on); ``threads``, ``per_sample``: as :func:`compiled_call`'s."""
     params, arrays, stiffness = model_arrays(model)
     s = float(stiffness)
     if gamma is not None and not gamma < 2.0 * s:  # F + F^T >= 2 s I: below, nothing to check
@@ -271,7 +320,7 @@ def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_nex
 
         check_gamma(model.F, gamma)
     status, out = compiled_call(getattr(compiled(), name), arrays, s, x, u, x_next, warm_start, width,
-                                *options, threads=threads)
+                                *options, threads=threads, per_sample=per_sample)
     if status < 0:
         as_transitions(model, x, u, x_next)  # names the non-finite input
     return None if status else (params, out)

@@ -32,8 +32,14 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--throughput", action="store_true",
                    help="instead: one-call loss + gradient throughput against the batch size "
                         "(--batches, --device, --dtype, --threads; sizes default (10, 4, 4))")
+    p.add_argument("--fit-step", action="store_true",
+                   help="instead: one fit step at full batch (paper recipe) against the one-call loss + gradient "
+                        "of the same data (--batches, default 200,000 and 1,000,000; --threads; --losses)")
+    p.add_argument("--c3", action="store_true",
+                   help="instead: ms per C3 solve on C3's cart-pole, C3's defaults (unbounded and |u| bounded) "
+                        "and the c3+ projection against a plain dense NumPy C3+")
     p.add_argument("--batches", type=positive_ints, default=None,
-                   help="batch sizes of --throughput, comma-separated (default: 200 to 1,000,000)")
+                   help="batch sizes of --throughput (default: 200 to 1,000,000) or --fit-step, comma-separated")
     p.add_argument("--device", default="cpu", help="device of --throughput: cpu (default) or cuda")
     p.add_argument("--dtype", choices=("float64", "float32"), default="float64",
                    help="dtype of --throughput (default: float64)")
@@ -60,6 +66,17 @@ def run_bench(args: argparse.Namespace) -> int:
         table = run_throughput(args.sizes or ((10, 4, 4),), args.losses, args.batches or THROUGHPUT_BATCHES,
                                device=args.device, threads=args.threads, dtype=getattr(torch, args.dtype),
                                repeats=args.repeats, progress=lambda line: print(line, flush=True))
+    elif args.fit_step:
+        from ..speed import run_fit_step
+
+        table = "\n\n".join(
+            run_fit_step(args.batches or (200_000, 1_000_000), *(args.sizes or ((10, 4, 4),))[:1], loss=loss,
+                         threads=args.threads[0], repeats=args.repeats, progress=lambda line: print(line, flush=True))
+            for loss in args.losses)
+    elif args.c3:
+        from ..speed import run_c3_bench
+
+        table = run_c3_bench(repeats=args.repeats, progress=lambda line: print(line, flush=True))
     elif args.lcp:
         table = run_lcp_bench(repeats=args.repeats)
     elif args.rigid_body:

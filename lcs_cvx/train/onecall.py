@@ -31,6 +31,7 @@ from .. import losses
 from .._kernels import calls
 from .._kernels.adam import adam_update
 from .._kernels.products import stiffness_matrix
+from .._kernels.rows import all_seen
 from .._kernels.training import PREDICTION, VIOLATION
 from .._kernels.training import adam_steps as _compiled_steps
 from ..parameter_constraints import project_
@@ -113,14 +114,22 @@ def adam_update_from_grads(adam: torch.optim.Adam) -> None:
 
 def adam_step(adam: torch.optim.Adam, model: LCS, loss: str, x: np.ndarray, u: np.ndarray,
               x_next: np.ndarray, warm: np.ndarray | None, *, gamma: float, eps: float, reg: float,
-              threads: int | None = None) -> tuple[float, float, np.ndarray] | None:
+              threads: int | None = None, rows: np.ndarray | None = None,
+              tables: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, np.ndarray | None] | None:
     """One Adam step of ``model`` on the minibatch ``(x (B, n_x), u (B, n_u), x_next (B, n_x))``
     (float64 arrays) of ``loss`` (``"violation"`` with ``gamma`` and ``eps``, or
     ``"prediction"``) plus ``reg ||C||_F^2``, at the learning rate of ``adam``'s group.
     ``warm``: the samples' active sets from their last visit ``(B, width)`` bool, or None.
 
-    Returns ``(regularised loss, finite F after the step, active sets (B, width))``, or None
-    (nothing changed) where the autograd step must run instead (module docstring)."""
+    ``rows``: the minibatch is the rows ``rows`` of ``x``, ``u``, ``x_next`` (all the data),
+    read where they lie (:func:`lcs_cvx._kernels.calls.compiled_call`'s ``rows``); ``tables``:
+    then the trainer's ``(active (N, width), seen (N,))``, the warm start where every row was
+    seen (``warm`` is then not used), and the step's active sets written into them (also when
+    the step is not made: the loss and gradient do not depend on the warm start, to round-off).
+
+    Returns ``(regularised loss, finite F after the step, active sets (B, width))`` (with
+    ``rows``: None for the active sets), or None (nothing changed) where the
+    autograd step must run instead (module docstring)."""
     if model.A.dim() != 2 or model.A.dtype != torch.float64 or not model.A.is_cpu or not _plain_adam(adam):
         return None
     params, arrays, s = calls.model_arrays(model)
@@ -137,10 +146,13 @@ def adam_step(adam: torch.optim.Adam, model: LCS, loss: str, x: np.ndarray, u: n
     else:  # the fast losses' own tolerances and sweeps (read here: one source)
         fn, width = calls.compiled().prediction, n
         options = (losses.LCP_TOL, losses.MAX_ITER, losses.STALL, losses.DEGENERATE_TOL)
+    if tables is not None:
+        warm = tables[0] if all_seen(tables[1], rows) else None
     if warm is None:
         warm = calls.COLD
     status, out = calls.compiled_call(fn, arrays, stiffness, x, u, x_next, warm, width, *options,
-                                      threads=threads, tensors=False)
+                                      threads=threads, tensors=False, rows=rows, store=tables,
+                                      per_sample=rows is None)
     if status:
         return None
     value, grads, active = out[0], list(out[1]), out[4]

@@ -197,13 +197,14 @@ class AdamPhase(Phase):
         if self._reinit_at(it):
             reinit_saturated(state)
         idx = state.next_batch(min(a.batch_size, len(state.train)))
-        if state.arrays is not None:  # one call: loss, gradient and update without autograd
-            done = adam_step(state.adam, state.work, obj.loss, *state.batch_arrays(idx),
-                             state.warm_start_array(idx), gamma=obj.gamma, eps=eps, reg=obj.reg,
-                             threads=state.threads)
+        if state.arrays is not None:  # one call: loss, gradient and update without autograd, on
+            # the minibatch's rows where they lie, the active sets read from and written to the tables
+            width = state.work.n_lam * (2 if obj.loss == "violation" else 1)
+            done = adam_step(state.adam, state.work, obj.loss, *state.arrays, None, gamma=obj.gamma, eps=eps,
+                             reg=obj.reg, threads=state.threads, rows=idx.numpy(),
+                             tables=state.warm_tables(width))
             if done is not None:
-                loss, finite_F, active = done
-                state.remember(idx, active)
+                loss, finite_F, _ = done
                 _check_divergence(state.iteration + 1, loss, finite_F, lr)
                 return Outcome(loss, eps, lr)
         x, u, x_next = state.batch(idx)
@@ -330,8 +331,8 @@ class PolishPhase(Phase):
         p, obj = self.options.polish, self.options.objective
         idx = state.next_batch(min(p.batch_size, len(state.train)))
         if state.arrays is not None:  # one call, as Adam's steps
-            done = adam_step(state.polish_adam, state.model, "prediction", *state.batch_arrays(idx), None,
-                             gamma=obj.gamma, eps=obj.eps, reg=obj.reg, threads=state.threads)
+            done = adam_step(state.polish_adam, state.model, "prediction", *state.arrays, None, gamma=obj.gamma,
+                             eps=obj.eps, reg=obj.reg, threads=state.threads, rows=idx.numpy())
             if done is not None:
                 loss, finite_F, _ = done
                 _check_divergence(state.iteration + 1, loss, finite_F, p.lr)

@@ -139,29 +139,19 @@ class TrainState:
         d = self.train
         return d.x[idx], d.u[idx], d.x_next[idx]
 
-    def batch_arrays(self, idx: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`batch` as arrays (with :attr:`arrays` only)."""
-        rows = idx.numpy()
-        return tuple(a.take(rows, axis=0) for a in self.arrays)
-
     def warm_start(self, idx: torch.Tensor) -> torch.Tensor | None:
         """The active sets of the samples ``idx`` from their last visit (None unless all were seen)."""
         return self.active[idx] if self.active is not None and bool(self.seen[idx].all()) else None
 
-    def warm_tables(self) -> tuple[np.ndarray, np.ndarray]:
+    def warm_tables(self, width: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(active, seen)`` as arrays on their tensors' memory (made again when either tensor
-        is replaced, by :meth:`load_state_dict`)."""
+        is replaced, by :meth:`load_state_dict`); ``width``: the active sets' width, for a table
+        not made yet (nothing seen)."""
+        if self.active is None and width is not None:
+            self.active = torch.zeros(len(self.train), width, dtype=torch.bool, device=self.device)
         if self._views is None or self._views[0] is not self.active or self._views[1] is not self.seen:
             self._views = (self.active, self.seen, self.active.numpy(), self.seen.numpy())
         return self._views[2], self._views[3]
-
-    def warm_start_array(self, idx: torch.Tensor) -> np.ndarray | None:
-        """:meth:`warm_start` as an array."""
-        if self.active is None:
-            return None
-        rows = idx.numpy()
-        active, seen = self.warm_tables()
-        return active.take(rows, axis=0) if seen.take(rows).all() else None
 
     def remember(self, idx: torch.Tensor, active: torch.Tensor | np.ndarray) -> None:
         if self.active is None:
