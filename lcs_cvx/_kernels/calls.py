@@ -47,8 +47,11 @@ def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
 def as_arrays(*tensors: torch.Tensor | np.ndarray) -> list[np.ndarray]:
     """C-contiguous float64 arrays on the tensors' memory (a copy only where not contiguous);
     arrays pass through."""
-    return [np.ascontiguousarray(t if isinstance(t, np.ndarray) else t.detach().numpy() if t.requires_grad
-                                 else t.numpy()) for t in tensors]
+    out = []
+    for t in tensors:
+        a = t if isinstance(t, np.ndarray) else t.detach().numpy() if t.requires_grad else t.numpy()
+        out.append(a if a.flags.c_contiguous else np.ascontiguousarray(a))
+    return out
 
 
 def scalar(value: float) -> torch.Tensor:
@@ -261,18 +264,24 @@ def compiled_call(fn: Any, params: Sequence[np.ndarray], stiffness: float, x: to
         warm = np.ascontiguousarray(warm_start.numpy())
     xa, ua, xna = as_arrays(x, u, x_next)
     N = x.shape[0] if rows is None else rows.shape[0]
+    if rows is None and N < 2 * MIN_CHUNK:  # one part, the common call: no more to arrange
+        out = fn(A, B, C, d, D, E, c, G, H, stiffness, xa, ua, xna, *options, warm)
+        if out[5]:
+            return (-1 if out[5] < 0 else 1), out
+        grads = tuple(map(torch.from_numpy, out[1])) if tensors else out[1]
+        return 0, (out[0], grads, *(out[2:] if per_sample else (None, None, None) + out[5:]))
     parts = chunks(N)
-    take = _rows_kernels().take_batch if rows is not None else None
+    kernels = _rows_kernels() if rows is not None else None
 
     def run(a: int, b: int) -> tuple:
-        if take is None:
+        if kernels is None:
             own = warm[a:b] if warm.shape[0] else warm
             return fn(A, B, C, d, D, E, c, G, H, stiffness, xa[a:b], ua[a:b], xna[a:b], *options, own)
         r = rows[a:b]
-        xs, us, xns, own = take(xa, ua, xna, warm, r)
+        xs, us, xns, own = kernels.take_batch(xa, ua, xna, warm, r)
         out = fn(A, B, C, d, D, E, c, G, H, stiffness, xs, us, xns, *options, own)
         if store is not None:
-            _rows_kernels().put_rows(*store, r, out[4])
+            kernels.put_rows(*store, r, out[4])
         return out
 
     if len(parts) == 1:
