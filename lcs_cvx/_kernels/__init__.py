@@ -13,7 +13,9 @@ executes it on NumPy arrays for CPU tensors (no copy) and on torch tensors elsew
 - :mod:`.compiled` -- the two fast losses and the LCP compiled (numba), solve, loss and gradient
   in one call, for one model's float64 CPU tensors (the default there); :mod:`.dense`, their
   small dense algebra; :mod:`.calls`, tensors in and out of them;
-- :mod:`.stacks`, :mod:`.c3` -- a kernel call's matrices (one model or a stack), C3's array work.
+- :mod:`.stacks`, :mod:`.c3` -- a kernel call's matrices (one model or a stack), C3's array work;
+  :mod:`.c3_admm`, :mod:`.c3_polish` -- C3's ADMM, polish and whole solve compiled (numba), one
+  initial state at a time (:mod:`lcs_cvx.control.compiled_path` calls them).
 
 Nothing here is public API; no name here is exported by :mod:`lcs_cvx`.
 """

@@ -15,7 +15,9 @@ w^{i+1} &= (w^i + z^{i+1} - \\delta^{i+1}) / \\rho_s, \\qquad \\rho^{i+1} = \\rh
 $$
 
 (the QP step of :mod:`lcs_cvx.control.qp`, the projection of :mod:`lcs_cvx.control.projection`,
-the loop in the kernel :mod:`lcs_cvx._kernels.c3`; the scaled dual of C3's code: ``G`` grows by
+the loop in the kernel :mod:`lcs_cvx._kernels.c3`, or, for float64 states on the CPU with the
+fast QP path and C3+'s layout, the whole solve in one compiled call,
+:mod:`lcs_cvx.control.compiled_path`; the scaled dual of C3's code: ``G`` grows by
 ``rho_s = rho_scale`` and ``w`` shrinks by it), then
 a last QP step at ``rho^K`` returns the plan (its target is ``delta - w``; ``delta`` for
 C3+'s layout, as in C3+). When ``u`` does not enter the complementarity (``E = 0``), ``lam_0`` is
@@ -46,6 +48,7 @@ from .._checks import FallbackWarning, LCSInputError, PlanGapWarning, as_batch, 
 from .._kernels.arrays import array_ops
 from .._kernels.c3 import admm, model_rollout, plan_cost, rollout, violation
 from ..system import LCS
+from .compiled_path import CompiledSolve
 from .costs import (
     PROJECTIONS,
     WITH_ETA,
@@ -117,8 +120,12 @@ class C3:
         big_m: the big-M of the ``"miqp"`` projection (C3's ``M``).
         fix_lam0: fix ``lam_0`` to the LCP solution at ``x0`` (with ``u = 0``); None: when ``E = 0`` exactly (as
             C3 does), so a learned model whose ``E`` is merely small needs ``fix_lam0=True``.
-        arrays: the array back-end of the solve (``"auto"``: NumPy for CPU tensors, torch on
-            other devices; ``"torch"`` runs torch on the CPU too).
+        arrays: the array back-end of the solve (``"auto"`` or ``"compiled"``: with the fast QP
+            path and C3+'s layout (``"auto"``, ``"lcp"``, ``"c3+"``), float64 states on the CPU
+            are planned by one compiled call (:mod:`lcs_cvx.control.compiled_path`; the same
+            plans to round-off), other CPU tensors on NumPy, other devices on torch;
+            ``"numpy"`` and ``"torch"`` run the array kernels on that library, ``"torch"`` on
+            the CPU too).
         penalize_input_change: the input cost ``(u_k - u^prev_k)^T R (u_k - u^prev_k)`` with
             ``u^prev`` the previous plan's inputs shifted by one step (``ctrl(x0)`` after a
             first call; ``solve(..., u_ref=plan)``), instead of ``u_k^T R u_k`` (DAIRLab/c3's
@@ -208,6 +215,8 @@ class C3:
         self.last_plan: Plan | None = None
         self._matrices = OnDevice({k: getattr(self.horizon, k) for k in "ABCdDEFc"})
         self._weights = OnDevice({"Q": self.Q, "R": self.R, "QN": self.QN})
+        #: the compiled path (one compiled call per solve of float64 CPU states), or None
+        self._compiled = CompiledSolve.of(self)
 
     def _target(self, x_des: Any) -> torch.Tensor:
         N, nx = self.horizon.N, self.horizon.n_x
@@ -250,7 +259,16 @@ class C3:
         ``penalize_input_change``, the inputs the cost measures ``u`` from: a previous
         :class:`Plan` (its ``u`` shifted by one step) or ``(N, n_u)`` / ``(B, N, n_u)`` (None: 0).
         With ``qp_path="fast"``, no bounds and C3+'s layout (``"auto"``, ``"lcp"``, ``"c3+"``)
-        the whole solve runs on ``x0``'s device."""
+        the whole solve runs on ``x0``'s device; with the fast QP path and C3+'s layout, float64
+        CPU states are planned by one compiled call (:mod:`lcs_cvx.control.compiled_path`)."""
+        if self._compiled is not None:
+            done = self._compiled.solve(x0, x_des, warm_start, u_ref)
+            if done is not None:
+                plan, failures = done
+                self._warn_failures(failures)
+                if self.gap_tol is not None:
+                    self._check_gap(plan.gap.reshape(-1), plan.x_model.reshape(plan.gap.numel(), -1))
+                return plan
         t_start = time.perf_counter()
         hz, lay = self.horizon, self.layout
         single = np.ndim(x0) == 1
@@ -298,10 +316,7 @@ class C3:
                     "primal_residual": as_t(out["primal"]), "dual_residual": as_t(out["dual"]),
                     "complementarity": as_t(violation(xp, xs, u, lam, *(mats[k] for k in "DEFc")))[:, 0],
                     "cost": as_t(cost)})
-        if failures:
-            warnings.warn(
-                f"C3: {failures} QP step(s) failed in {self.qp.solver}; their plans fell back to "
-                "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=2)
+        self._warn_failures(failures)
         pick, chosen = cheapest(plans)
         t = time.perf_counter()
         pick["polished"] = polish_plan(xp, pick, x0_a, xd_a, u_ref_a, mats, weights, lcp, self.polish, self.bounds)
@@ -336,6 +351,13 @@ class C3:
             raise LCSInputError(f"u_ref: expected a Plan or finite inputs of shape ({N}, {nu}) or ({B}, {N}, {nu}), "
                                 f"received shape {tuple(r.shape)}")
         return r
+
+    def _warn_failures(self, failures: int) -> None:
+        """A :class:`lcs_cvx.FallbackWarning` where QP steps failed (C3's fallback plan)."""
+        if failures:
+            warnings.warn(
+                f"C3: {failures} QP step(s) failed in {self.qp.solver}; their plans fell back to "
+                "x_k = x0, lam = u = 0", FallbackWarning, stacklevel=3)
 
     def _check_gap(self, gap: torch.Tensor, x_model: torch.Tensor) -> None:
         """Count (and warn of) the plans whose gap passes ``gap_tol (1 + max |x_model|)``."""

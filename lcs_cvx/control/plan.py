@@ -48,7 +48,9 @@ class Plan:
         complementarity: the plan's violation ``max_k max_i |min(lam_i, D x_k + E u_k + F lam_k + c)_i|``.
         times: seconds spent in each phase: ``"qp"``, ``"projection"``, ``"lcp"`` (the fixed
             ``lam_0``), ``"model"`` (the plans' model rollouts), ``"polish"``, ``"total"`` (a
-            CVXPY path's first solve includes its compilation).
+            CVXPY path's first solve includes its compilation). On the compiled path
+            (:mod:`lcs_cvx.control.compiled_path`) the compiled call, every phase in one, is
+            under ``"qp"`` and the others are 0 (``"total"`` as ever).
         qp_failures: QP steps that failed (``"cvxpy"`` path; counted over the whole batch) and fell
             back to C3's plan ``x_k = x0``, ``lam = u = 0`` (a :class:`lcs_cvx.FallbackWarning`
             says so).

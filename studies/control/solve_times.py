@@ -22,102 +22,12 @@ import numpy as np
 import torch
 
 from lcs_cvx.control import C3, c3_cartpole
+from lcs_cvx.speed import DenseC3Plus
 
-__all__ = ["DenseC3Plus", "main"]
+__all__ = ["main"]
 
 #: the name of C3's defaults in the tables (``"auto"`` with the polish)
 DEFAULTS = "defaults (auto + polish)"
-
-
-class DenseC3Plus:
-    """C3 with the "c3+" projection written plainly: at every QP step the dense KKT system of the
-    whole horizon is assembled and solved by ``np.linalg.solve`` (the reference a structured
-    solve must beat)."""
-
-    def __init__(self, ctrl: C3):
-        self.c = ctrl
-        hz, lay = ctrl.horizon, ctrl.layout
-        self.N, self.nz, self.nx = hz.N, lay.n_z, hz.n_x
-        N, nz, nx, nl = self.N, self.nz, self.nx, hz.n_lam
-        self.n_y = N * nz + nx
-        # equality rows: x0, dynamics, eta, lam0
-        rows = []
-        m = nx + N * nx + N * nl + (nl if ctrl.fix_lam0 else 0)
-        A = np.zeros((m, self.n_y))
-        b0 = np.zeros(m)
-
-        def xi(k):
-            return np.arange(nx) + (k * nz if k < N else N * nz)
-
-        def part(k, s):
-            return np.arange(s.start, s.stop) + k * nz
-        r = 0
-        A[r:r + nx, xi(0)] = np.eye(nx)
-        r += nx
-        for k in range(N):
-            A[r:r + nx, xi(k + 1)] = np.eye(nx)
-            A[r:r + nx, xi(k)] -= hz.A[k]
-            A[r:r + nx, part(k, lay.u)] -= hz.B[k]
-            A[r:r + nx, part(k, lay.lam)] -= hz.C[k]
-            b0[r:r + nx] = hz.d[k]
-            r += nx
-        for k in range(N):
-            A[r:r + nl, part(k, lay.eta)] = np.eye(nl)
-            A[r:r + nl, xi(k)] -= hz.D[k]
-            A[r:r + nl, part(k, lay.u)] -= hz.E[k]
-            A[r:r + nl, part(k, lay.lam)] -= hz.F[k]
-            b0[r:r + nl] = hz.c[k]
-            r += nl
-        self.lam0_rows = slice(r, r + nl) if ctrl.fix_lam0 else None
-        if ctrl.fix_lam0:
-            A[r:r + nl, part(0, lay.lam)] = np.eye(nl)
-        self.Aeq, self.b0, self.m = A, b0, m
-        del rows
-        H0 = np.zeros((self.n_y, self.n_y))
-        for k in range(N + 1):
-            H0[np.ix_(xi(k), xi(k))] += 2 * (ctrl.Q[k] if k < N else ctrl.QN)
-            if k < N:
-                H0[np.ix_(part(k, lay.u), part(k, lay.u))] += 2 * ctrl.R[k]
-        self.H0 = H0
-        self.Gbig = np.zeros((self.n_y, self.n_y))
-        for k in range(N):
-            z = np.arange(k * nz, (k + 1) * nz)
-            self.Gbig[np.ix_(z, z)] = ctrl.G[k]
-        U = ctrl.U[0]
-        self.w_lam, self.w_eta = np.diag(U)[lay.lam], np.diag(U)[lay.eta]
-        self.lay = lay
-
-    def solve(self, x0: np.ndarray) -> np.ndarray:
-        c, lay, N, nz = self.c, self.lay, self.N, self.nz
-        hz = c.horizon
-        b = self.b0.copy()
-        b[: self.nx] = x0
-        if self.lam0_rows is not None:
-            q = hz.D[0] @ x0 + hz.c[0]
-            b[self.lam0_rows] = c.model.solve_lcp(x0, np.zeros(hz.n_u)).lam[0].detach().numpy() if q.min() < 0 else 0.0
-        delta = np.zeros((N, nz))
-        w = np.zeros((N, nz))
-        rho = 1.0
-        for i in range(c.admm_iterations + 1):
-            target = delta - w if i < c.admm_iterations else delta
-            H = self.H0 + 2 * rho * self.Gbig
-            f = np.zeros(self.n_y)
-            f[: N * nz] = -2 * rho * (self.Gbig[: N * nz, : N * nz] @ target.reshape(-1))
-            K = np.block([[H, self.Aeq.T], [self.Aeq, np.zeros((self.m, self.m))]])
-            y = np.linalg.solve(K, np.concatenate([-f, b]))[: self.n_y]
-            z = y[: N * nz].reshape(N, nz)
-            if i == c.admm_iterations:
-                return z[0, lay.u]
-            p = z + w
-            lam, eta = p[:, lay.lam], p[:, lay.eta]
-            keep = eta * np.sqrt(self.w_eta) > lam * np.sqrt(self.w_lam)
-            new = p.copy()
-            new[:, lay.lam] = np.maximum(np.where(keep, 0.0, lam), 0.0)
-            new[:, lay.eta] = np.maximum(np.where(keep, eta, 0.0), 0.0)
-            w = (w + z - new) / c.rho_scale
-            delta = new
-            rho *= c.rho_scale
-        raise AssertionError
 
 
 def _timed(fn, *args) -> float:
