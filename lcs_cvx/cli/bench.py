@@ -38,6 +38,10 @@ def configure_bench(p: argparse.ArgumentParser) -> None:
     p.add_argument("--c3", action="store_true",
                    help="instead: ms per C3 solve on C3's cart-pole, C3's defaults (unbounded and |u| bounded) "
                         "and the c3+ projection against a plain dense NumPy C3+")
+    p.add_argument("--authors", default=None, metavar="PATH",
+                   help="instead: loss + gradient and loss + backward() against the paper's authors' learners, from "
+                        "a DAIRLab/Learning-LCS checkout at PATH (needs casadi), at the n_x = 10 sizes of Fig. 1 "
+                        "(or --sizes), --batch, --repeats (default 5), one torch thread")
     p.add_argument("--batches", type=positive_ints, default=None,
                    help="batch sizes of --throughput (default: 200 to 1,000,000) or --fit-step, comma-separated")
     p.add_argument("--device", default="cpu", help="device of --throughput: cpu (default) or cuda")
@@ -73,6 +77,11 @@ def run_bench(args: argparse.Namespace) -> int:
             run_fit_step(args.batches or (200_000, 1_000_000), *(args.sizes or ((10, 4, 4),))[:1], loss=loss,
                          threads=args.threads[0], repeats=args.repeats, progress=lambda line: print(line, flush=True))
             for loss in args.losses)
+    elif args.authors:
+        from ..authors import N_X_10_SIZES, run_authors
+
+        table = run_authors(args.authors, list(args.sizes or N_X_10_SIZES), tuple(args.losses), batch=args.batch,
+                            repeats=args.repeats, progress=lambda line: print(line, flush=True))
     elif args.c3:
         from ..speed import run_c3_bench
 
