@@ -106,35 +106,44 @@ def model_lcp(F, q, lam, w, free, bad, M, piv, tol, max_iter, stall):  # pragma:
     return n_bad == 0
 
 
+@numba.njit(inline="always", **JIT)
+def affine_row(off, P, p, Q, q, k, i):  # pragma: no cover - compiled
+    """``off[k, i] + P[k, i] . p[k] + Q[k, i] . q[k]``, summed in that order (row ``i`` of step
+    ``k``'s ``D x + E u + c`` or of its dynamics)."""
+    v = off[k, i]
+    for j in range(p.shape[1]):
+        v += P[k, i, j] * p[k, j]
+    for j in range(q.shape[1]):
+        v += Q[k, i, j] * q[k, j]
+    return v
+
+
+@numba.njit(inline="always", **JIT)
+def affine_row3(off, P, p, Q, q, R, r, k, i):  # pragma: no cover - compiled
+    """:func:`affine_row` ``+ R[k, i] . r[k]`` (``A x + B u + C lam + d``, ``D x + E u + F lam + c``)."""
+    v = affine_row(off, P, p, Q, q, k, i)
+    for j in range(r.shape[1]):
+        v += R[k, i, j] * r[k, j]
+    return v
+
+
 @numba.njit(**JIT)
 def rollout_model(x0, u, A, B, C, d, D, E, c, F, xs, lams, scratch, piv, tol, max_iter, stall):  # pragma: no cover
     """The model's own rollout of the inputs ``u (N, n_u)`` from ``x0``: ``lam_k =
     LCP(F_k, D_k x_k + E_k u_k + c_k)``, ``x_{k+1} = A_k x_k + B_k u_k + C_k lam_k + d_k`` into
     ``xs (N + 1, n_x)`` and ``lams (N, n_lam)``; False if an LCP did not converge."""
     N, nx = A.shape[0], A.shape[1]
-    nu, nl = B.shape[2], C.shape[2]
+    nl = C.shape[2]
     q, w = np.empty(nl), np.empty(nl)
     free, bad = np.empty(nl, dtype=np.bool_), np.empty(nl, dtype=np.bool_)
     xs[0] = x0
     for k in range(N):
         for i in range(nl):
-            v = c[k, i]
-            for j in range(nx):
-                v += D[k, i, j] * xs[k, j]
-            for j in range(nu):
-                v += E[k, i, j] * u[k, j]
-            q[i] = v
+            q[i] = affine_row(c, D, xs, E, u, k, i)
         if not model_lcp(F[k], q, lams[k], w, free, bad, scratch, piv, tol, max_iter, stall):
             return False
         for i in range(nx):
-            v = d[k, i]
-            for j in range(nx):
-                v += A[k, i, j] * xs[k, j]
-            for j in range(nu):
-                v += B[k, i, j] * u[k, j]
-            for j in range(nl):
-                v += C[k, i, j] * lams[k, j]
-            xs[k + 1, i] = v
+            xs[k + 1, i] = affine_row3(d, A, xs, B, u, C, lams, k, i)
     return True
 
 
@@ -172,18 +181,11 @@ def plan_cost(xs, u, u_ref, xd, Q, R, QN):  # pragma: no cover - compiled
 @numba.njit(**JIT)
 def violation_of(xs, u, lam, D, E, F, c):  # pragma: no cover - compiled
     """``max_k max_i |min(lam_k, D_k x_k + E_k u_k + F_k lam_k + c_k)_i|``."""
-    N, nx, nu, nl = u.shape[0], xs.shape[1], u.shape[1], lam.shape[1]
+    N, nl = u.shape[0], lam.shape[1]
     out = 0.0
     for k in range(N):
         for i in range(nl):
-            v = c[k, i]
-            for j in range(nx):
-                v += D[k, i, j] * xs[k, j]
-            for j in range(nu):
-                v += E[k, i, j] * u[k, j]
-            for j in range(nl):
-                v += F[k, i, j] * lam[k, j]
-            out = max(out, abs(min(lam[k, i], v)))
+            out = max(out, abs(min(lam[k, i], affine_row3(c, D, xs, E, u, F, lam, k, i))))
     return out
 
 
