@@ -350,27 +350,19 @@ def violation_loss(
         (:data:`VIOLATION_DTYPE`: the gradient in ``D, E, c, G, H`` cancels below float32's
         resolution).
     """
-    if solver == "fast" and type(model) is LCS and calls.ready(model, x, u, x_next, one_model=True):  # lean
+    if solver == "fast" and calls.ready(model, x, u, x_next, one_model=True):  # no diagnostics' tensors
         check_positive("eps", eps)
         check_positive("gamma", gamma)
-        loss = _compiled_loss("violation", model, x, u, x_next, warm_start, 2 * model.n_lam, threads,
-                              gamma, eps, VIOLATION_TOL, MAX_ITER, STALL, gamma=gamma)
+        loss = calls.loss_on_model("violation", model, x, u, x_next, warm_start, threads, gamma, eps,
+                                   VIOLATION_TOL, MAX_ITER, STALL, gamma=gamma)
         if loss is not None:
             return loss
     return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, False, threads).loss
 
 
-def violation_loss_info(
-    model: Any,
-    x: Any,
-    u: Any,
-    x_next: Any,
-    gamma: float = 1e-2,
-    eps: float = 1e-4,
-    solver: str = "fast",
-    warm_start: torch.Tensor | None = None,
-    threads: int | None = None,
-) -> LossInfo:
+def violation_loss_info(model: Any, x: Any, u: Any, x_next: Any, gamma: float = 1e-2, eps: float = 1e-4,
+                        solver: str = "fast", warm_start: torch.Tensor | None = None,
+                        threads: int | None = None) -> LossInfo:
     """:func:`violation_loss` (same arguments) with its diagnostics: a :class:`LossInfo` whose
     ``loss`` is the differentiable scalar and ``max_residual`` every sample's KKT residual."""
     return _violation(model, x, u, x_next, gamma, eps, solver, warm_start, True, threads)
@@ -424,39 +416,16 @@ def prediction_loss(
         model, x, u, x_next, solver, warm_start, threads: as in :func:`violation_loss` (``warm_start``
             ``(B, n_lam)``: the free sets, :func:`prediction_loss_info`'s ``active``).
     """
-    if solver == "fast" and type(model) is LCS and calls.ready(model, x, u, x_next, one_model=True):  # lean
-        loss = _compiled_loss("prediction", model, x, u, x_next, warm_start, model.n_lam, threads,
-                              LCP_TOL, MAX_ITER, STALL, DEGENERATE_TOL)
+    if solver == "fast" and calls.ready(model, x, u, x_next, one_model=True):  # no diagnostics' tensors
+        loss = calls.loss_on_model("prediction", model, x, u, x_next, warm_start, threads, LCP_TOL, MAX_ITER,
+                                   STALL, DEGENERATE_TOL)
         if loss is not None:
             return loss
     return _prediction(model, x, u, x_next, solver, warm_start, False, threads).loss
 
 
-def _compiled_loss(name: str, model: LCS, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
-                   warm_start: Any, width: int, threads: Any, *options: Any, gamma: float | None = None
-                   ) -> torch.Tensor | None:
-    """The loss ``name`` of :func:`violation_loss` / :func:`prediction_loss` on the compiled
-    kernel, without the diagnostics of the ``*_info`` variants (their per-sample tensors are
-    not made): the same value and gradients as those, by the same call; None where the kernel
-    hands the batch to the array kernels (the caller then takes the ``*_info`` path)."""
-    calls.resolve_threads(threads)
-    done = calls.call_on_model(name, model, x, u, x_next, warm_start, width, *options, gamma=gamma,
-                               threads=threads, per_sample=False)
-    if done is None:
-        return None
-    params, out = done
-    return calls.CompiledLoss.apply(calls.scalar(out[0]), out[1], *params)
-
-
-def prediction_loss_info(
-    model: Any,
-    x: Any,
-    u: Any,
-    x_next: Any,
-    solver: str = "fast",
-    warm_start: torch.Tensor | None = None,
-    threads: int | None = None,
-) -> LossInfo:
+def prediction_loss_info(model: Any, x: Any, u: Any, x_next: Any, solver: str = "fast",
+                         warm_start: torch.Tensor | None = None, threads: int | None = None) -> LossInfo:
     """:func:`prediction_loss` (same arguments) with its diagnostics: a :class:`LossInfo` whose
     ``loss`` is the differentiable scalar, ``w = F lam + q`` and ``max_residual``
     every sample's LCP residual."""

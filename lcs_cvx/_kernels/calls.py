@@ -22,11 +22,12 @@ import numpy as np
 import torch
 
 from .._checks import LCSInputError, as_transitions
-from ..system import PARAMETER_NAMES
+from ..system import LCS, PARAMETER_NAMES
 from .pivoting import check_warm_start
 
-__all__ = ["COLD", "MIN_CHUNK", "CompiledLoss", "as_arrays", "call_on_model", "chunks", "compiled", "compiled_call",
-           "model_arrays", "parameter_arrays", "ready", "resolve_threads", "scalar", "use_compiled"]
+__all__ = ["COLD", "MIN_CHUNK", "CompiledLoss", "as_arrays", "call_on_model", "chunks", "compiled",
+           "compiled_call", "loss_on_model", "model_arrays", "parameter_arrays", "ready", "resolve_threads",
+           "scalar", "use_compiled"]
 
 
 def use_compiled(model: Any, x: torch.Tensor, arrays: str) -> bool:
@@ -333,6 +334,26 @@ def call_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_nex
     if status < 0:
         as_transitions(model, x, u, x_next)  # names the non-finite input
     return None if status else (params, out)
+
+
+def loss_on_model(name: str, model: Any, x: torch.Tensor, u: torch.Tensor, x_next: torch.Tensor,
+                  warm_start: Any, threads: Any, *options: Any, gamma: float | None = None) -> torch.Tensor | None:
+    """The loss ``name`` (``"violation"`` or ``"prediction"``) of one :class:`lcs_cvx.LCS` on the
+    compiled kernel as an autograd node (:class:`CompiledLoss`), without the diagnostics of the
+    losses' ``*_info`` variants (no per-sample tensors): the value and gradients of those, by the
+    same call; None where it does not run (a subclass of the LCS, or the kernel hands the batch
+    to the array kernels: the caller then takes its ``*_info`` path). ``options``, ``gamma``:
+    :func:`call_on_model`'s."""
+    if type(model) is not LCS:
+        return None
+    resolve_threads(threads)
+    width = 2 * model.n_lam if name == "violation" else model.n_lam
+    done = call_on_model(name, model, x, u, x_next, warm_start, width, *options, gamma=gamma, threads=threads,
+                         per_sample=False)
+    if done is None:
+        return None
+    params, out = done
+    return CompiledLoss.apply(scalar(out[0]), out[1], *params)
 
 
 def ready(model: Any, x: Any, u: Any, x_next: Any, one_model: bool = False) -> bool:
