@@ -102,8 +102,12 @@ def learners(lcs_learning, n_x: int, n_u: int, n_lam: int, stiffness: float):
 
 def training_steps(lcs_learning, optim, model: LCS, data, loss: str, batch: int,
                    repeats: int) -> dict:
-    """Seconds per training step, the authors' loop against :func:`lcs_cvx.fit`'s (module
-    docstring), medians of ``repeats`` interleaved repeats."""
+    """Seconds per training step, medians of ``repeats`` interleaved repeats: one step of the
+    authors' training loop as their Fig. 1 scripts run it (a minibatch of ``batch`` drawn by a
+    permutation, ``learner.step``, their ``Adam.step`` on ``theta``), timed over
+    :data:`STEP_CALLS` steps, against one step of :func:`lcs_cvx.fit` with ``recipe="paper"`` on
+    :data:`STEP_DATA` samples (a fit's wall time over its :data:`STEP_ITERATIONS` iterations:
+    its checks, minibatches, warm starts, loss and gradient, Adam and records)."""
     train = Dataset(data.x[:STEP_DATA], data.u[:STEP_DATA], data.x_next[:STEP_DATA])
     xa, ua, xna = (t.numpy() for t in (train.x, train.u, train.x_next))
     learner = learners(lcs_learning, model.n_x, model.n_u, model.n_lam, float(model.stiffness))[loss]

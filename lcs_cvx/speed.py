@@ -9,9 +9,10 @@ phases then fall on both sides.
 
 from __future__ import annotations
 
+import contextlib
 import statistics
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -76,9 +77,9 @@ def _fit_step_times(model: Any, data: Any, loss: str, threads: int, repeats: int
 
 class DenseC3Plus:
     """C3 with the "c3+" projection written plainly, the reference a structured solve must beat:
-    at every QP step the dense KKT system of the whole horizon (eq. of C3's QP step: the cost
-    plus ``(z - delta + w)^T G (z - delta + w)`` under the dynamics, ``eta = D x + E u + F lam +
-    c``, ``x_0 = x0`` and, where C3 fixes it, ``lam_0``) is assembled and solved by
+    at every QP step the dense KKT system of the whole horizon (C3's QP step: the cost plus
+    ``(z - delta + w)^T G (z - delta + w)`` under the dynamics, ``eta = D x + E u + F lam + c``,
+    ``x_0 = x0`` and, where C3 fixes it, ``lam_0``) is assembled and solved by
     ``np.linalg.solve``; the projection is C3+'s closed form per coordinate. ``ctrl``: a
     :class:`lcs_cvx.control.C3` with ``projection="c3+"`` (its horizon, weights and ADMM
     settings are taken)."""
@@ -210,10 +211,13 @@ def run_c3_bench(solves: int = 50, repeats: int = 7, seed: int = 0,
     return "\n".join(lines)
 
 
-class _one_torch_thread:
-    def __enter__(self) -> None:
-        self.before = torch.get_num_threads()
-        torch.set_num_threads(1)
 
-    def __exit__(self, *exc: object) -> None:
-        torch.set_num_threads(self.before)
+@contextlib.contextmanager
+def _one_torch_thread() -> Iterator[None]:
+    """torch on one thread inside, the count before restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
