@@ -1,8 +1,8 @@
 """Where a loss + ``backward()`` call's time goes, at one size, batch 200, one torch thread: the
 compiled kernel alone, the one-call ``violation_value_and_grad``, ``violation_loss`` (the loss as
-an autograd node) and ``violation_loss(...).backward()``, beside torch's own floor: a backward
-through one autograd ``Function`` that computes nothing to nine leaves (the LCS's parameters),
-and through one multiplication.
+an autograd node) and ``violation_loss(...).backward()``, beside torch's own floor: the loss's
+autograd node (``CompiledLoss``) on given gradients, with no kernel call, and its backward to
+the nine parameters, and a backward through one multiplication.
 
     python -m studies.loss_call_costs [--size 10,4,1] [--out studies/results]
 
@@ -25,19 +25,6 @@ from lcs_cvx.losses import MAX_ITER, STALL, VIOLATION_TOL, violation_loss
 from lcs_cvx.value_and_grad import violation_value_and_grad
 
 
-class _Nothing(torch.autograd.Function):
-    """The loss node's shape with nothing to compute: its backward hands back given gradients."""
-
-    @staticmethod
-    def forward(ctx, value, grads, *params):  # noqa: D102
-        ctx.grads = grads
-        return value
-
-    @staticmethod
-    def backward(ctx, grad):  # noqa: D102
-        return (None, None, *(g.clone() for g in ctx.grads))
-
-
 def costs(size: tuple[int, int, int], number: int = 2000) -> dict[str, float]:
     """Microseconds per call of each piece (module docstring)."""
     torch.set_num_threads(1)
@@ -58,7 +45,7 @@ def costs(size: tuple[int, int, int], number: int = 2000) -> dict[str, float]:
 
     def nothing_backward() -> None:
         model.zero_grad(set_to_none=True)
-        _Nothing.apply(calls.scalar(1.0), grads, *params).backward()
+        calls.CompiledLoss.apply(calls.scalar(1.0), grads, *params).backward()
 
     def one_multiplication() -> None:
         leaf.grad = None
@@ -70,7 +57,7 @@ def costs(size: tuple[int, int, int], number: int = 2000) -> dict[str, float]:
         "violation_value_and_grad": lambda: violation_value_and_grad(model, x, u, xn),
         "violation_loss (the autograd node)": lambda: violation_loss(model, x, u, xn),
         "violation_loss + backward()": loss_backward,
-        "torch: a no-op Function to 9 leaves, + backward()": nothing_backward,
+        "torch alone: the loss's node on given gradients, + backward() to the 9 parameters": nothing_backward,
         "torch: one multiplication, + backward()": one_multiplication,
     }
     out = {}

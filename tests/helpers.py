@@ -248,3 +248,19 @@ def simulated_runs(truth, lengths, seed=0, noise=0.0, x_range=2.0, u_range=1.0):
         xs.append(x + noise * rng.standard_normal(x.shape))
         us.append(u)
     return lcs_cvx.Trajectories(xs, us)
+
+
+def learned_like(seed=0, n_x=4, n_u=1, n_lam=3, skew=0.0):
+    """An LCS with a learned model's traits for the controller's tests: dense ``F`` (``F + F^T``
+    positive definite; ``skew (M - M^T)`` added: not symmetric), ``E`` not zero, units active at
+    the origin."""
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((n_lam, n_lam))
+    F = M @ M.T + 0.5 * np.eye(n_lam)
+    if skew:
+        F = F + skew * (M - M.T)
+    return lcs_cvx.LCS.from_matrices(
+        A=np.eye(n_x) + 0.05 * rng.standard_normal((n_x, n_x)), B=0.1 * rng.standard_normal((n_x, n_u)),
+        C=0.1 * rng.standard_normal((n_x, n_lam)), d=0.05 * rng.standard_normal(n_x),
+        D=rng.standard_normal((n_lam, n_x)), E=rng.standard_normal((n_lam, n_u)),
+        F=F, c=-np.abs(rng.standard_normal(n_lam)))

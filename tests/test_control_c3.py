@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from helpers import learned_like
 
 import lcs_cvx
 from lcs_cvx.control import C3, c3_cartpole, closed_loop
@@ -238,17 +239,6 @@ def test_warm_start_from_a_given_delta(cartpole):
     assert float(again.primal_residual[0]) < float(plan.primal_residual[0])
     with pytest.raises(lcs_cvx.LCSInputError, match=r"warm_start: expected a Plan or a finite delta of shape \(5, 9\)"):
         ctrl.solve(cartpole.x0, warm_start=np.zeros((4, 9)))
-
-
-def learned_like(seed=0, n_x=4, n_u=1, n_lam=3):
-    """A model with a learned model's traits: dense F, E not zero, units active at the origin."""
-    rng = np.random.default_rng(seed)
-    M = rng.standard_normal((n_lam, n_lam))
-    return lcs_cvx.LCS.from_matrices(
-        A=np.eye(n_x) + 0.05 * rng.standard_normal((n_x, n_x)), B=0.1 * rng.standard_normal((n_x, n_u)),
-        C=0.1 * rng.standard_normal((n_x, n_lam)), d=0.05 * rng.standard_normal(n_x),
-        D=rng.standard_normal((n_lam, n_x)), E=rng.standard_normal((n_lam, n_u)),
-        F=M @ M.T + 0.5 * np.eye(n_lam), c=-np.abs(rng.standard_normal(n_lam)))
 
 
 def test_a_plan_carries_the_models_own_rollout_its_gap_and_cost(cartpole):

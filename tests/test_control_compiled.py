@@ -10,24 +10,20 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from helpers import learned_like as _learned_like
 
 import lcs_cvx
 import lcs_cvx.control.c3 as c3_module
 from lcs_cvx.control import C3, c3_cartpole
 
+
+def learned_like(seed=0):
+    """:func:`helpers.learned_like` with two inputs and a skew-symmetric part in ``F``."""
+    return _learned_like(seed, n_u=2, skew=0.3)
+
+
 FIELDS = ("x", "u", "lam", "delta", "x_model", "lam_model", "primal_residual", "dual_residual",
           "complementarity", "gap")
-
-
-def learned_like(seed=0, n_x=4, n_u=2, n_lam=3):
-    """Dense F (F + F^T positive definite), E not zero, units active at the origin."""
-    rng = np.random.default_rng(seed)
-    M = rng.standard_normal((n_lam, n_lam))
-    return lcs_cvx.LCS.from_matrices(
-        A=np.eye(n_x) + 0.05 * rng.standard_normal((n_x, n_x)), B=0.1 * rng.standard_normal((n_x, n_u)),
-        C=0.1 * rng.standard_normal((n_x, n_lam)), d=0.05 * rng.standard_normal(n_x),
-        D=rng.standard_normal((n_lam, n_x)), E=rng.standard_normal((n_lam, n_u)),
-        F=M @ M.T + 0.5 * np.eye(n_lam) + 0.3 * (M - M.T), c=-np.abs(rng.standard_normal(n_lam)))
 
 
 def pair(model, horizon, **kw):

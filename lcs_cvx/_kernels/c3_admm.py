@@ -147,6 +147,18 @@ def rollout_model(x0, u, A, B, C, d, D, E, c, F, xs, lams, scratch, piv, tol, ma
     return True
 
 
+@numba.njit(inline="always", **JIT)
+def _quadratic(v, M):  # pragma: no cover - compiled
+    """``v^T M v``, summed column by column (``sum_j (sum_i v_i M_ij) v_j``)."""
+    s = 0.0
+    for j in range(v.shape[0]):
+        acc = 0.0
+        for i in range(v.shape[0]):
+            acc += v[i] * M[i, j]
+        s += acc * v[j]
+    return s
+
+
 @numba.njit(**JIT)
 def plan_cost(xs, u, u_ref, xd, Q, R, QN):  # pragma: no cover - compiled
     """``sum_k (x_k - x^d_k)^T Q_k (x_k - x^d_k) + (u_k - u^ref_k)^T R_k (u_k - u^ref_k)`` plus
@@ -158,23 +170,11 @@ def plan_cost(xs, u, u_ref, xd, Q, R, QN):  # pragma: no cover - compiled
     for k in range(N + 1):
         for i in range(nx):
             e[i] = xs[k, i] - xd[k, i]
-        s = 0.0
-        for j in range(nx):
-            acc = 0.0
-            for i in range(nx):
-                acc += e[i] * (Q[k, i, j] if k < N else QN[i, j])
-            s += acc * e[j]
-        total += s
+        total += _quadratic(e, Q[k] if k < N else QN)
         if k < N:
             for i in range(nu):
                 du[i] = u[k, i] - u_ref[k, i]
-            s = 0.0
-            for j in range(nu):
-                acc = 0.0
-                for i in range(nu):
-                    acc += du[i] * R[k, i, j]
-                s += acc * du[j]
-            total += s
+            total += _quadratic(du, R[k])
     return total
 
 

@@ -38,6 +38,7 @@ KINDS = {"lcp": 0, "c3+": 1}
 #: the NumPy back-end, whose copies of the controller's arrays the compiled path reads
 _NUMPY = array_ops(torch.zeros(0), "numpy")
 
+
 class CompiledSolve:
     """The compiled path of the controller ``ctrl`` (a :class:`lcs_cvx.control.C3`), or None
     where it does not apply (:meth:`of`)."""
