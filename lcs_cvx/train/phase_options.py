@@ -91,7 +91,9 @@ class AdamOptions:
 
     Attributes:
         iterations: Adam steps (0: no Adam phase).
-        batch_size: minibatch size; minibatches follow a fresh random permutation every epoch.
+        batch_size: minibatch size; minibatches follow a fresh random permutation every epoch
+            (a minibatch of all of at least 8,192 training samples is read in storage order:
+            :meth:`lcs_cvx.train.state.TrainState.next_batch`).
         lr, betas, adam_eps: Adam's learning rate, betas and epsilon.
         lr_schedule: ``"constant"`` or ``"cosine"`` (from ``lr`` down to ``lr * lr_floor``).
         lr_floor: the cosine schedule's final fraction of ``lr``.
