@@ -24,6 +24,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -38,8 +39,10 @@ from .value_and_grad import prediction_value_and_grad, violation_value_and_grad
 
 __all__ = ["FIG1_SIZES", "N_X_10_SIZES", "load_authors", "run_authors", "run_row", "table"]
 
+#: The sizes of Fig. 1 with ``n_x = 10``: panel (a).
+N_X_10_SIZES = [(10, 4, n) for n in (1, 4, 8, 12, 16, 20)]
 FIG1_SIZES = (
-    [(10, 4, n) for n in (1, 4, 8, 12, 16, 20)]
+    N_X_10_SIZES
     + [(n, 4, 10) for n in (2, 8, 16, 32, 64, 128)]
     + [(8, 4, 10), (4, 4, 4)]
 )
@@ -77,18 +80,10 @@ def authors_theta(model: LCS) -> np.ndarray:
 
 
 def package_gradient(model: LCS) -> np.ndarray:
-    """The package's gradient in the authors' layout (as :func:`authors_theta`)."""
+    """The package's gradient in the authors' layout (as :func:`authors_theta`); ``d/dG_para`` is
+    ``dG`` on the upper triangle (``G``'s strict lower part is held at 0)."""
     grads = {k: p.grad for k, p in model.named_parameters()}
-
-    class _G:  # the gradients, shaped as the parameters, for authors_theta
-        pass
-
-    g = _G()
-    for k, v in grads.items():
-        setattr(g, k, v)
-    # d/dG_para is dG restricted to the upper triangle (G's strict lower part is held at 0)
-    g.G = torch.triu(grads["G"])
-    return authors_theta(g)
+    return authors_theta(SimpleNamespace(**{**grads, "G": torch.triu(grads["G"])}))
 
 
 def learners(lcs_learning, n_x: int, n_u: int, n_lam: int, stiffness: float):
@@ -126,8 +121,8 @@ def training_steps(lcs_learning, optim, model: LCS, data, loss: str, batch: int,
         start = LCS(model.n_x, model.n_u, model.n_lam, stiffness=float(model.stiffness))
         start.load_state_dict(model.state_dict())
         t0 = time.perf_counter()
-        fit(start, train, recipe="paper", loss=loss, iterations=STEP_ITERATIONS,
-                    batch_size=batch, progress=False, **kw)
+        fit(start, train, recipe="paper", loss=loss, iterations=STEP_ITERATIONS, batch_size=batch,
+            progress=False, **kw)
         return (time.perf_counter() - t0) / STEP_ITERATIONS
 
     theirs(), ours()
@@ -144,6 +139,11 @@ def training_steps(lcs_learning, optim, model: LCS, data, loss: str, batch: int,
 
 def run_row(lcs_learning, size, loss: str, batch: int, repeats: int, seed: int = 0,
             optim=None) -> dict:
+    """One row of :func:`table`: at ``size`` ``(n_x, n_u, n_lam)`` and ``loss``, the samples per
+    second of the authors' ``step`` (module ``lcs_learning``), of ``*_value_and_grad`` and of the
+    loss + ``backward()`` on ``batch`` samples (medians of ``repeats`` interleaved repeats), the
+    agreement of ``lam``, loss and gradient, and with the authors' ``optim`` the training steps'
+    times (:func:`training_steps`)."""
     n_x, n_u, n_lam = size
     model, data = model_for(n_x, n_u, n_lam, seed)
     x, u, xn = data.x[:batch], data.u[:batch], data.x_next[:batch]
@@ -229,10 +229,6 @@ def table(rows: list[dict]) -> str:
                      f"{r['ratio']:,.0f}× | {r['lam_err']:.1e} | {r['loss_rel_err']:.1e} | "
                      f"{r['grad_rel_err']:.1e} | {_step_cells(r)} |")
     return "\n".join(lines)
-
-
-#: The sizes of Fig. 1 with ``n_x = 10``: panel (a).
-N_X_10_SIZES = [(10, 4, n) for n in (1, 4, 8, 12, 16, 20)]
 
 
 def load_authors(path: str | Path) -> tuple[Any, Any]:

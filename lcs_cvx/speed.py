@@ -211,7 +211,6 @@ def run_c3_bench(solves: int = 50, repeats: int = 7, seed: int = 0,
     return "\n".join(lines)
 
 
-
 @contextlib.contextmanager
 def _one_torch_thread() -> Iterator[None]:
     """torch on one thread inside, the count before restored after."""

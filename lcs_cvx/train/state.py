@@ -114,7 +114,6 @@ class TrainState:
         self.active: torch.Tensor | None = None
         self.seen = torch.zeros(len(train), dtype=torch.bool, device=self.device)
         self._views: tuple | None = None
-        self._in_order: torch.Tensor | None = None
 
     @property
     def iteration(self) -> int:
@@ -145,9 +144,7 @@ class TrainState:
             self.pos = 0
         if size >= len(self.perm) >= IN_ORDER_FROM:
             self.pos = len(self.perm)
-            if self._in_order is None or self._in_order.device != self.perm.device:
-                self._in_order = torch.arange(len(self.perm), device=self.perm.device)
-            return self._in_order
+            return torch.arange(len(self.perm), device=self.perm.device)
         idx = self.perm[self.pos : self.pos + size]
         self.pos += size
         return idx
